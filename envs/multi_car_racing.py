@@ -38,6 +38,7 @@ from gymnasium.envs.box2d.car_racing import (
     GRASS_DIM,
     PLAYFIELD,
     SCALE,
+    TRACK_RAD,
     TRACK_WIDTH,
     ZOOM,
     CarRacing,
@@ -70,7 +71,8 @@ VIEW_CAR_X = VIEW_W / 2  # the car sits centred, a quarter from the bottom
 VIEW_CAR_Y = VIEW_H * 3 / 4
 DASHBOARD_H = VIEW_H * 5 // 40  # CarRacing's indicator strip: 5/40 of the height
 MAP_PIXELS_PER_UNIT = 2.0  # track image resolution, close to the view's own scale
-OVERVIEW_SIZE = 400  # rgb_array frame: whole-track overview beside the car views
+OVERVIEW_SIZE = 400  # rgb_array frame: whole-track overview beside the car views ...
+OVERVIEW_HALF_WIDTH = 1.5 * TRACK_RAD + 25  # ... of this part of the world (the track's extent)
 
 # --- Colours (RGB) ----------------------------------------------------------------------
 ROAD_COLOR = (102, 102, 102)  # CarRacing's defaults
@@ -301,15 +303,15 @@ class TrackRenderer:
         img[h - DASHBOARD_H :] = 0
 
         def bar(x0, x1, y0, y1, color, value):
-            if abs(value) > 1e-4:
-                cv2.rectangle(img, (round(x0), round(y0)), (round(x1) - 1, round(y1) - 1), color, -1)
+            (x0, x1), (y0, y1) = sorted((round(x0), round(x1))), sorted((round(y0), round(y1)))
+            if abs(value) > 1e-4 and x1 > x0 and y1 > y0:  # CarRacing skips ~zero readings
+                cv2.rectangle(img, (x0, y0), (x1 - 1, y1 - 1), color, -1)
 
         def vertical(place, val, color, value):
             bar(place * s, (place + 1) * s, h - (u + u * val), h - u, color, value)
 
         def horizontal(place, val, color, value):
-            x0, x1 = sorted((place * s, (place + val) * s))
-            bar(x0, x1, h - 4 * u, h - 2 * u, color, value)
+            bar(place * s, (place + val) * s, h - 4 * u, h - 2 * u, color, value)
 
         vertical(5, 0.02 * speed, (255, 255, 255), speed)
         for i, (omega, color) in enumerate(zip(wheel_omegas, ((0, 0, 255),) * 2 + ((51, 0, 255),) * 2)):
@@ -321,12 +323,14 @@ class TrackRenderer:
         """Race frame for videos: the whole track with every car (dots with headings), next
         to every car's own view scaled up, two views per column."""
         if self._overview is None:
-            self._overview = cv2.resize(self.map, (OVERVIEW_SIZE, OVERVIEW_SIZE), interpolation=cv2.INTER_AREA)
+            lo, hi = (np.array([-1, 1]) * OVERVIEW_HALF_WIDTH + PLAYFIELD) * self.ppu
+            crop = self.map[int(lo) : int(hi), int(lo) : int(hi)]
+            self._overview = cv2.resize(crop, (OVERVIEW_SIZE, OVERVIEW_SIZE), interpolation=cv2.INTER_AREA)
         frame_map = self._overview.copy()
-        k = OVERVIEW_SIZE / (2 * PLAYFIELD)
+        k = OVERVIEW_SIZE / (2 * OVERVIEW_HALF_WIDTH)
 
         def dot(x, y, angle, color, radius):
-            p = np.array([(x + PLAYFIELD) * k, (y + PLAYFIELD) * k])
+            p = np.array([(x + OVERVIEW_HALF_WIDTH) * k, (y + OVERVIEW_HALF_WIDTH) * k])
             head = p + 2 * radius * np.array([-math.sin(angle), math.cos(angle)])
             cv2.circle(frame_map, tuple(np.round(p).astype(int)), radius, color, -1, cv2.LINE_AA)
             cv2.line(frame_map, tuple(np.round(p).astype(int)), tuple(np.round(head).astype(int)), color, 2)
