@@ -1,0 +1,199 @@
+"""Paper-style figures from the TensorBoard logs of several runs and seeds.
+
+    python plot.py runs/ --out figures/ [--sigma 2]
+
+Every run directory under ``runs/`` holding a TensorBoard event file is one seed of one
+group. A run's group is ``(variant, stage)``, read from the ``config.json`` the dreamer
+scripts write beside their logs (``variant``, ``stage``, ``seed``), or else parsed from the
+CleanRL run name ``{env_id}__{exp_name}__{seed}__{time}``. Per-agent tags
+(``car_0/charts/episodic_return``) are pooled over the agents of a run.
+
+Each curve is smoothed with a Gaussian filter (``--sigma`` in logged points, scipy's
+``gaussian_filter1d``), resampled onto a common x grid, and drawn as the mean across seeds
+(and agents) with a band of one standard deviation. Figures (one PNG each):
+
+* ``single_agent_return.png``  - stage ``single``: episodic return
+* ``multi_agent_return.png``   - stage ``race``: episodic return
+* ``multi_agent_win_rate.png`` - stage ``race``: win rate
+* ``ghost_return.png``         - stage ``ghost``: episodic return (when present)
+* ``losses.png``               - actor, critic, reconstruction, KL (dyn) for every group
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import glob
+import json
+import os
+import re
+import sys
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from scipy.ndimage import gaussian_filter1d  # noqa: E402
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator  # noqa: E402
+
+VARIANTS = ("lstm", "gru")
+STAGES = ("single", "ghost", "race")
+AGENT_PREFIX = re.compile(r"^car_\d+/")
+GRID_POINTS = 200
+FIGURES = {
+    "single_agent_return.png": ("single", "charts/episodic_return", "episodic return"),
+    "multi_agent_return.png": ("race", "charts/episodic_return", "episodic return"),
+    "multi_agent_win_rate.png": ("race", "charts/win_rate", "win rate"),
+    "ghost_return.png": ("ghost", "charts/episodic_return", "episodic return"),
+}
+LOSSES = ("losses/actor", "losses/critic", "losses/reconstruction", "losses/kl_dyn")
+
+
+@dataclasses.dataclass
+class Run:
+    path: str
+    variant: str
+    stage: str
+    seed: int
+    scalars: dict[str, list[tuple[np.ndarray, np.ndarray]]]  # tag -> one (steps, values) per agent
+
+    @property
+    def group(self) -> tuple[str, str]:
+        return self.variant, self.stage
+
+
+def run_identity(run_dir: str) -> tuple[str, str, int]:
+    """(variant, stage, seed) of a run: its config.json, else its CleanRL run name."""
+    config_path = os.path.join(run_dir, "config.json")
+    if os.path.exists(config_path):
+        with open(config_path) as f:
+            config = json.load(f)
+        try:
+            return str(config["variant"]), str(config["stage"]), int(config["seed"])
+        except KeyError as e:
+            raise ValueError(f"{config_path} lacks {e.args[0]!r} (needs variant, stage, seed)") from None
+    parts = os.path.basename(os.path.normpath(run_dir)).split("__")
+    if len(parts) < 3:
+        raise ValueError(f"{run_dir}: no config.json and not a run name env__exp__seed__time")
+    exp_name, seed = parts[1], parts[2]
+    variant = next((v for v in VARIANTS if v in exp_name), exp_name)
+    stage = next((s for s in STAGES if s in exp_name), "single")
+    return variant, stage, int(seed)
+
+
+def read_scalars(run_dir: str) -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
+    """All scalars of the event files of one run, per-agent prefixes pooled by tag."""
+    acc = EventAccumulator(run_dir, size_guidance={"scalars": 0})
+    acc.Reload()
+    scalars: dict[str, list] = {}
+    for tag in acc.Tags()["scalars"]:
+        events = acc.Scalars(tag)
+        steps = np.array([e.step for e in events], dtype=np.float64)
+        values = np.array([e.value for e in events], dtype=np.float64)
+        order = np.argsort(steps, kind="stable")
+        scalars.setdefault(AGENT_PREFIX.sub("", tag), []).append((steps[order], values[order]))
+    return scalars
+
+
+def load_runs(logdir: str) -> list[Run]:
+    event_files = glob.glob(os.path.join(logdir, "**", "events.out.tfevents.*"), recursive=True)
+    run_dirs = sorted({os.path.dirname(f) for f in event_files})
+    if not run_dirs:
+        raise ValueError(f"no TensorBoard event files under {logdir!r}")
+    return [Run(d, *run_identity(d), read_scalars(d)) for d in run_dirs]
+
+
+def group_runs(runs: list[Run]) -> dict[tuple[str, str], list[Run]]:
+    groups: dict[tuple[str, str], list[Run]] = {}
+    for run in sorted(runs, key=lambda r: (r.group, r.seed)):
+        groups.setdefault(run.group, []).append(run)
+    return groups
+
+
+def smooth(values: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian smoothing over logged points; edges repeat the end values."""
+    if sigma <= 0 or len(values) < 2:
+        return np.asarray(values, dtype=np.float64)
+    return gaussian_filter1d(np.asarray(values, dtype=np.float64), sigma, mode="nearest")
+
+
+def aggregate(curves: list[tuple[np.ndarray, np.ndarray]], sigma: float):
+    """Mean and standard deviation across curves on a common grid (the x range all share)."""
+    curves = [(s, v) for s, v in curves if len(s)]
+    if not curves:
+        return None
+    lo = max(s[0] for s, _ in curves)
+    hi = min(s[-1] for s, _ in curves)
+    grid = np.linspace(lo, hi, GRID_POINTS) if hi > lo else np.array([lo])
+    stacked = np.stack([np.interp(grid, s, smooth(v, sigma)) for s, v in curves])
+    return grid, stacked.mean(axis=0), stacked.std(axis=0), len(curves)
+
+
+def plot_metric(ax, groups, tag: str, sigma: float, stage: str | None = None) -> list[str]:
+    labels = []
+    for (variant, group_stage), runs in groups.items():
+        if stage is not None and group_stage != stage:
+            continue
+        curves = [c for run in runs for c in run.scalars.get(tag, [])]
+        result = aggregate(curves, sigma)
+        if result is None:
+            continue
+        grid, mean, std, n = result
+        label = f"{variant} ({len(runs)} seeds)" if stage else f"{variant}/{group_stage}"
+        (line,) = ax.plot(grid, mean, label=label)
+        ax.fill_between(grid, mean - std, mean + std, color=line.get_color(), alpha=0.2)
+        labels.append(label)
+    ax.set_xlabel("step")
+    ax.grid(alpha=0.3)
+    if labels:
+        ax.legend()
+    return labels
+
+
+def make_figures(logdir: str, out: str, sigma: float = 2.0) -> dict[str, plt.Figure]:
+    """Build every figure that has data; save each as a PNG in ``out``; return them."""
+    groups = group_runs(load_runs(logdir))
+    os.makedirs(out, exist_ok=True)
+    figures = {}
+    for name, (stage, tag, ylabel) in FIGURES.items():
+        fig, ax = plt.subplots(figsize=(6, 4))
+        if plot_metric(ax, groups, tag, sigma, stage=stage):
+            ax.set_ylabel(ylabel)
+            ax.set_title(f"{stage}: {ylabel}")
+            figures[name] = fig
+        else:
+            plt.close(fig)
+    fig, axes = plt.subplots(1, len(LOSSES), figsize=(5 * len(LOSSES), 4))
+    if any(plot_metric(ax, groups, tag, sigma) for ax, tag in zip(axes, LOSSES)):
+        for ax, tag in zip(axes, LOSSES):
+            ax.set_title(tag)
+        figures["losses.png"] = fig
+    else:
+        plt.close(fig)
+    for name, fig in figures.items():
+        fig.tight_layout()
+        fig.savefig(os.path.join(out, name), dpi=100)
+    return figures
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("logdir", help="directory holding run directories (e.g. runs/)")
+    parser.add_argument("--out", default="figures", help="where the PNGs go")
+    parser.add_argument("--sigma", type=float, default=2.0, help="Gaussian smoothing, in logged points (0: none)")
+    args = parser.parse_args(argv)
+    if not os.path.isdir(args.logdir):
+        parser.error(f"logdir {args.logdir!r} is not a directory")
+    if args.sigma < 0:
+        parser.error(f"--sigma must be >= 0, got {args.sigma}")
+    try:
+        figures = make_figures(args.logdir, args.out, args.sigma)
+    except ValueError as e:
+        sys.exit(f"plot.py: {e}")
+    for name in figures:
+        print(os.path.join(args.out, name))
+
+
+if __name__ == "__main__":
+    main()
