@@ -578,6 +578,8 @@ class MultiCarRacing(ParallelEnv):
             ghost = self._ghost_of(i)
             if ghost is not None:
                 infos[agent]["ghost_beaten"] = ghost_beaten(int(self._finish_step[i]), int(self._tiles[i]), ghost)
+            if self.track_seed is not None:  # the whole run, ready to race as a ghost
+                infos[agent]["trajectory"] = self.trajectory(agent)
             self.agents.remove(agent)
             if self.rules == "race":  # out of the race: off the track for the others
                 self._destroy_car(i)

@@ -82,6 +82,15 @@ def test_ghost_rule():
     assert not ghost_beaten(-1, 6, ghost(-1, 6))
 
 
+def test_final_info_carries_the_run_as_a_ghost():
+    env = MultiCarRacing(num_agents=1, max_steps=LONG)
+    _, infos, steps = drive_race(env, {"car_0": 70.0}, seed=SEED)
+    ghost = infos["car_0"]["trajectory"]
+    assert ghost.track_seed == SEED and ghost.finish_step == steps and ghost.tiles == env.num_tiles
+    assert len(ghost.poses) == steps + 1
+    np.testing.assert_array_equal(ghost.poses, env.trajectory("car_0").poses)
+
+
 def test_ghost_round_trips_through_plain_types(slow_ghost):
     back = GhostTrajectory.from_dict(slow_ghost.to_dict())
     np.testing.assert_array_equal(back.poses, slow_ghost.poses)
