@@ -150,6 +150,17 @@ def ghost_beaten(car_finish_step: int, car_tiles: int, ghost: GhostTrajectory) -
     return car_tiles > ghost.tiles
 
 
+def race_winners(final_infos: list[dict]) -> list[bool]:
+    """Who won a race, from each car's last info: the cars ranked 1 (finishing first, ties
+    share); if no car finished, the one car with the most tiles (a tie: nobody won)."""
+    ranks = [int(info["rank"]) for info in final_infos]
+    if any(r == 1 for r in ranks):
+        return [r == 1 for r in ranks]
+    tiles = [int(info["tiles"]) for info in final_infos]
+    best = max(tiles)
+    return [t == best and tiles.count(best) == 1 for t in tiles]
+
+
 # =======================================================================================
 # Contacts: wheels on tiles (progress, friction) and hulls on hulls (collisions)
 # =======================================================================================
@@ -482,8 +493,16 @@ class MultiCarRacing(ParallelEnv):
             raise ValueError(f"dead_zone must lie in [-1, 0], got {value!r}")
 
     def reset(self, seed: int | None = None, options: dict | None = None):
-        """Start a new race. ``options={"ghosts": {agent: GhostTrajectory}}`` replays ghosts
-        (their ``track_seed`` must equal ``seed``)."""
+        """Start a new race.
+
+        ``options``: ``"ghosts"``: ``{agent: GhostTrajectory}`` replays ghosts (their
+        ``track_seed`` must equal ``seed``); ``"grid"``: grid slot of every car (a permutation
+        of ``range(num_agents)``, slot 0 is pole) instead of the seeded random order, so
+        races can swap start positions fairly on the same track.
+        """
+        grid = (options or {}).get("grid")
+        if grid is not None and sorted(int(g) for g in grid) != list(range(self.num_cars)):
+            raise ValueError(f"options['grid'] must be a permutation of 0..{self.num_cars - 1}, got {list(grid)}")
         if seed is not None:
             self.np_random, _ = seeding.np_random(seed)
         ghosts = dict((options or {}).get("ghosts") or {})
@@ -535,7 +554,7 @@ class MultiCarRacing(ParallelEnv):
         self._poses: list[list[tuple[float, float, float]]] = [[] for _ in range(n)]
         self._finished_count = 0
 
-        self.cars = [self._create_car(i, pose) for i, pose in enumerate(self._start_grid())]
+        self.cars = [self._create_car(i, pose) for i, pose in enumerate(self._start_grid(grid))]
         self._car_tile = np.array([self._locate(*self._pose(i)[:2], -1) for i in range(n)])
         self._start_tile = self._car_tile.copy()
         # CarRacing's reset advances the world once with no control (its ``step(None)``);
@@ -684,13 +703,16 @@ class MultiCarRacing(ParallelEnv):
         return int(idx[hits[0]]) if len(hits) else -1
 
     # --- Cars ---------------------------------------------------------------------------
-    def _start_grid(self) -> list[tuple[float, float, float]]:
+    def _start_grid(self, grid=None) -> list[tuple[float, float, float]]:
         """Start poses (angle, x, y) per car. CarRacing rules: gymnasium's own start. Race
-        rules: a staggered two-column grid behind the line, cars in random order."""
+        rules: a staggered two-column grid behind the line, cars in random order (or in
+        ``grid`` order: ``grid[i]`` is the slot of car i)."""
         beta, x, y = self.track[0, 1], self.track[0, 2], self.track[0, 3]
         if self.rules == "carracing" or self.num_cars == 1:
             return [(beta, x, y)] * self.num_cars
-        order = self.np_random.permutation(self.num_cars)  # order[i]: grid slot of car i
+        order = self.np_random.permutation(self.num_cars)  # drawn either way: same random stream
+        if grid is not None:
+            order = np.asarray(grid, dtype=np.int64)
         poses = []
         for slot in order:
             beta, x, y = self.track[-int(slot) % self.num_tiles, 1:4]

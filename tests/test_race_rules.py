@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from envs import MultiCarRacing
+from envs import MultiCarRacing, race_winners
 from envs.pursuit import PursuitDriver, drive_race
 
 LONG = 3000  # max_steps for races of slow scripted drivers
@@ -212,3 +212,27 @@ def test_dead_zone_changes_only_between_episodes():
     assert env.dead_zone == -0.3
     with pytest.raises(ValueError, match="dead_zone"):
         env.set_dead_zone(-2.0)
+
+
+def test_grid_option_swaps_start_positions_on_the_same_track():
+    env = MultiCarRacing(num_agents=2)
+    env.reset(seed=5, options={"grid": [0, 1]})
+    first = {a: env.car_state(a)["position"] for a in env.agents}
+    track = env.track.copy()
+    env.reset(seed=5, options={"grid": [1, 0]})
+    np.testing.assert_array_equal(env.track, track)
+    np.testing.assert_allclose(env.car_state("car_0")["position"], first["car_1"])
+    np.testing.assert_allclose(env.car_state("car_1")["position"], first["car_0"])
+    with pytest.raises(ValueError, match="permutation of 0..1"):
+        env.reset(seed=5, options={"grid": [0, 0]})
+
+
+def test_race_winners():
+    def info(rank, tiles):
+        return {"rank": rank, "tiles": tiles}
+
+    assert race_winners([info(2, 300), info(1, 300)]) == [False, True]
+    assert race_winners([info(1, 300), info(1, 300)]) == [True, True]  # same-step finish
+    assert race_winners([info(-1, 120), info(-1, 80)]) == [True, False]  # nobody finished
+    assert race_winners([info(-1, 80), info(-1, 80)]) == [False, False]
+    assert race_winners([info(-1, 310), info(1, 200)]) == [False, True]  # finishing beats tiles
