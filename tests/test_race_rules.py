@@ -1,12 +1,11 @@
 """Race rules of DESIGN 2.3-2.4, checked with the pure-pursuit driver as the oracle."""
 
-import math
 
 import numpy as np
 import pytest
 
 from envs import MultiCarRacing, race_winners
-from envs.pursuit import PursuitDriver, drive_race
+from envs.pursuit import PursuitDriver, drive_race, lane_of
 
 LONG = 3000  # max_steps for races of slow scripted drivers
 
@@ -40,11 +39,7 @@ def run_two_drivers(seed, fast=70.0, slow=40.0):
     env = MultiCarRacing(num_agents=2, max_steps=LONG, collision_penalty=0.05)
     env.reset(seed=seed)
     # keep to the lane of the grid column each car starts in, so the fast car overtakes
-    lanes = {}
-    for a in env.possible_agents:
-        state = env.car_state(a)
-        beta = env.track[state["tile"], 1]
-        lanes[a] = float(np.dot(state["position"] - env.track_xy[state["tile"]], [math.cos(beta), math.sin(beta)]))
+    lanes = {a: lane_of(env, a) for a in env.possible_agents}
     drivers = {
         "car_0": PursuitDriver(env, "car_0", fast, lane=lanes["car_0"]),
         "car_1": PursuitDriver(env, "car_1", slow, lane=lanes["car_1"]),
