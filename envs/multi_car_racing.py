@@ -99,7 +99,7 @@ WHEEL_POLYGONS = ((0, 4), (4, 8), (8, 12), (12, 16))
 # =======================================================================================
 # Ghosts (DESIGN 2.5)
 # =======================================================================================
-@dataclasses.dataclass
+@dataclasses.dataclass(eq=False)
 class GhostTrajectory:
     """One car's recorded run on one track, replayable as a ghost on the same track seed.
 
@@ -114,6 +114,11 @@ class GhostTrajectory:
     tile_steps: np.ndarray
     tile_ids: np.ndarray
     finish_step: int
+
+    def __eq__(self, other) -> bool:
+        if not isinstance(other, GhostTrajectory):
+            return NotImplemented
+        return all(np.array_equal(getattr(self, f.name), getattr(other, f.name)) for f in dataclasses.fields(self))
 
     @property
     def tiles(self) -> int:

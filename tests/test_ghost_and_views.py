@@ -1,5 +1,7 @@
 """Ghost racing (DESIGN 2.5) and the cameras (DESIGN 2.2, 2.7)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -95,6 +97,7 @@ def test_ghost_round_trips_through_plain_types(slow_ghost):
     back = GhostTrajectory.from_dict(slow_ghost.to_dict())
     np.testing.assert_array_equal(back.poses, slow_ghost.poses)
     assert back.finish_step == slow_ghost.finish_step and back.tiles == slow_ghost.tiles
+    assert back == slow_ghost and back != dataclasses.replace(slow_ghost, finish_step=slow_ghost.finish_step + 1)
 
 
 def test_ghost_needs_its_own_track(slow_ghost):
