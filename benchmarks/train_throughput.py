@@ -1,0 +1,179 @@
+"""Training throughput of the Dreamer scripts: time per update as a ratio to a bare-encoder reference.
+
+One update = world-model step + imagination + actor step + critic step (`Agent.update`). Every time
+is printed next to its ratio to the reference measured in the same process with the same thread
+setting: a bare 4-layer conv encoder (3-32-64-128-256, kernel 4, stride 2) forward + backward on
+750 frames of 96x96 (one paper-size batch, B*L = 15*50), so figures compare across machines
+(DESIGN 6: peers spend 4-12x the reference per update; target at paper size with 100 starts <= 3x).
+
+Also measured: env steps per second of one two-car race while both agents act (and with random
+actions, for reference).
+
+    python benchmarks/train_throughput.py                      # CPU size only (quick)
+    python benchmarks/train_throughput.py --configs paper-100 paper-all cpu
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import itertools
+import os
+import sys
+import time
+from typing import Literal
+
+import numpy as np
+import torch
+import tyro
+from torch import nn
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+# The CPU-sized configuration of the README.
+CPU_SIZE = {
+    "cnn_depth": 16, "deter_size": 256, "hidden_size": 256, "mlp_size": 256, "image_size": 64,
+    "batch_size": 16, "seq_len": 32, "imagination_horizon": 15, "imagination_starts": 256,
+}  # fmt: skip
+CONFIGS = {
+    "paper-100": {"imagination_starts": 100},  # the paper authors' setting
+    "paper-all": {},  # the default: all B*L starts
+    "cpu": CPU_SIZE,
+}
+
+
+@dataclasses.dataclass
+class Args:
+    script: str = "dreamer_lstm"
+    """module of the agent to measure (dreamer_lstm or dreamer_gru)"""
+    configs: tuple[Literal["paper-100", "paper-all", "cpu"], ...] = ("cpu",)
+    """configurations to time: paper size with 100 / all imagination starts, the CPU size"""
+    updates: int = 5
+    """timed updates per configuration (after one warm-up update); the median is reported"""
+    reference_repeats: int = 3
+    """timed repeats of the bare-encoder reference (after one warm-up); the median is reported"""
+    threads: int = 0
+    """torch threads (0: torch's default)"""
+    malloc_fix: bool = True
+    """glibc mallopt setting of the scripts (DESIGN 6)"""
+    env_steps: int = 300
+    """env steps for the acting throughput (0: skip)"""
+
+
+def median_time(fn, repeats: int) -> float:
+    fn()  # warm-up
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return float(np.median(times))
+
+
+def bare_encoder_reference(repeats: int) -> float:
+    """4-layer conv (3-32-64-128-256, k4 s2) + ReLU, forward and backward on 750 frames of 96x96."""
+    layers, channels = [], [3, 32, 64, 128, 256]
+    for c_in, c_out in itertools.pairwise(channels):
+        layers += [nn.Conv2d(c_in, c_out, 4, 2), nn.ReLU()]
+    encoder = nn.Sequential(*layers)
+    frames = torch.rand(750, 3, 96, 96)
+
+    def step():
+        encoder.zero_grad(set_to_none=True)
+        encoder(frames).sum().backward()
+
+    return median_time(step, repeats)
+
+
+def filled_replay(script, args, steps: int = 3000):
+    rng = np.random.default_rng(0)
+    replay = script.Replay(steps, args.image_size)
+    for _ in range(steps // 500):
+        obs = rng.integers(0, 256, (500, args.image_size, args.image_size, 3), dtype=np.uint8)
+        action = rng.uniform(-1, 1, (500, 2)).astype(np.float32)
+        terminated = np.zeros(500, bool)
+        terminated[-1] = True
+        replay.add_episode(obs, action, rng.normal(size=500).astype(np.float32), terminated)
+    return replay
+
+
+def time_update(script, overrides: dict, repeats: int) -> dict:
+    args = script.Args(**overrides)
+    agent = script.Agent(args)
+    replay = filled_replay(script, args)
+    batch = replay.sample(args.batch_size, args.seq_len)
+    total = median_time(lambda: agent.update(batch), repeats)
+
+    def world_model_step():
+        tensors = [torch.as_tensor(batch[k]) for k in ("obs", "action", "reward", "is_first")]
+        terminated = torch.as_tensor(batch["terminated"]).float()
+        loss, _, _ = agent.world_model_loss(*tensors, terminated)
+        agent._step(agent.model_optimizer, loss, agent.world_model.parameters())
+
+    world_model = median_time(world_model_step, repeats)
+    starts = args.imagination_starts or args.batch_size * args.seq_len
+    return {
+        "total": total,
+        "world_model": world_model,
+        "behaviour": total - world_model,
+        "starts": starts,
+        "args": args,
+    }
+
+
+def env_throughput(script, overrides: dict, steps: int) -> tuple[float, float]:
+    """Env steps/s of one two-car race: both agents acting, and random actions."""
+    from utils import make_vec_env
+
+    args = script.Args(**overrides)
+    agents = [script.Agent(args) for _ in range(2)]
+    envs = make_vec_env("multi_car_racing", 1, 0, num_agents=2)
+
+    def run(act: bool) -> float:
+        obs, states, is_first = envs.reset(), [None, None], np.ones(2, bool)
+        t = time.perf_counter()
+        for _ in range(steps):
+            frames = script.preprocess_frames(obs, args.image_size)
+            actions = np.random.uniform(-1, 1, (2, 2)).astype(np.float32)
+            if act:
+                for i, agent in enumerate(agents):
+                    actions[i : i + 1], states[i] = agent.act(frames[i : i + 1], states[i], is_first[i : i + 1])
+            obs, _, _, infos = envs.step(actions)
+            is_first = np.array([info["is_first"] for info in infos])
+        return steps / (time.perf_counter() - t)
+
+    acting, random_actions = run(True), run(False)
+    envs.close()
+    return acting, random_actions
+
+
+def main(args: Args) -> None:
+    script = importlib.import_module(args.script)
+    if args.malloc_fix:
+        print(f"malloc fix: {script.keep_freed_memory()}")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, script {args.script}")
+    reference = bare_encoder_reference(args.reference_repeats)
+    print(f"bare encoder reference (750 frames 96x96, fwd+bwd): {reference:.2f} s")
+    for name in args.configs:
+        r = time_update(script, CONFIGS[name], args.updates)
+        a = r["args"]
+        print(
+            f"{name:10s} B={a.batch_size} L={a.seq_len} H={a.imagination_horizon} {a.image_size}px depth={a.cnn_depth} "
+            f"deter={a.deter_size} hidden={a.hidden_size} starts={r['starts']}: update {r['total']:.2f} s "
+            f"= {r['total'] / reference:.2f}x reference (world model {r['world_model']:.2f} s = "
+            f"{r['world_model'] / reference:.2f}x, imagination+actor+critic {r['behaviour']:.2f} s = "
+            f"{r['behaviour'] / reference:.2f}x)",
+            flush=True,
+        )
+    if args.env_steps:
+        for name in args.configs:
+            acting, random_actions = env_throughput(script, CONFIGS[name], args.env_steps)
+            print(
+                f"env steps/s, one two-car race, {name} agents acting: {acting:.0f} (random actions: {random_actions:.0f})"
+            )
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))

@@ -1,0 +1,576 @@
+"""The Dreamer scripts: defaults, network sizes, losses, returns, replay, agent updates, training stages.
+
+Every test takes the script module as a fixture, so the same tests run on every variant listed in
+SCRIPTS (the GRU script joins the list when it exists). Variant-specific facts (the recurrent cell's
+parameter count and the defaults table) are looked up by the module's VARIANT.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import glob
+import importlib
+import itertools
+import math
+import os
+
+import numpy as np
+import pytest
+import torch
+import tyro
+from torch import nn
+
+SCRIPTS = ["dreamer_lstm"]
+
+# DESIGN 4.4: the defaults table (one column per variant).
+DEFAULTS = {
+    "lstm": {
+        "batch_size": 15, "seq_len": 50, "imagination_horizon": 50, "train_steps_per_episode": 200,
+        "model_lr": 6e-4, "critic_lr": 6e-4, "actor_lr": 1e-4, "entropy_coef": 6e-4, "lambda_": 0.95, "gamma": 0.99,
+        "tau": 0.005, "free_bits": 1.0, "kl_dyn_scale": 1.0, "kl_rep_scale": 1.0, "grad_clip": 100.0,
+        "imagination_starts": 0, "action_repeat": 1, "image_size": 96, "prefill_episodes": 5, "replay_capacity": 100_000,
+        "eval_episodes": 10, "dead_zone_start": -1.0, "dead_zone_end": -0.5, "dead_zone_episodes": 200,
+        "brake_speed_threshold": 50.0, "max_steps": 1000, "stall_steps": 150,
+        "collision_penalty": 0.05, "offroad_penalty": 100.0, "speed_reward_coef": 0.0,
+        # widths of DESIGN 4.1 and the issue's other flags
+        "cnn_depth": 32, "deter_size": 512, "hidden_size": 1024, "mlp_size": 512, "latent_size": 60, "norm": "batch",
+        "num_agents": 2, "stage": "race", "env_id": "multi_car_racing", "seed": 1, "cuda": True,
+    },
+}  # fmt: skip
+DEFAULTS["gru"] = {**DEFAULTS["lstm"], "batch_size": 50, "imagination_horizon": 15}
+
+# Tiny sizes for fast tests (the methods are size-agnostic).
+TINY = {
+    "cnn_depth": 4, "deter_size": 16, "hidden_size": 16, "mlp_size": 16, "latent_size": 4, "image_size": 64,
+    "batch_size": 3, "seq_len": 8, "imagination_horizon": 4,
+}  # fmt: skip
+
+
+@pytest.fixture(params=SCRIPTS)
+def script(request):
+    return importlib.import_module(request.param)
+
+
+def tiny_args(script, **overrides):
+    return script.Args(**{**TINY, **overrides})
+
+
+def random_batch(batch=3, length=8, size=64, seed=0, episode_starts=(0,)):
+    rng = np.random.default_rng(seed)
+    is_first = np.zeros((batch, length), dtype=bool)
+    is_first[:, list(episode_starts)] = True
+    return {
+        "obs": rng.integers(0, 256, (batch, length, size, size, 3), dtype=np.uint8),
+        "action": rng.uniform(-1, 1, (batch, length, 2)).astype(np.float32) * ~is_first[..., None],
+        "reward": rng.normal(size=(batch, length)).astype(np.float32),
+        "is_first": is_first,
+        "terminated": np.zeros((batch, length), dtype=bool),
+    }
+
+
+def num_params(module: nn.Module) -> int:
+    return sum(p.numel() for p in module.parameters())
+
+
+# ------------------------------------------------------------------------------------------
+# Defaults and sizes
+# ------------------------------------------------------------------------------------------
+def test_parsed_defaults_equal_design_table(script):
+    args = tyro.cli(script.Args, args=[])
+    expected = DEFAULTS[script.VARIANT]
+    assert {key: getattr(args, key) for key in expected} == expected
+    assert tyro.cli(script.Args, args=["--lambda", "0.9"]).lambda_ == 0.9  # the flag is --lambda
+
+
+def test_parameter_counts_at_default_sizes(script):
+    """Counts from DESIGN 4.1's layer sizes: conv/linear layers followed by a norm have no bias;
+    BatchNorm and LayerNorm have a weight and a bias per channel."""
+    agent = script.Agent(script.Args(), device="cpu")
+    wm = agent.world_model
+    z, a, h, hidden, mlp, e = 60, 2, 512, 1024, 512, 1024
+    feat = z + h  # 572
+
+    def mlp_count(sizes):  # hidden layers: Linear without bias + norm; output Linear with bias
+        hidden_layers = sum(i * o + 2 * o for i, o in itertools.pairwise(sizes[:-1]))
+        return hidden_layers + sizes[-2] * sizes[-1] + sizes[-1]
+
+    encoder = sum(ci * co * 16 + 2 * co for ci, co in [(3, 32), (32, 64), (64, 128), (128, 256)]) + 4096 * e + e
+    recurrent_input = (z + a) * hidden + 2 * hidden
+    cell = {
+        "lstm": 4 * h * (hidden + h) + 2 * 4 * h + 2 * h,  # LSTMCell weights, two biases, learned h0 and c0
+        "gru": 3 * h * (hidden + h) + 2 * 3 * h + h,  # GRUCell weights, two biases, learned h0
+    }[script.VARIANT]
+    representation = mlp_count([e + h, hidden, hidden, 2 * z])
+    transition = mlp_count([h, hidden, hidden, 2 * z])
+    decoder = feat * 4096 + 2 * 64 + 64 * 64 * 9 + 2 * 64 + 64 * 32 * 16 + 2 * 32 + 32 * 3 * 144 + 3 + 1
+    reward = mlp_count([feat, mlp, mlp, 2])
+    cont = mlp_count([feat, mlp, mlp, 1])
+    actor = mlp_count([feat, mlp, mlp, mlp, mlp, 4])
+    critic = mlp_count([feat, mlp, mlp, 2])
+
+    assert num_params(wm.encoder) == encoder == 4_885_952
+    assert num_params(wm.recurrent_input) == recurrent_input
+    assert num_params(wm.cell) == cell
+    assert num_params(wm.representation) == representation
+    assert num_params(wm.transition) == transition
+    assert num_params(wm.decoder) == decoder
+    assert num_params(wm.reward) == reward
+    assert num_params(wm.cont) == cont
+    assert num_params(agent.actor) == actor
+    assert num_params(agent.critic) == critic
+    assert num_params(wm) == encoder + recurrent_input + cell + representation + transition + decoder + reward + cont
+    assert isinstance(agent.critic.net.net[1], nn.LayerNorm)  # the critic uses LayerNorm (appendix)
+    assert isinstance(wm.transition.net[1], nn.BatchNorm1d)  # the rest BatchNorm by default
+    # Targets: copies of encoder, representation, transition and critic that take no gradient.
+    assert num_params(agent.targets) == encoder + representation + transition + critic
+    assert not any(p.requires_grad for p in agent.targets.parameters())
+
+
+@pytest.mark.parametrize("image_size", [96, 64])
+@pytest.mark.parametrize("norm", ["batch", "layer"])
+def test_shapes_through_every_network(script, image_size, norm):
+    args = tiny_args(script, image_size=image_size, norm=norm)
+    agent = script.Agent(args)
+    wm, B, L = agent.world_model, 3, 5
+    obs = torch.randint(0, 256, (B, L, image_size, image_size, 3), dtype=torch.uint8)
+    embed = wm.encoder(obs)
+    assert embed.shape == (B, L, args.hidden_size)
+    post = wm.observe(embed, torch.zeros(B, L, 2), torch.zeros(B, L, dtype=torch.bool))
+    assert post["h"].shape == (B, L, args.deter_size) and post["z"].shape == (B, L, args.latent_size)
+    assert post["post_mean"].shape == post["post_std"].shape == (B, L, args.latent_size)
+    assert (post["post_std"] >= script.LATENT_MIN_STD).all()
+    assert all(s.shape[:2] == (B, L) for s in post["states"])
+    features = torch.cat([post["z"], post["h"]], -1)
+    assert wm.decoder(features).shape == (B, L, 3, image_size, image_size)
+    assert wm.reward(features).shape == (B, L, 2) and wm.cont(features).shape == (B, L, 1)
+    assert wm.transition(post["h"]).shape == (B, L, 2 * args.latent_size)
+    action, log_pi = agent.actor.sample(features)
+    assert action.shape == (B, L, 2) and log_pi.shape == (B, L) and (action.abs() <= 1).all()
+    mean, std = agent.critic(features)
+    assert mean.shape == std.shape == (B, L)
+    # imagination from every posterior state
+    state, h, z = agent.imagination_starts(post)
+    feats, log_pis, actions = script.imagine_rollout(wm, agent.actor, state, h, z, horizon=4)
+    assert feats.shape == (5, B * L, args.latent_size + args.deter_size)
+    assert log_pis.shape == (4, B * L) and actions.shape == (4, B * L, 2)
+
+
+def test_imagination_starts_subset(script):
+    agent = script.Agent(tiny_args(script, imagination_starts=7))
+    post = agent.world_model.observe(torch.zeros(3, 5, 16), torch.zeros(3, 5, 2), torch.zeros(3, 5, dtype=torch.bool))
+    state, h, z = agent.imagination_starts(post)
+    assert h.shape[0] == z.shape[0] == 7 and all(s.shape[0] == 7 for s in state)
+    assert not h.requires_grad and not z.requires_grad  # starts are detached
+
+
+# ------------------------------------------------------------------------------------------
+# Recurrent state
+# ------------------------------------------------------------------------------------------
+def test_learned_initial_state_gets_gradient_and_changes(script):
+    agent = script.Agent(tiny_args(script))
+    cell = agent.world_model.cell
+    initial = [p for name, p in cell.named_parameters() if name.startswith("initial_")]
+    assert len(initial) == {"lstm": 2, "gru": 1}[script.VARIANT]  # h and c (LSTM), h (GRU)
+    assert all(any(p is q for q in agent.model_optimizer.param_groups[0]["params"]) for p in initial)
+    before = [p.detach().clone() for p in initial]
+    agent.update(random_batch())
+    for p, b in zip(initial, before):
+        assert p.grad is not None and p.grad.abs().sum() > 0
+        assert not torch.equal(p.detach(), b)
+
+
+def test_is_first_inside_a_sequence_resets_to_a_fresh_start(script):
+    torch.manual_seed(0)
+    agent = script.Agent(tiny_args(script))
+    wm = agent.world_model.eval()
+    B, L, k = 2, 8, 5
+    embed, actions = torch.randn(B, L, 16), torch.randn(B, L, 2)
+    is_first = torch.zeros(B, L, dtype=torch.bool)
+    is_first[:, k] = True
+    with torch.no_grad():
+        full = wm.observe(embed, actions, is_first, sample=False)
+        fresh = wm.observe(embed[:, k:], actions[:, k:], is_first[:, k:], sample=False)
+        no_reset = wm.observe(embed, actions, torch.zeros_like(is_first), sample=False)
+    torch.testing.assert_close(full["h"][:, k:], fresh["h"])
+    torch.testing.assert_close(full["z"][:, k:], fresh["z"])
+    for s_full, s_fresh in zip(full["states"], fresh["states"]):
+        torch.testing.assert_close(s_full[:, k:], s_fresh)
+    assert not torch.allclose(no_reset["h"][:, k], full["h"][:, k])  # without is_first the past matters
+
+
+def test_act_carries_state_and_resets_on_is_first(script):
+    torch.manual_seed(0)
+    agent = script.Agent(tiny_args(script))
+    obs = np.random.default_rng(0).integers(0, 256, (2, 96, 96, 3), dtype=np.uint8)  # raw camera size
+    a1, s1 = agent.act(obs, None, deterministic=True)
+    assert a1.shape == (2, 2) and np.all(np.abs(a1) <= 1)
+    a2, _s2 = agent.act(obs, s1, np.array([False, True]), deterministic=True)
+    np.testing.assert_allclose(a2[1], a1[1], atol=1e-6)  # car 1 restarted: same as a fresh start
+    assert not np.allclose(a2[0], a1[0])  # car 0 continued with its memory
+    a3, _ = agent.act(obs, s1)  # sampled actions differ from the mean
+    assert not np.allclose(a3, a2)
+
+
+# ------------------------------------------------------------------------------------------
+# Returns, weights, KL, free bits, targets
+# ------------------------------------------------------------------------------------------
+def test_lambda_returns_hand_computed(script):
+    r = torch.tensor([1.0, 2.0, 3.0])  # r_1..r_3
+    c = torch.tensor([1.0, 1.0, 0.0])  # c_1..c_3
+    v = torch.tensor([10.0, 20.0, 30.0])  # V(s_1)..V(s_3)
+    R = script.lambda_returns(r, c, v, torch.zeros(3), gamma=0.5, lam=0.5, alpha=6e-4)
+    torch.testing.assert_close(R, torch.tensor([5.4375, 7.75, 3.0]))
+    # with the entropy term: log pi = (0.5, -1, 2), alpha = 0.1
+    #   R_2 = 3 - 0.2 = 2.8; R_1 = 2 + 0.1 + 0.5 (10 + 1.4) = 7.8; R_0 = 1 - 0.05 + 0.5 (5 + 3.9) = 5.4
+    R = script.lambda_returns(r, c, v, torch.tensor([0.5, -1.0, 2.0]), gamma=0.5, lam=0.5, alpha=0.1)
+    torch.testing.assert_close(R, torch.tensor([5.4, 7.8, 2.8]))
+    # lambda = 1 with no termination: the discounted Monte-Carlo return bootstrapped with V(s_H)
+    R = script.lambda_returns(r, torch.ones(3), v, torch.zeros(3), gamma=0.5, lam=1.0, alpha=0.0)
+    torch.testing.assert_close(R[0], torch.tensor(1 + 0.5 * 2 + 0.25 * 3 + 0.125 * 30))
+    # batched (H, N) inputs
+    R = script.lambda_returns(r[:, None].repeat(1, 4), c[:, None].repeat(1, 4), v[:, None].repeat(1, 4),
+                              torch.zeros(3, 4), gamma=0.5, lam=0.5, alpha=0.0)  # fmt: skip
+    torch.testing.assert_close(R[:, 2], torch.tensor([5.4375, 7.75, 3.0]))
+
+
+def test_actor_weights(script):
+    c = torch.tensor([1.0, 1.0, 0.0], requires_grad=True)
+    w = script.discount_weights(c, gamma=0.5)
+    torch.testing.assert_close(w, torch.tensor([1.0, 0.5, 0.25]))  # w_0 = 1, w_{t+1} = w_t gamma c_{t+1}
+    assert not w.requires_grad
+    c2 = torch.tensor([0.5, 0.0, 1.0])
+    torch.testing.assert_close(script.discount_weights(c2, gamma=0.9), torch.tensor([1.0, 0.45, 0.0]))
+
+
+def test_gaussian_kl_matches_torch(script):
+    g = torch.Generator().manual_seed(0)
+    m1, m2 = torch.randn(4, 6, generator=g), torch.randn(4, 6, generator=g)
+    s1, s2 = torch.rand(4, 6, generator=g) + 0.1, torch.rand(4, 6, generator=g) + 0.1
+    D = torch.distributions
+    expected = D.kl_divergence(D.Independent(D.Normal(m1, s1), 1), D.Independent(D.Normal(m2, s2), 1))
+    torch.testing.assert_close(script.gaussian_kl(m1, s1, m2, s2), expected)
+    x = torch.randn(4, 6, generator=g)
+    torch.testing.assert_close(script.gaussian_nll(x, m1, s1), -D.Normal(m1, s1).log_prob(x))
+    images, means, sigma = (
+        torch.rand(2, 3, 3, 4, 4, generator=g),
+        torch.rand(2, 3, 3, 4, 4, generator=g),
+        torch.tensor(0.3),
+    )
+    expected = -D.Normal(means, sigma).log_prob(images).sum((-3, -2, -1))
+    torch.testing.assert_close(script.image_gaussian_nll(images, means, sigma), expected)
+
+
+def test_kl_free_bits(script):
+    kl = torch.tensor([0.3, 0.99, 1.5, 4.0], requires_grad=True)
+    loss = script.kl_free_bits(kl, 1.0)
+    torch.testing.assert_close(loss.detach(), torch.tensor([1.0, 1.0, 1.5, 4.0]))
+    loss.sum().backward()
+    torch.testing.assert_close(kl.grad, torch.tensor([0.0, 0.0, 1.0, 1.0]))
+
+
+def test_actor_log_prob_includes_tanh_correction(script):
+    torch.manual_seed(0)
+    actor = script.Actor(8, 16, 2, "layer")
+    features = torch.randn(1000, 8)
+    torch.manual_seed(1)
+    action, log_pi = actor.sample(features)
+    mean, std = actor(features)
+    torch.manual_seed(1)
+    u = mean + std * torch.randn_like(std)
+    D = torch.distributions
+    expected = D.TransformedDistribution(D.Normal(mean, std), [D.TanhTransform()]).log_prob(torch.tanh(u)).sum(-1)
+    torch.testing.assert_close(action, torch.tanh(u))
+    ok = action.abs().max(-1).values < 0.999  # away from the 1e-6 guard
+    torch.testing.assert_close(log_pi[ok], expected[ok], atol=1e-3, rtol=1e-3)
+
+
+def test_soft_update_moves_targets_by_tau(script):
+    torch.manual_seed(0)
+    source = nn.Sequential(nn.Linear(3, 4), nn.BatchNorm1d(4))
+    target = nn.Sequential(nn.Linear(3, 4), nn.BatchNorm1d(4))
+    source(torch.randn(8, 3))  # moves source's running statistics
+    before = {k: v.clone() for k, v in target.state_dict().items()}
+    script.soft_update(target, source, 0.1)
+    for key, value in target.state_dict().items():
+        if value.dtype.is_floating_point:
+            torch.testing.assert_close(value, before[key] + 0.1 * (source.state_dict()[key] - before[key]))
+        else:
+            assert torch.equal(value, source.state_dict()[key])
+
+
+def test_update_soft_updates_targets_and_targets_get_no_gradient(script):
+    agent = script.Agent(tiny_args(script, tau=0.25))
+    # Hard copy at the start
+    for key, value in agent.targets["encoder"].state_dict().items():
+        assert torch.equal(value, agent.world_model.encoder.state_dict()[key])
+    old_target = {k: v.clone() for k, v in agent.targets["transition"].state_dict().items()}
+    agent.update(random_batch())
+    new_source = agent.world_model.transition.state_dict()
+    for key, value in agent.targets["transition"].state_dict().items():
+        if value.dtype.is_floating_point:  # parameters and BatchNorm statistics alike
+            torch.testing.assert_close(value, old_target[key] + 0.25 * (new_source[key] - old_target[key]))
+    assert all(p.grad is None and not p.requires_grad for p in agent.targets.parameters())
+
+
+def test_actor_loss_leaves_world_model_and_critic_alone(script):
+    torch.manual_seed(0)
+    agent = script.Agent(tiny_args(script))
+    batch = random_batch()
+    obs = torch.as_tensor(batch["obs"])
+    args = [torch.as_tensor(batch[k]) for k in ("action", "reward")]
+    is_first, terminated = torch.as_tensor(batch["is_first"]), torch.as_tensor(batch["terminated"]).float()
+    _, _, post = agent.world_model_loss(obs, *args, is_first, terminated)
+    actor_loss, _, _ = agent.behaviour_losses(post)
+    actor_params = list(agent.actor.parameters())
+    for p in list(agent.world_model.parameters()) + list(agent.critic.parameters()):
+        p.grad = None
+    actor_loss.backward()
+    assert all(p.grad is None for p in agent.world_model.parameters())  # no world-model gradient
+    assert all(p.grad is None for p in agent.critic.parameters())
+    assert sum(p.grad.abs().sum() for p in actor_params) > 0
+    assert all(p.requires_grad for p in agent.world_model.parameters())  # unfrozen again
+
+
+def test_update_returns_the_logged_losses(script):
+    metrics = script.Agent(tiny_args(script)).update(random_batch())
+    for key in ("reconstruction", "reward", "continue", "kl_dyn", "kl_rep", "actor", "critic", "entropy"):
+        assert isinstance(metrics[key], float) and math.isfinite(metrics[key])
+
+
+def test_world_model_loss_falls_on_a_fixed_batch(script):
+    torch.manual_seed(0)
+    args = tiny_args(script, cnn_depth=8, deter_size=32, hidden_size=32, mlp_size=32, latent_size=8, model_lr=3e-3)
+    agent = script.Agent(args)
+    # Structured frames: a bright square moving across a dark background; rewards follow its position.
+    B, L, S = 4, 8, 64
+    obs = np.full((B, L, S, S, 3), 30, dtype=np.uint8)
+    for b in range(B):
+        for t in range(L):
+            x = 4 + 6 * t + 3 * b
+            obs[b, t, 20:36, x : x + 12] = (230, 200, 40)
+    batch = {
+        "obs": obs, "action": np.zeros((B, L, 2), np.float32), "reward": np.linspace(0, 1, L, dtype=np.float32)[None].repeat(B, 0),
+        "is_first": np.eye(1, L, dtype=bool).repeat(B, 0), "terminated": np.zeros((B, L), bool),
+    }  # fmt: skip
+    tensors = [torch.as_tensor(batch[k]) for k in ("obs", "action", "reward", "is_first")]
+    terminated = torch.as_tensor(batch["terminated"]).float()
+    target = script.frames_to_input(tensors[0])
+    losses, squared_errors = [], []
+    for _ in range(40):
+        loss, _, post = agent.world_model_loss(*tensors, terminated)
+        with torch.no_grad():
+            recon = agent.world_model.decoder(torch.cat([post["z"], post["h"]], -1))
+            squared_errors.append((recon - target).pow(2).sum((-3, -2, -1)).mean().item())
+        agent._step(agent.model_optimizer, loss, agent.world_model.parameters())
+        losses.append(loss.item())
+    # The loss holds a constant 0.5 log(2 pi) per pixel (~11,300 nats at 64 px); the fitted part falls clearly.
+    assert np.mean(squared_errors[-5:]) < 0.3 * np.mean(squared_errors[:5])
+    assert np.mean(losses[-5:]) < np.mean(losses[:5]) - 1000
+
+
+# ------------------------------------------------------------------------------------------
+# Replay
+# ------------------------------------------------------------------------------------------
+def make_episode(length, episode_id, size=8):
+    obs = np.random.default_rng(episode_id).integers(0, 256, (length, size, size, 3), dtype=np.uint8)
+    obs[:, 0, 0, 0] = episode_id  # which episode a frame came from
+    obs[:, 0, 0, 1] = np.arange(length)  # its step in that episode
+    action = np.random.default_rng(episode_id).uniform(-1, 1, (length, 2)).astype(np.float32)
+    action[0] = 0
+    terminated = np.zeros(length, bool)
+    terminated[-1] = episode_id % 2 == 0
+    return obs, action, np.arange(length, dtype=np.float32) + episode_id, terminated
+
+
+def test_replay_frames_bit_exact_and_is_first_marks_episode_starts(script):
+    replay = script.Replay(capacity=100, image_size=8)
+    episodes = {e: make_episode(7 + e, e) for e in range(1, 16)}
+    for ep in episodes.values():
+        replay.add_episode(*ep)
+    assert len(replay) == 100 and replay.total_steps == sum(7 + e for e in episodes)  # wrapped around
+    batch = replay.sample(64, 12, rng=np.random.RandomState(0))
+    assert batch["obs"].shape == (64, 12, 8, 8, 3) and batch["obs"].dtype == np.uint8
+    for b in range(64):
+        ids, steps = batch["obs"][b, :, 0, 0, 0], batch["obs"][b, :, 0, 0, 1]
+        for t in range(12):
+            obs, action, reward, terminated = episodes[ids[t]]
+            np.testing.assert_array_equal(batch["obs"][b, t], obs[steps[t]])  # bit-exact
+            np.testing.assert_array_equal(batch["action"][b, t], action[steps[t]])
+            assert batch["reward"][b, t] == reward[steps[t]] and batch["terminated"][b, t] == terminated[steps[t]]
+            assert batch["is_first"][b, t] == (steps[t] == 0)  # every episode start, and only those
+        # consecutive steps within an episode, a new episode only where is_first
+        for t in range(1, 12):
+            assert (ids[t] == ids[t - 1] and steps[t] == steps[t - 1] + 1) or (
+                batch["is_first"][b, t] and ids[t] == ids[t - 1] + 1
+            )
+
+
+def test_replay_save_load_round_trip(script, tmp_path):
+    replay = script.Replay(capacity=50, image_size=8, chunk_size=16)
+    for e in range(1, 6):
+        replay.add_episode(*make_episode(13, e))
+    replay.save(str(tmp_path / "replay"))
+    assert len(glob.glob(str(tmp_path / "replay" / "chunk_*.npz"))) == 4
+    loaded = script.Replay(capacity=50, image_size=8)
+    loaded.load(str(tmp_path / "replay"))
+    for key in ("obs", "action", "reward", "is_first", "terminated"):
+        np.testing.assert_array_equal(getattr(loaded, key), getattr(replay, key))
+    assert (loaded.next_index, loaded.size, loaded.total_steps) == (replay.next_index, replay.size, replay.total_steps)
+    a, b = replay.sample(5, 6, np.random.RandomState(1)), loaded.sample(5, 6, np.random.RandomState(1))
+    for key in a:
+        np.testing.assert_array_equal(a[key], b[key])
+    # later saves to the same directory rewrite only the changed chunks
+    replay.add_episode(*make_episode(3, 9))
+    replay.save(str(tmp_path / "replay"))
+    loaded.load(str(tmp_path / "replay"))
+    np.testing.assert_array_equal(loaded.obs, replay.obs)
+
+
+# ------------------------------------------------------------------------------------------
+# Checkpoints, memory setting
+# ------------------------------------------------------------------------------------------
+def test_checkpoint_round_trip_with_weights_only(script, tmp_path):
+    args = tiny_args(script)
+    agents = [script.Agent(args) for _ in range(2)]
+    agents[0].update(random_batch())
+    path = str(tmp_path / "ckpt" / "latest.pt")
+    np.random.seed(3)
+    script.save_checkpoint(path, args, agents, {"episode": 7, "global_step": 123, "best_eval_return": -math.inf})
+    expected_draw = np.random.rand()
+    checkpoint = torch.load(path, weights_only=True)  # tensors and plain Python types only
+    assert checkpoint["variant"] == script.VARIANT and checkpoint["counters"]["episode"] == 7
+    assert checkpoint["args"] == dataclasses.asdict(args)
+    assert not glob.glob(str(tmp_path / "ckpt" / "*.tmp"))  # written atomically
+    restored = script.agent_from_checkpoint(path, index=0)
+    for (k, v), v2 in zip(agents[0].world_model.state_dict().items(), restored.world_model.state_dict().values()):
+        assert torch.equal(v, v2), k
+    assert restored.num_updates == 1
+    assert restored.model_optimizer.state_dict()["state"][0]["step"] == 1
+    np.random.seed(99)
+    script.set_rng_state(checkpoint["rng"])
+    assert np.random.rand() == expected_draw
+
+
+def test_keep_freed_memory(script):
+    import platform
+    import sys
+
+    result = script.keep_freed_memory()
+    assert result == (sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc")
+    assert script.Args().malloc_fix is True
+
+
+def test_dead_zone_schedule(script):
+    args = script.Args(dead_zone_start=-1.0, dead_zone_end=-0.5, dead_zone_episodes=200)
+    assert script.dead_zone_at(0, args) == -1.0
+    assert script.dead_zone_at(100, args) == pytest.approx(-0.75)
+    assert script.dead_zone_at(200, args) == script.dead_zone_at(500, args) == -0.5
+
+
+# ------------------------------------------------------------------------------------------
+# End to end: the training stages on the real racing env (tiny networks, 40-step races)
+# ------------------------------------------------------------------------------------------
+E2E = dict(
+    **TINY, max_steps=40, train_steps_per_episode=2, prefill_episodes=1, replay_capacity=2000, total_episodes=2,
+    eval_every=2, eval_episodes=1, video_every=2, video_length=12, replay_save_every=1,
+)  # fmt: skip
+
+
+def read_events(run_dir):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    scalars, images = {}, set()
+    for path in sorted(glob.glob(os.path.join(run_dir, "events.out.tfevents.*"))):
+        acc = EventAccumulator(path, size_guidance={"scalars": 0, "images": 0})
+        acc.Reload()
+        for tag in acc.Tags()["scalars"]:
+            scalars.setdefault(tag, []).extend((e.step, e.value) for e in acc.Scalars(tag))
+        images.update(acc.Tags()["images"])
+    return scalars, images
+
+
+LOSS_TAGS = [
+    f"losses/{k}" for k in ("reconstruction", "reward", "continue", "kl_dyn", "kl_rep", "actor", "critic", "entropy")
+]
+CHART_TAGS = ["charts/episodic_return", "charts/progress", "perf/env_sps", "perf/updates_per_s"]
+
+
+@pytest.fixture(scope="module", params=SCRIPTS)
+def single_run(request, tmp_path_factory):
+    script = importlib.import_module(request.param)
+    runs = tmp_path_factory.mktemp("runs")
+    run_dir = script.main(script.Args(stage="single", runs_dir=str(runs), **E2E))
+    return script, run_dir
+
+
+def test_single_stage_writes_scalars_video_and_checkpoints(single_run):
+    script, run_dir = single_run
+    scalars, images = read_events(run_dir)
+    for tag in CHART_TAGS + LOSS_TAGS:
+        assert "car_0/" + tag in scalars, tag
+    assert "car_1/charts/episodic_return" not in scalars  # one car in the single stage
+    assert len(scalars["car_0/charts/episodic_return"]) == 2  # one value per race
+    assert len(scalars["car_0/losses/reconstruction"]) == 2  # training after every race, from the prefill race on
+    assert "car_0/videos/real_reconstruction_imagination" in images  # the video really is in the event file
+    import plot
+
+    assert plot.run_identity(run_dir)[:2] == (script.VARIANT, "single")  # config.json groups the run
+    for name in ("latest.pt", "best.pt"):
+        checkpoint = torch.load(os.path.join(run_dir, "checkpoints", name), weights_only=True)
+        assert checkpoint["variant"] == script.VARIANT and len(checkpoint["agents"]) == 1
+    latest = torch.load(os.path.join(run_dir, "checkpoints", "latest.pt"), weights_only=True)
+    assert latest["counters"]["episode"] == 2 and latest["agents"][0]["num_updates"] == 2 * 2
+    assert math.isfinite(latest["counters"]["best_eval_return"])
+    assert os.path.exists(os.path.join(run_dir, "checkpoints", "replay_car_0", "meta.npz"))
+
+
+def test_resume_continues_from_saved_counters(single_run):
+    script, run_dir = single_run
+    before = torch.load(os.path.join(run_dir, "checkpoints", "latest.pt"), weights_only=True)
+    replay = script.Replay(E2E["replay_capacity"], TINY["image_size"])
+    replay.load(os.path.join(run_dir, "checkpoints", "replay_car_0"))
+    script.main(script.Args(resume=run_dir, total_episodes=3))
+    after = torch.load(os.path.join(run_dir, "checkpoints", "latest.pt"), weights_only=True)
+    assert after["counters"]["episode"] == 3
+    assert after["counters"]["global_step"] > before["counters"]["global_step"]
+    assert after["agents"][0]["num_updates"] == before["agents"][0]["num_updates"] + 2  # no new prefill
+    assert after["args"]["cnn_depth"] == TINY["cnn_depth"]  # the saved configuration, not the defaults
+    resumed_replay = script.Replay(E2E["replay_capacity"], TINY["image_size"])
+    resumed_replay.load(os.path.join(run_dir, "checkpoints", "replay_car_0"))
+    assert resumed_replay.episodes == replay.episodes + 1  # the loaded replay grew by the new race
+    scalars, _ = read_events(run_dir)
+    assert [step for step, _ in scalars["charts/episode"]][-1] == after["counters"]["global_step"]
+
+
+def test_ghost_stage_records_and_races_a_ghost(single_run, tmp_path):
+    script, run_dir = single_run
+    args = script.Args(
+        stage="ghost", checkpoint=os.path.join(run_dir, "checkpoints", "best.pt"), ghost_tracks=1,
+        runs_dir=str(tmp_path), **{**E2E, "cnn_depth": 8},  # sizes come from the checkpoint
+    )  # fmt: skip
+    ghost_dir = script.main(args)
+    checkpoint = torch.load(os.path.join(ghost_dir, "checkpoints", "latest.pt"), weights_only=True)
+    ghosts = checkpoint["extra"]["ghosts"]
+    assert list(ghosts) == [str(args.ghost_seed)]  # one ghost for the one track, recorded in race 1
+    ghost = ghosts[str(args.ghost_seed)]
+    assert ghost["track_seed"] == args.ghost_seed and len(ghost["poses"]) > 1
+    scalars, _ = read_events(ghost_dir)
+    # race 1 has no ghost yet (no win or loss), race 2 raced against it
+    assert len(scalars["car_0/charts/win_rate"]) == 1
+    assert checkpoint["args"]["cnn_depth"] == TINY["cnn_depth"]
+
+
+def test_race_stage_two_learning_agents(tmp_path, script):
+    run_dir = script.main(script.Args(stage="race", runs_dir=str(tmp_path), **E2E))
+    scalars, images = read_events(run_dir)
+    for car in ("car_0/", "car_1/"):
+        for tag in CHART_TAGS + LOSS_TAGS + ["charts/win_rate"]:
+            assert car + tag in scalars, car + tag
+        assert car + "videos/real_reconstruction_imagination" in images
+    for name in ("latest.pt", "best.pt"):
+        checkpoint = torch.load(os.path.join(run_dir, "checkpoints", name), weights_only=True)
+        assert len(checkpoint["agents"]) == 2
+    latest = torch.load(os.path.join(run_dir, "checkpoints", "latest.pt"), weights_only=True)
+    # independent agents: own networks (different initialisations and updates)
+    w0, w1 = (a["world_model"]["encoder.fc.weight"] for a in latest["agents"])
+    assert not torch.equal(w0, w1)
