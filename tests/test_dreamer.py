@@ -1,7 +1,7 @@
 """The Dreamer scripts: defaults, network sizes, losses, returns, replay, agent updates, training stages.
 
 Every test takes the script module as a fixture, so the same tests run on every variant listed in
-SCRIPTS (the GRU script joins the list when it exists). Variant-specific facts (the recurrent cell's
+SCRIPTS. Variant-specific facts (the recurrent cell's
 parameter count and the defaults table) are looked up by the module's VARIANT.
 """
 
@@ -20,7 +20,7 @@ import torch
 import tyro
 from torch import nn
 
-SCRIPTS = ["dreamer_lstm"]
+SCRIPTS = ["dreamer_lstm", "dreamer_gru"]
 
 # DESIGN 4.4: the defaults table (one column per variant).
 DEFAULTS = {

@@ -1,0 +1,1294 @@
+# GRU-Dreamer (the Dreamer-v3 baseline) for decentralized multi-car racing, in one file (CleanRL style).
+# Method: "Deep Latent Competition V1: Decentralized multi-car racing with LSTM-Dreamer-V3" (DLC-v1).
+# Specification: DESIGN.md section 4. Usage: `python dreamer_gru.py --seed 1`, then `tensorboard --logdir runs`.
+"""GRU-Dreamer: a world model learned from pixels, an actor and a critic trained in its imagination.
+
+Read top to bottom:
+
+1. Args ............ every hyperparameter, with the defaults of DESIGN 4.4
+2. Environment ..... the vectorized race (one slot per car), frame preprocessing, dead-zone schedule
+3. Networks ........ encoder, recurrent core (GRU with a learned initial h), posterior/prior,
+                     decoder, reward, continue, actor, critic (DESIGN 4.1)
+4. Losses .......... Gaussian likelihoods and KL, free bits, lambda-returns (DESIGN 4.2, 4.3)
+5. Replay .......... per-agent ring buffer of uint8 frames, uniform sequence sampling
+6. Agent ........... world-model update, imagination, actor and critic updates, acting
+7. Checkpoints ..... one format, loadable with torch.load(weights_only=True)
+8. Training loop ... Algorithm 1: decentralized agents, stages single / ghost / race
+
+Everything that depends on the recurrent cell is inside `RecurrentCell` (its state is a tuple of
+tensors; the model state fed to every head is z||h). The LSTM script (dreamer_lstm.py) is this file
+with that class and the defaults changed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import ctypes
+import dataclasses
+import itertools
+import json
+import math
+import os
+import platform
+import random
+import sys
+import time
+from collections import deque
+from typing import Annotated, Literal
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+import tyro
+from torch import nn
+
+VARIANT = "gru"  # written into every checkpoint, so race.py knows which script built the agent
+
+
+# =====================================================================================
+# 1. Arguments (defaults: DESIGN 4.4, GRU column)
+# =====================================================================================
+@dataclasses.dataclass
+class Args:
+    # --- experiment
+    exp_name: str = os.path.basename(__file__)[: -len(".py")]
+    """the name of this experiment (part of the run name)"""
+    seed: int = 1
+    """seed of python, numpy, torch and of the training tracks"""
+    torch_deterministic: bool = True
+    """if toggled, `torch.backends.cudnn.deterministic=True`"""
+    cuda: bool = True
+    """use CUDA when it is available (else the CPU)"""
+    torch_threads: int = 0
+    """number of CPU threads of torch (0: torch's default)"""
+    malloc_fix: bool = True
+    """keep freed memory in the process (glibc mallopt, DESIGN 6): halves update time on these VMs"""
+    runs_dir: str = "runs"
+    """directory holding the run directories `{env_id}__{exp_name}__{seed}__{time}`"""
+    resume: str | None = None
+    """continue a run: its run directory or a checkpoint file (saved args and counters are used)"""
+    checkpoint: str | None = None
+    """start the agents' networks and optimisers from this checkpoint (e.g. a single-stage best.pt for ghost)"""
+    stage: Literal["single", "ghost", "race"] = "race"
+    """single: one car, evaluation and best.pt; ghost: one car against its best previous run; race: N learning cars"""
+
+    # --- environment
+    env_id: str = "multi_car_racing"
+    """environment id of utils.make_vec_env ("multi_car_racing" or e.g. "highway-intersection")"""
+    num_agents: int = 2
+    """cars per race, one independent agent each (stages single and ghost use 1)"""
+    num_races: int = 1
+    """K races stepped side by side (K * num_agents vec-env slots); an agent trains after every race that ends"""
+    use_subprocess: bool = False
+    """run every race in its own worker process"""
+    max_steps: int = 1000
+    """env: a race is truncated after this many steps (CarRacing's 1000)"""
+    stall_steps: int = 150
+    """env: a car that touches no new tile for this many steps is eliminated"""
+    brake_speed_threshold: float = 50.0
+    """env: braking has no effect below this speed"""
+    collision_penalty: float = 0.05
+    """env: reward paid per step while a car's hull touches another car"""
+    offroad_penalty: float = 100.0
+    """env: reward paid once when a car is eliminated (off road, off the playfield, stalled)"""
+    speed_reward_coef: float = 0.0
+    """env: reward per step per unit of forward speed along the track"""
+    dead_zone_start: float = -1.0
+    """dead-zone lower edge of the throttle-brake axis at episode 0"""
+    dead_zone_end: float = -0.5
+    """dead-zone lower edge after the schedule (the paper's -0.5)"""
+    dead_zone_episodes: int = 200
+    """episodes over which the dead zone moves linearly from start to end"""
+    action_repeat: int = 1
+    """repeat every action this many env steps, summing rewards"""
+
+    # --- training loop (Algorithm 1)
+    total_episodes: int = 1000
+    """races to run (counting prefill races)"""
+    prefill_episodes: int = 5
+    """random-action races before the first update (from a --checkpoint the agent's own policy fills replay)"""
+    train_steps_per_episode: int = 200
+    """updates per agent after every finished race"""
+    replay_capacity: int = 100_000
+    """replay buffer capacity per agent, in steps"""
+    eval_every: int = 20
+    """evaluate every this many races (deterministic actions, held-out tracks); best.pt keeps the best"""
+    eval_episodes: int = 10
+    """races per evaluation"""
+    eval_seed: int = 10_000
+    """held-out evaluation tracks use seeds eval_seed + i"""
+    ghost_tracks: int = 5
+    """ghost stage: number of fixed track seeds, one ghost each"""
+    ghost_seed: int = 20_000
+    """ghost stage: the tracks use seeds ghost_seed + j"""
+    video_every: int = 50
+    """log a video (real | reconstruction | open-loop imagination) every this many races (0: never)"""
+    video_length: int = 100
+    """steps per video"""
+    checkpoint_every: int = 1
+    """write checkpoints/latest.pt every this many races"""
+    replay_save_every: int = 25
+    """save the replay buffers beside the checkpoints every this many races (0: never)"""
+
+    # --- world model, actor, critic (DESIGN 4.4)
+    batch_size: int = 50
+    """B: sequences per update"""
+    seq_len: int = 50
+    """L: length of every sampled sequence"""
+    imagination_horizon: int = 15
+    """H: imagined steps per start"""
+    imagination_starts: int = 0
+    """imagination starts per update, a random subset of the B*L posterior states (0: all B*L)"""
+    model_lr: float = 6e-4
+    """Adam learning rate of the world model"""
+    critic_lr: float = 6e-4
+    """Adam learning rate of the critic"""
+    actor_lr: float = 1e-4
+    """Adam learning rate of the actor"""
+    entropy_coef: float = 6e-4
+    """alpha: weight of -log pi in the lambda-return (the paper's entropy regulariser)"""
+    lambda_: Annotated[float, tyro.conf.arg(name="lambda")] = 0.95
+    """lambda of the lambda-return"""
+    gamma: float = 0.99
+    """discount factor"""
+    tau: float = 0.005
+    """soft-update rate of the target networks, after every optimiser step"""
+    free_bits: float = 1.0
+    """free nats per step of each KL term: max(free_bits, KL)"""
+    kl_dyn_scale: float = 1.0
+    """beta_dyn: weight of L_dyn = max(free_bits, KL(sg(posterior) || prior))"""
+    kl_rep_scale: float = 1.0
+    """beta_rep: weight of L_rep = max(free_bits, KL(posterior || sg(prior)))"""
+    grad_clip: float = 100.0
+    """global gradient-norm clip of every optimiser"""
+    target_critic: bool = True
+    """bootstrap the lambda-returns with a slow target critic (soft-updated with tau) instead of the critic itself"""
+
+    # --- network sizes (DESIGN 4.1; a CPU-sized run uses smaller ones, see README)
+    image_size: Literal[96, 64] = 96
+    """what the encoder sees (64 resizes the 96x96 camera)"""
+    cnn_depth: int = 32
+    """channels of the first conv layer (doubling per layer: 32-64-128-256)"""
+    deter_size: int = 512
+    """size of the recurrent state h (and c)"""
+    hidden_size: int = 1024
+    """width of the encoder embedding, the recurrent input layer and the posterior/prior MLPs"""
+    mlp_size: int = 512
+    """width of the reward, continue, actor and critic MLPs"""
+    latent_size: int = 60
+    """size of the stochastic latent z"""
+    norm: Literal["batch", "layer"] = "batch"
+    """normalisation of the networks (the critic always uses LayerNorm, as in the appendix)"""
+
+
+# Arguments a resumed run may change; everything else comes from the checkpoint.
+RESUME_OVERRIDES = ("resume", "total_episodes", "cuda", "torch_threads", "use_subprocess")
+# Arguments that fix the networks' shapes: a --checkpoint brings its own.
+ARCHITECTURE = ("image_size", "cnn_depth", "deter_size", "hidden_size", "mlp_size", "latent_size", "norm")
+CPU_COMMAND = (  # README's CPU-sized configuration (~0.7 s per update on 2 cores; paper size ~5 s)
+    f"python {os.path.basename(__file__)} --seed 1 --cnn-depth 16 --deter-size 256 --hidden-size 256 --mlp-size 256 "
+    "--image-size 64 --batch-size 16 --seq-len 32 --imagination-horizon 15 --imagination-starts 256"
+)
+
+
+def keep_freed_memory() -> bool:
+    """Stop glibc from returning freed memory to the OS (DESIGN 6).
+
+    Every update allocates and frees the same large blocks; by default glibc unmaps them and the
+    kernel page-faults them in again on the next update (~45% of wall time measured here).
+    mallopt(M_TRIM_THRESHOLD, 2**31-1) and mallopt(M_MMAP_MAX, 0) keep them in the process.
+    Linux/glibc only; returns whether both settings took effect.
+    """
+    if not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc":
+        return False
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:
+        return False
+    M_TRIM_THRESHOLD, M_MMAP_MAX = -1, -4  # from glibc's malloc.h
+    return libc.mallopt(M_TRIM_THRESHOLD, 2**31 - 1) == 1 and libc.mallopt(M_MMAP_MAX, 0) == 1
+
+
+# =====================================================================================
+# 2. Environment
+# =====================================================================================
+def env_kwargs(args: Args, dead_zone: float) -> dict:
+    """Keyword arguments of the env constructor (the racing env's options; other envs get num_agents only)."""
+    if args.env_id != "multi_car_racing":
+        return {"num_agents": args.num_agents}
+    return {
+        "num_agents": args.num_agents,
+        "max_steps": args.max_steps,
+        "stall_steps": args.stall_steps,
+        "brake_speed_threshold": args.brake_speed_threshold,
+        "collision_penalty": args.collision_penalty,
+        "offroad_penalty": args.offroad_penalty,
+        "speed_reward_coef": args.speed_reward_coef,
+        "dead_zone": dead_zone,
+    }
+
+
+def dead_zone_at(episode: int, args: Args) -> float:
+    """Linear dead-zone schedule: dead_zone_start at episode 0 to dead_zone_end at dead_zone_episodes."""
+    frac = min(1.0, episode / max(1, args.dead_zone_episodes))
+    return args.dead_zone_start + frac * (args.dead_zone_end - args.dead_zone_start)
+
+
+def preprocess_frames(frames: np.ndarray, image_size: int) -> np.ndarray:
+    """Camera frames (n, 96, 96, 3) uint8 -> what the encoder sees (n, S, S, 3) uint8 (area resize)."""
+    frames = np.asarray(frames, dtype=np.uint8)
+    if frames.shape[-3] == image_size and frames.shape[-2] == image_size:
+        return frames
+    return np.stack([cv2.resize(f, (image_size, image_size), interpolation=cv2.INTER_AREA) for f in frames])
+
+
+def step_with_repeat(envs, actions: np.ndarray, repeat: int):
+    """Step the vec env `repeat` times with the same actions, summing rewards.
+
+    Stops early at the first step in which any slot is done, so that a terminal observation or the
+    first observation of a new race is never stepped over. Also returns the number of env steps taken.
+    """
+    total = np.zeros(envs.num_envs, dtype=np.float32)
+    for repeats in range(1, repeat + 1):
+        obs, rewards, dones, infos = envs.step(actions)
+        total += rewards
+        if dones.any():
+            break
+    return obs, total, dones, infos, repeats
+
+
+# =====================================================================================
+# 3. Networks (DESIGN 4.1; paper appendix)
+# =====================================================================================
+LATENT_MIN_STD = 0.1  # sigma of posterior and prior: softplus(.) + this minimum
+HEAD_MIN_STD = 0.1  # sigma of the reward and critic Gaussians
+ACTOR_MIN_STD = 0.05  # sigma of the actor's pre-tanh Gaussian
+ACTOR_MEAN_SCALE = 5.0  # actor mean = 5 tanh(mean / 5), so tanh(u) does not saturate early (Dreamer v1)
+
+
+def norm_1d(kind: str, size: int) -> nn.Module:
+    return nn.BatchNorm1d(size) if kind == "batch" else nn.LayerNorm(size)
+
+
+def norm_2d(kind: str, channels: int) -> nn.Module:
+    # GroupNorm with one group normalises over (C, H, W): the layer norm of a feature map
+    return nn.BatchNorm2d(channels) if kind == "batch" else nn.GroupNorm(1, channels)
+
+
+def frames_to_input(frames: torch.Tensor) -> torch.Tensor:
+    """uint8 frames (..., H, W, 3) -> float (..., 3, H, W) scaled to [-0.5, 0.5] (paper appendix)."""
+    return frames.movedim(-1, -3).float() / 255.0 - 0.5
+
+
+def input_to_frames(images: torch.Tensor) -> torch.Tensor:
+    """Inverse of frames_to_input: float (..., 3, H, W) -> uint8 (..., H, W, 3)."""
+    return ((images + 0.5) * 255.0).clamp(0, 255).to(torch.uint8).movedim(-3, -1)
+
+
+class MLP(nn.Module):
+    """[Linear -> norm -> SiLU] per hidden layer, then a Linear output; accepts inputs of shape (..., in)."""
+
+    def __init__(self, in_size: int, hidden_sizes: list[int], out_size: int, norm: str):
+        super().__init__()
+        layers, size = [], in_size
+        for hidden in hidden_sizes:  # no bias before a norm layer: the norm's shift replaces it
+            layers += [nn.Linear(size, hidden, bias=False), norm_1d(norm, hidden), nn.SiLU()]
+            size = hidden
+        layers.append(nn.Linear(size, out_size))
+        self.net = nn.Sequential(*layers)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        lead = x.shape[:-1]
+        return self.net(x.reshape(-1, x.shape[-1])).reshape(*lead, -1)
+
+
+class Encoder(nn.Module):
+    """Conv(3->d->2d->4d->8d, kernel 4, stride 2) with norm and LeakyReLU, then Linear to the embedding e."""
+
+    def __init__(self, depth: int, image_size: int, embed_size: int, norm: str):
+        super().__init__()
+        channels, layers, size = [3, depth, 2 * depth, 4 * depth, 8 * depth], [], image_size
+        for c_in, c_out in itertools.pairwise(channels):
+            layers += [nn.Conv2d(c_in, c_out, 4, 2, bias=False), norm_2d(norm, c_out), nn.LeakyReLU()]
+            size = (size - 4) // 2 + 1  # 96 -> 47 -> 22 -> 10 -> 4 (64 -> 31 -> 14 -> 6 -> 2)
+        self.convs = nn.Sequential(*layers, nn.Flatten())
+        self.fc = nn.Linear(8 * depth * size * size, embed_size)  # 4096 -> 1024 at the paper's size
+
+    def forward(self, frames: torch.Tensor) -> torch.Tensor:
+        """uint8 frames (..., S, S, 3) -> embeddings (..., embed_size); all frames in one batched call."""
+        lead = frames.shape[:-3]
+        x = frames_to_input(frames.reshape(-1, *frames.shape[-3:]))
+        return self.fc(self.convs(x)).reshape(*lead, -1)
+
+
+class Decoder(nn.Module):
+    """Linear(z||h -> 2d*s*s), reshape (2d, s, s), ConvT 2d->2d (k3 s1), 2d->d (k4 s2), d->3 (k12 s4).
+
+    At 96 px s = 8 (8 -> 10 -> 22 -> 96, the appendix's 64-channel decoder for d = 32); at 64 px s = 4
+    (4 -> 6 -> 14 -> 64). The output is the mean of a Gaussian over pixels with one learned log sigma.
+    """
+
+    def __init__(self, feature_size: int, depth: int, image_size: int, norm: str):
+        super().__init__()
+        self.start, self.channels = (8 if image_size == 96 else 4), 2 * depth
+        c = self.channels
+        self.fc = nn.Linear(feature_size, c * self.start * self.start, bias=False)
+        self.net = nn.Sequential(
+            norm_2d(norm, c), nn.LeakyReLU(),
+            nn.ConvTranspose2d(c, c, 3, 1, bias=False), norm_2d(norm, c), nn.LeakyReLU(),
+            nn.ConvTranspose2d(c, depth, 4, 2, bias=False), norm_2d(norm, depth), nn.LeakyReLU(),
+            nn.ConvTranspose2d(depth, 3, 12, 4),
+        )  # fmt: skip
+        self.log_sigma = nn.Parameter(torch.zeros(()))  # one learned log sigma for every pixel
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        """features (..., F) -> image means (..., 3, S, S) in input scale; all steps in one batched call."""
+        lead = features.shape[:-1]
+        x = self.fc(features.reshape(-1, features.shape[-1])).reshape(-1, self.channels, self.start, self.start)
+        x = self.net(x)
+        return x.reshape(*lead, *x.shape[1:])
+
+    def sigma(self) -> torch.Tensor:
+        return self.log_sigma.clamp(-5.0, 2.0).exp()
+
+
+class RecurrentCell(nn.Module):
+    """The recurrent core: nn.GRUCell with a learned initial state (Dreamer-v3's deterministic path).
+
+    This class is the seam between the LSTM and GRU scripts: the rest of the file only calls
+    `initial_state(batch)` (a tuple of tensors) and `step(state, x) -> (new_state, h)`, and treats
+    the state as an opaque tuple. The GRU state is (h,); h is the deterministic part of the model
+    state s = (z, h). The initial h is a parameter, so the optimiser learns it.
+    """
+
+    def __init__(self, input_size: int, deter_size: int):
+        super().__init__()
+        self.cell = nn.GRUCell(input_size, deter_size)
+        self.initial_h = nn.Parameter(torch.zeros(deter_size))
+
+    def initial_state(self, batch: int) -> tuple[torch.Tensor, ...]:
+        return (self.initial_h.expand(batch, -1),)
+
+    def step(self, state: tuple[torch.Tensor, ...], x: torch.Tensor) -> tuple[tuple[torch.Tensor, ...], torch.Tensor]:
+        h = self.cell(x, state[0])
+        return (h,), h
+
+
+class Representation(nn.Module):
+    """Posterior q(z_t | h_t, e_t): MLP on e||h (3 layers, hidden 1024, SiLU, norm), Gaussian mu(60), sigma(60).
+
+    The first layer is written as two bias-free Linears, W [e; h] = W_e e + W_h h: the same function and
+    parameter count as one Linear on e||h, but `embed_part` (W_e e) runs once for all B*L frames before
+    the recurrence, which then only adds W_h h at every step.
+    """
+
+    def __init__(self, embed_size: int, deter_size: int, hidden_size: int, latent_size: int, norm: str):
+        super().__init__()
+        self.embed_in = nn.Linear(embed_size, hidden_size, bias=False)
+        self.deter_in = nn.Linear(deter_size, hidden_size, bias=False)
+        self.first_norm = nn.Sequential(norm_1d(norm, hidden_size), nn.SiLU())
+        self.rest = MLP(hidden_size, [hidden_size], 2 * latent_size, norm)
+
+    def embed_part(self, embed: torch.Tensor) -> torch.Tensor:
+        return self.embed_in(embed)
+
+    def forward(self, embed_part: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+        x = embed_part + self.deter_in(h)
+        lead = x.shape[:-1]
+        return self.rest(self.first_norm(x.reshape(-1, x.shape[-1]))).reshape(*lead, -1)
+
+
+def gaussian_params(out: torch.Tensor, min_std: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Split a head's output into the mean and sigma (softplus plus a minimum) of a diagonal Gaussian."""
+    mean, raw_std = out.chunk(2, dim=-1)
+    return mean, F.softplus(raw_std) + min_std
+
+
+class WorldModel(nn.Module):
+    """Encoder, recurrent core, representation (posterior), transition (prior), decoder, reward, continue.
+
+    One step of the model (paper): h_t = f(h_{t-1}, z_{t-1}, a_{t-1}) (recurrent core),
+    posterior z_t ~ q(z | h_t, e_t) (representation), prior z_t ~ p(z | h_t) (transition); the heads
+    read the model state s_t = z_t || h_t.
+    """
+
+    def __init__(self, args: Args, action_dim: int):
+        super().__init__()
+        self.latent_size, self.action_dim = args.latent_size, action_dim
+        feature_size = args.latent_size + args.deter_size
+        self.encoder = Encoder(args.cnn_depth, args.image_size, args.hidden_size, args.norm)
+        self.encoder.to(memory_format=torch.channels_last)  # oneDNN's conv layout on CPU: ~1.5x faster here
+        self.recurrent_input = nn.Sequential(  # Linear(z||a -> 1024), then the cell (1024 -> 512)
+            nn.Linear(args.latent_size + action_dim, args.hidden_size, bias=False),
+            norm_1d(args.norm, args.hidden_size),
+            nn.SiLU(),
+        )
+        self.cell = RecurrentCell(args.hidden_size, args.deter_size)
+        hidden, latent = [args.hidden_size] * 2, args.latent_size
+        self.representation = Representation(args.hidden_size, args.deter_size, args.hidden_size, latent, args.norm)
+        self.transition = MLP(args.deter_size, hidden, 2 * latent, args.norm)  # on h
+        self.decoder = Decoder(feature_size, args.cnn_depth, args.image_size, args.norm)
+        self.decoder.to(memory_format=torch.channels_last)
+        self.reward = MLP(feature_size, [args.mlp_size] * 2, 2, args.norm)
+        self.cont = MLP(feature_size, [args.mlp_size] * 2, 1, args.norm)
+
+    def reset_where(self, is_first: torch.Tensor, state: tuple, z: torch.Tensor, prev_action: torch.Tensor):
+        """Where is_first, put the learned initial state, z = 0 and previous action = 0 (episode starts)."""
+        mask = is_first.unsqueeze(-1)
+        initial = self.cell.initial_state(z.shape[0])
+        state = tuple(torch.where(mask, s0, s) for s0, s in zip(initial, state))
+        return state, torch.where(mask, 0.0, z), torch.where(mask, 0.0, prev_action)
+
+    def observe_step(self, state, z, prev_action, embed_part, is_first, sample: bool = True):
+        """One posterior step: reset at episode starts, advance the core, sample z_t ~ q(z | h_t, e_t).
+
+        embed_part = representation.embed_part(e_t), the embedding's share of the posterior's first layer.
+        """
+        state, z, prev_action = self.reset_where(is_first, state, z, prev_action)
+        state, h = self.cell.step(state, self.recurrent_input(torch.cat([z, prev_action], -1)))
+        mean, std = gaussian_params(self.representation(embed_part, h), LATENT_MIN_STD)
+        z = mean + std * torch.randn_like(std) if sample else mean
+        return state, h, z, mean, std
+
+    def imagine_step(self, state, z, action, sample: bool = True):
+        """One prior step: advance the core with (z, a), sample z ~ p(z | h) by rsample."""
+        state, h = self.cell.step(state, self.recurrent_input(torch.cat([z, action], -1)))
+        mean, std = gaussian_params(self.transition(h), LATENT_MIN_STD)
+        z = mean + std * torch.randn_like(std) if sample else mean
+        return state, h, z
+
+    def observe(self, embed: torch.Tensor, actions: torch.Tensor, is_first: torch.Tensor, sample: bool = True) -> dict:
+        """Posterior over sequences: embed (B, L, E), actions (B, L, A) (action that led to frame t), is_first (B, L).
+
+        The only Python loop of the world model; every sequence starts from the learned initial state.
+        Returns stacked (B, L, .) tensors: states (tuple), h, z, post_mean, post_std.
+        """
+        batch, length = is_first.shape
+        embed_part = self.representation.embed_part(embed)  # batched over all B*L frames, outside the loop
+        state = self.cell.initial_state(batch)
+        z = embed.new_zeros(batch, self.latent_size)
+        out = {"states": [], "h": [], "z": [], "post_mean": [], "post_std": []}
+        for t in range(length):
+            state, h, z, mean, std = self.observe_step(
+                state, z, actions[:, t], embed_part[:, t], is_first[:, t], sample
+            )
+            for key, value in zip(out, (state, h, z, mean, std)):
+                out[key].append(value)
+        out = {key: torch.stack(values, 1) if key != "states" else values for key, values in out.items()}
+        out["states"] = tuple(torch.stack(parts, 1) for parts in zip(*out["states"]))
+        return out
+
+
+class Actor(nn.Module):
+    """MLP 572->512->512->512->512->4: Gaussian mu(2), sigma(2) of u; the action is a = tanh(u)."""
+
+    def __init__(self, feature_size: int, mlp_size: int, action_dim: int, norm: str):
+        super().__init__()
+        self.net = MLP(feature_size, [mlp_size] * 4, 2 * action_dim, norm)
+
+    def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        mean, raw_std = self.net(features).chunk(2, dim=-1)
+        return ACTOR_MEAN_SCALE * torch.tanh(mean / ACTOR_MEAN_SCALE), F.softplus(raw_std) + ACTOR_MIN_STD
+
+    def sample(self, features: torch.Tensor, deterministic: bool = False):
+        """a = tanh(u), u ~ N(mu, sigma) by rsample; log pi summed over action dims with the tanh correction."""
+        mean, std = self(features)
+        if deterministic:
+            return torch.tanh(mean), None
+        u = mean + std * torch.randn_like(std)
+        action = torch.tanh(u)
+        log_pi = (-gaussian_nll(u, mean, std) - torch.log(1 - action.pow(2) + 1e-6)).sum(-1)
+        return action, log_pi
+
+
+class Critic(nn.Module):
+    """MLP 572->512->512->2 with LayerNorm (appendix): Gaussian over the lambda-return."""
+
+    def __init__(self, feature_size: int, mlp_size: int):
+        super().__init__()
+        self.net = MLP(feature_size, [mlp_size] * 2, 2, "layer")
+
+    def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        mean, std = gaussian_params(self.net(features), HEAD_MIN_STD)
+        return mean.squeeze(-1), std.squeeze(-1)
+
+
+# =====================================================================================
+# 4. Losses and returns (DESIGN 4.2, 4.3)
+# =====================================================================================
+def gaussian_nll(x: torch.Tensor, mean: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
+    """-log N(x; mean, std), elementwise."""
+    return 0.5 * ((x - mean) / std).pow(2) + torch.log(std) + 0.5 * math.log(2 * math.pi)
+
+
+def image_gaussian_nll(x: torch.Tensor, mean: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+    """-log N(x; mean, sigma) summed over the pixels (..., 3, S, S) of each image, with one sigma for all:
+    sum((x - mean)^2) / (2 sigma^2) + P (log sigma + log(2 pi) / 2), so only two ops touch every pixel."""
+    pixels = x.shape[-3] * x.shape[-2] * x.shape[-1]
+    squared_error = (x - mean).pow(2).sum((-3, -2, -1))
+    return 0.5 * squared_error / sigma.pow(2) + pixels * (torch.log(sigma) + 0.5 * math.log(2 * math.pi))
+
+
+def gaussian_kl(mean_p, std_p, mean_q, std_q) -> torch.Tensor:
+    """KL(N(mean_p, std_p) || N(mean_q, std_q)) of diagonal Gaussians, summed over the last (latent) dim."""
+    return (torch.log(std_q / std_p) + (std_p.pow(2) + (mean_p - mean_q).pow(2)) / (2 * std_q.pow(2)) - 0.5).sum(-1)
+
+
+def kl_free_bits(kl: torch.Tensor, free_bits: float) -> torch.Tensor:
+    """max(free_bits, KL) per step: below free_bits nats the KL term has no gradient (paper: free bits 1.0)."""
+    return torch.clamp(kl, min=free_bits)
+
+
+def lambda_returns(rewards, continues, values, log_pi, gamma: float, lam: float, alpha: float) -> torch.Tensor:
+    """Entropy-regularised lambda-returns of an imagined rollout, all tensors (H, N):
+
+    rewards[t] = r_{t+1}, continues[t] = c_{t+1}, values[t] = V(s_{t+1}), log_pi[t] = log pi(a_t | s_t).
+    R_H = V(s_H);  R_t = r_{t+1} - alpha * log pi_t + gamma * c_{t+1} * [(1 - lambda) V(s_{t+1}) + lambda R_{t+1}].
+    (The paper prints lambda and 1 - lambda swapped and leaves gamma implicit; this is the recursion.)
+    Returns R_0 .. R_{H-1}, shape (H, N).
+    """
+    next_return = values[-1]
+    returns = []
+    for t in reversed(range(rewards.shape[0])):
+        bootstrap = (1 - lam) * values[t] + lam * next_return
+        next_return = rewards[t] - alpha * log_pi[t] + gamma * continues[t] * bootstrap
+        returns.append(next_return)
+    return torch.stack(returns[::-1])
+
+
+def discount_weights(continues: torch.Tensor, gamma: float) -> torch.Tensor:
+    """w_0 = 1, w_{t+1} = w_t * gamma * c_{t+1} (stop-gradient): how much imagined step t counts."""
+    first = torch.ones_like(continues[:1])
+    return torch.cumprod(torch.cat([first, gamma * continues[:-1]], 0), 0).detach()
+
+
+@torch.no_grad()
+def soft_update(target: nn.Module, source: nn.Module, tau: float) -> None:
+    """target <- target + tau (source - target), for parameters and float buffers (BatchNorm statistics)."""
+    for t, s in zip(target.parameters(), source.parameters()):
+        t.lerp_(s, tau)
+    for t, s in zip(target.buffers(), source.buffers()):
+        if t.dtype.is_floating_point:
+            t.lerp_(s, tau)
+        else:  # BatchNorm's num_batches_tracked
+            t.copy_(s)
+
+
+@contextlib.contextmanager
+def frozen(*modules: nn.Module):
+    """Parameters of `modules` take no gradient inside the block (gradients still flow through them)."""
+    params = [p for m in modules for p in m.parameters() if p.requires_grad]
+    for p in params:
+        p.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for p in params:
+            p.requires_grad_(True)
+
+
+def imagine_rollout(world_model: WorldModel, actor: Actor, state: tuple, h, z, horizon: int):
+    """Roll the prior forward `horizon` steps from detached start states, acting with the actor.
+
+    Returns features s_0..s_H (H+1, N, F), log pi_0..log pi_{H-1} (H, N) and actions (H, N, A).
+    Everything is reparameterised, so the actor loss backpropagates through the learned dynamics.
+    """
+    features, log_pis, actions = [torch.cat([z, h], -1)], [], []
+    for _ in range(horizon):
+        action, log_pi = actor.sample(features[-1])
+        state, h, z = world_model.imagine_step(state, z, action)
+        features.append(torch.cat([z, h], -1))
+        log_pis.append(log_pi)
+        actions.append(action)
+    return torch.stack(features), torch.stack(log_pis), torch.stack(actions)
+
+
+# =====================================================================================
+# 5. Replay (one per agent)
+# =====================================================================================
+class Replay:
+    """Ring buffer of steps: uint8 frame (at --image-size), action that led to it, reward received with it,
+    is_first, terminated.
+
+    Frames are stored once (no separate next observation): a sequence of L steps holds L frames.
+    Whole car episodes are added at once, so K parallel races never interleave inside the buffer;
+    sequences may cross episode boundaries, which is_first marks. Capacity is in steps.
+    """
+
+    def __init__(self, capacity: int, image_size: int, action_dim: int = 2, chunk_size: int = 10_000):
+        self.capacity, self.chunk_size = int(capacity), int(chunk_size)
+        self.obs = np.zeros((self.capacity, image_size, image_size, 3), dtype=np.uint8)  # pages are touched lazily
+        self.action = np.zeros((self.capacity, action_dim), dtype=np.float32)
+        self.reward = np.zeros(self.capacity, dtype=np.float32)
+        self.is_first = np.zeros(self.capacity, dtype=bool)
+        self.terminated = np.zeros(self.capacity, dtype=bool)
+        self.next_index, self.size, self.total_steps, self.episodes = 0, 0, 0, 0
+        self._dirty: set[int] = set()
+        self._saved_to: str | None = None
+
+    def __len__(self) -> int:
+        return self.size
+
+    def add_episode(self, obs: np.ndarray, action: np.ndarray, reward: np.ndarray, terminated: np.ndarray) -> None:
+        """Append one car episode: obs (T, S, S, 3); action[t] led to obs[t] (action[0] = 0); reward[t] came
+        with obs[t]; terminated[t]: obs[t] is terminal (not set on truncation)."""
+        length = len(obs)
+        idx = (self.next_index + np.arange(length)) % self.capacity
+        self.obs[idx], self.action[idx], self.reward[idx], self.terminated[idx] = obs, action, reward, terminated
+        self.is_first[idx] = False
+        self.is_first[idx[0]] = True
+        self._dirty.update(np.unique(idx // self.chunk_size).tolist())
+        self.next_index = int((self.next_index + length) % self.capacity)
+        self.size = min(self.capacity, self.size + length)
+        self.total_steps += length
+        self.episodes += 1
+
+    def can_sample(self, seq_len: int) -> bool:
+        return self.size >= seq_len
+
+    def sample(self, batch_size: int, seq_len: int, rng=np.random) -> dict[str, np.ndarray]:
+        """B sequences of L consecutive steps, uniformly over all that do not cross the write position."""
+        oldest = self.next_index if self.size == self.capacity else 0
+        offsets = rng.randint(0, self.size - seq_len + 1, size=batch_size)
+        idx = (oldest + offsets[:, None] + np.arange(seq_len)[None]) % self.capacity
+        return {
+            "obs": self.obs[idx],
+            "action": self.action[idx],
+            "reward": self.reward[idx],
+            "is_first": self.is_first[idx],
+            "terminated": self.terminated[idx],
+        }
+
+    def save(self, directory: str) -> None:
+        """Chunked compressed .npz files (only chunks changed since the last save to the same directory)."""
+        os.makedirs(directory, exist_ok=True)
+        used = self.size  # filled steps: [0, size) until the buffer wraps, then all of it
+        num_chunks = math.ceil(used / self.chunk_size)
+        chunks = range(num_chunks) if self._saved_to != directory else sorted(c for c in self._dirty if c < num_chunks)
+        for c in chunks:
+            part = slice(c * self.chunk_size, min(used, (c + 1) * self.chunk_size))
+            _atomic_npz(
+                os.path.join(directory, f"chunk_{c:05d}.npz"),
+                obs=self.obs[part], action=self.action[part], reward=self.reward[part],
+                is_first=self.is_first[part], terminated=self.terminated[part],
+            )  # fmt: skip
+        _atomic_npz(
+            os.path.join(directory, "meta.npz"),
+            capacity=self.capacity, chunk_size=self.chunk_size, num_chunks=num_chunks, next_index=self.next_index,
+            size=self.size, total_steps=self.total_steps, episodes=self.episodes,
+        )  # fmt: skip
+        self._dirty.clear()
+        self._saved_to = directory
+
+    def load(self, directory: str) -> None:
+        with np.load(os.path.join(directory, "meta.npz")) as meta:
+            meta = {k: int(v) for k, v in meta.items()}
+        if meta["capacity"] != self.capacity:
+            raise ValueError(f"replay in {directory} has capacity {meta['capacity']}, this buffer {self.capacity}")
+        for c in range(meta["num_chunks"]):
+            with np.load(os.path.join(directory, f"chunk_{c:05d}.npz")) as chunk:
+                start = c * meta["chunk_size"]
+                for key in ("obs", "action", "reward", "is_first", "terminated"):
+                    getattr(self, key)[start : start + len(chunk[key])] = chunk[key]
+        self.next_index, self.size = meta["next_index"], meta["size"]
+        self.total_steps, self.episodes = meta["total_steps"], meta["episodes"]
+        self.chunk_size = meta["chunk_size"]
+        self._dirty.clear()
+        self._saved_to = directory
+
+
+def _atomic_npz(path: str, **arrays) -> None:
+    tmp = path + ".tmp"
+    with open(tmp, "wb") as f:
+        np.savez_compressed(f, **arrays)
+    os.replace(tmp, path)
+
+
+# =====================================================================================
+# 6. Agent: world-model learning, behaviour learning in imagination, acting
+# =====================================================================================
+class Agent:
+    """One car's learner: world model, actor, critic, their target networks and three Adam optimisers."""
+
+    def __init__(self, args: Args, action_dim: int = 2, device: torch.device | str = "cpu"):
+        self.args, self.action_dim, self.device = args, action_dim, torch.device(device)
+        feature_size = args.latent_size + args.deter_size
+        self.world_model = WorldModel(args, action_dim).to(self.device)
+        self.actor = Actor(feature_size, args.mlp_size, action_dim, args.norm).to(self.device)
+        self.critic = Critic(feature_size, args.mlp_size).to(self.device)
+        # Target networks (hard copy now, soft updates later): the stop-gradient sides of the KL terms
+        # and the slow critic for bootstrap values. They never receive gradient.
+        self.targets = nn.ModuleDict(
+            {
+                "encoder": copy.deepcopy(self.world_model.encoder),
+                "representation": copy.deepcopy(self.world_model.representation),
+                "transition": copy.deepcopy(self.world_model.transition),
+                "critic": copy.deepcopy(self.critic),
+            }
+        ).requires_grad_(False)
+        self.targets.eval()  # targets always use their (soft-updated) running statistics
+        self.model_optimizer = torch.optim.Adam(self.world_model.parameters(), lr=args.model_lr)
+        self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=args.actor_lr)
+        self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=args.critic_lr)
+        self.num_updates = 0
+
+    # --- modes -------------------------------------------------------------------------
+    def _set_training(self, training: bool) -> None:
+        """Train mode (batch statistics) for updates, eval mode (running statistics) for acting."""
+        if self.world_model.training != training or self.actor.training != training:
+            for module in (self.world_model, self.actor, self.critic):
+                module.train(training)
+
+    def _update_targets(self) -> None:
+        wm, tau = self.world_model, self.args.tau
+        soft_update(self.targets["encoder"], wm.encoder, tau)
+        soft_update(self.targets["representation"], wm.representation, tau)
+        soft_update(self.targets["transition"], wm.transition, tau)
+
+    # --- world model (DESIGN 4.2) ---------------------------------------------------------
+    def world_model_loss(self, obs, actions, rewards, is_first, terminated):
+        """L = mean over batch and time of L_pred + beta_dyn L_dyn + beta_rep L_rep; also returns the posterior.
+
+        (DESIGN 4.2 sums over time; the mean differs by the constant factor L, as in Dreamer's own code,
+        and keeps the gradient-clip threshold of 100 meaningful for any sequence length.)
+        """
+        args, wm = self.args, self.world_model
+        embed = wm.encoder(obs)  # all B*L frames in one call
+        post = wm.observe(embed, actions, is_first)  # the recurrence: the only Python loop
+        h, z = post["h"], post["z"]
+        features = torch.cat([z, h], -1)
+        prior_mean, prior_std = gaussian_params(wm.transition(h), LATENT_MIN_STD)  # batched over B*L
+        # L_pred: -log p(x|s) - log p(r|s) - log p(cont|s); cont = 1 - terminated (truncation is not termination)
+        image_nll = image_gaussian_nll(frames_to_input(obs), wm.decoder(features), wm.decoder.sigma())
+        reward_mean, reward_std = gaussian_params(wm.reward(features), HEAD_MIN_STD)
+        reward_nll = gaussian_nll(rewards, reward_mean.squeeze(-1), reward_std.squeeze(-1))
+        cont_nll = F.binary_cross_entropy_with_logits(wm.cont(features).squeeze(-1), 1.0 - terminated, reduction="none")
+        # Stop-gradient sides of the KL terms come from the target networks, computed once per update.
+        with torch.no_grad():
+            target_embed = self.targets["encoder"](obs)
+            target_representation = self.targets["representation"]
+            target_post = target_representation(target_representation.embed_part(target_embed), h.detach())
+            sg_post_mean, sg_post_std = gaussian_params(target_post, LATENT_MIN_STD)
+            sg_prior_mean, sg_prior_std = gaussian_params(self.targets["transition"](h.detach()), LATENT_MIN_STD)
+        kl_dyn = gaussian_kl(sg_post_mean, sg_post_std, prior_mean, prior_std)  # paper eq. L_dyn: trains the prior
+        kl_rep = gaussian_kl(post["post_mean"], post["post_std"], sg_prior_mean, sg_prior_std)  # paper eq. L_rep
+        loss = (
+            image_nll + reward_nll + cont_nll
+            + args.kl_dyn_scale * kl_free_bits(kl_dyn, args.free_bits)
+            + args.kl_rep_scale * kl_free_bits(kl_rep, args.free_bits)
+        ).mean()  # fmt: skip
+        metrics = {
+            "model_loss": loss, "reconstruction": image_nll.mean(), "reward": reward_nll.mean(),
+            "continue": cont_nll.mean(), "kl_dyn": kl_dyn.mean(), "kl_rep": kl_rep.mean(),
+        }  # fmt: skip
+        return loss, metrics, post
+
+    # --- behaviour (DESIGN 4.3) -----------------------------------------------------------
+    def imagination_starts(self, post: dict):
+        """Detached posterior states (state tuple, h, z) of all B*L steps, or a random subset of them."""
+        state = tuple(s.flatten(0, 1).detach() for s in post["states"])
+        h, z = post["h"].flatten(0, 1).detach(), post["z"].flatten(0, 1).detach()
+        num = self.args.imagination_starts
+        if 0 < num < h.shape[0]:
+            idx = torch.randperm(h.shape[0], device=h.device)[:num]
+            state, h, z = tuple(s[idx] for s in state), h[idx], z[idx]
+        return state, h, z
+
+    def behaviour_losses(self, post: dict):
+        """Actor loss (backprop through the frozen dynamics) and critic loss on imagined rollouts."""
+        args, wm = self.args, self.world_model
+        state, h, z = self.imagination_starts(post)
+        bootstrap = self.targets["critic"] if args.target_critic else self.critic
+        wm.eval()  # imagined states must not change the BatchNorm statistics of the world model
+        with frozen(wm, self.critic):  # only the actor's parameters take gradient from the actor loss
+            features, log_pi, _ = imagine_rollout(wm, self.actor, state, h, z, args.imagination_horizon)
+            rewards = gaussian_params(wm.reward(features[1:]), HEAD_MIN_STD)[0].squeeze(-1)  # r_1..r_H
+            continues = torch.sigmoid(wm.cont(features[1:]).squeeze(-1))  # c_1..c_H
+            values = bootstrap(features[1:])[0]  # V(s_1..s_H)
+            returns = lambda_returns(rewards, continues, values, log_pi, args.gamma, args.lambda_, args.entropy_coef)
+            weights = discount_weights(continues, args.gamma)
+            actor_loss = -(weights * returns).mean()
+        wm.train()
+        value_mean, value_std = self.critic(features[:-1].detach())  # V(s_0..s_{H-1}) on detached states
+        critic_loss = (weights * gaussian_nll(returns.detach(), value_mean, value_std)).mean()
+        metrics = {"actor": actor_loss, "critic": critic_loss, "entropy": -log_pi.mean()}
+        metrics["imagined_return"] = returns.mean()
+        return actor_loss, critic_loss, metrics
+
+    def _step(self, optimizer: torch.optim.Optimizer, loss: torch.Tensor, params) -> torch.Tensor:
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        norm = nn.utils.clip_grad_norm_(params, self.args.grad_clip)
+        optimizer.step()
+        return norm
+
+    def update(self, batch: dict) -> dict[str, float]:
+        """One training update on a batch of B sequences of length L (numpy arrays from Replay.sample)."""
+        dev = self.device
+        obs = torch.as_tensor(batch["obs"], device=dev)
+        actions = torch.as_tensor(batch["action"], device=dev, dtype=torch.float32)
+        rewards = torch.as_tensor(batch["reward"], device=dev, dtype=torch.float32)
+        is_first = torch.as_tensor(batch["is_first"], device=dev, dtype=torch.bool)
+        terminated = torch.as_tensor(batch["terminated"], device=dev, dtype=torch.float32)
+        self._set_training(True)
+
+        model_loss, metrics, post = self.world_model_loss(obs, actions, rewards, is_first, terminated)
+        self._step(self.model_optimizer, model_loss, self.world_model.parameters())
+        self._update_targets()
+
+        actor_loss, critic_loss, behaviour_metrics = self.behaviour_losses(post)
+        self._step(self.actor_optimizer, actor_loss, self.actor.parameters())
+        self._step(self.critic_optimizer, critic_loss, self.critic.parameters())
+        if self.args.target_critic:
+            soft_update(self.targets["critic"], self.critic, self.args.tau)
+        self.num_updates += 1
+
+        metrics.update(behaviour_metrics)
+        values = torch.stack([v.detach().float() for v in metrics.values()]).tolist()  # one host sync per update
+        return dict(zip(metrics, values))
+
+    # --- acting --------------------------------------------------------------------------
+    def initial_state(self, n: int):
+        """Recurrent state of n cars before their first frame: (cell state, z, previous action)."""
+        with torch.no_grad():
+            cell = tuple(s.clone() for s in self.world_model.cell.initial_state(n))
+        z = torch.zeros(n, self.args.latent_size, device=self.device)
+        return cell, z, torch.zeros(n, self.action_dim, device=self.device)
+
+    @torch.no_grad()
+    def act(self, obs: np.ndarray, state=None, is_first=None, deterministic: bool = False):
+        """Actions for the n cars this agent drives: obs (n, H, W, 3) uint8, is_first (n,) bool.
+
+        Returns actions (n, A) numpy in [-1, 1] and the new recurrent state. state=None starts every car
+        fresh; is_first restarts the marked cars (a new race) and defaults to none.
+        Deterministic: posterior mean and tanh(actor mean) (evaluation).
+        """
+        n = len(obs)
+        if state is None:  # a fresh start for every car
+            state, is_first = self.initial_state(n), np.ones(n, dtype=bool)
+        is_first = np.zeros(n, dtype=bool) if is_first is None else np.asarray(is_first, dtype=bool)
+        frames = torch.as_tensor(preprocess_frames(obs, self.args.image_size), device=self.device)
+        self._set_training(False)  # BatchNorm uses its running statistics while acting
+        cell, z, prev_action = state
+        embed_part = self.world_model.representation.embed_part(self.world_model.encoder(frames))
+        first = torch.as_tensor(is_first, device=self.device)
+        cell, h, z, _, _ = self.world_model.observe_step(cell, z, prev_action, embed_part, first, not deterministic)
+        action, _ = self.actor.sample(torch.cat([z, h], -1), deterministic)
+        return action.cpu().numpy(), (cell, z, action)
+
+    @torch.no_grad()
+    def video(self, obs: np.ndarray, actions: np.ndarray, is_first: np.ndarray, context: int = 5) -> np.ndarray:
+        """Video frames (T, S, 3S, 3) uint8: real | posterior reconstruction | open-loop imagination.
+
+        The imagination sees the first `context` frames, then only the actions (prior steps)."""
+        self._set_training(False)
+        wm = self.world_model
+        obs_t = torch.as_tensor(obs[None], device=self.device)
+        actions_t = torch.as_tensor(actions[None], device=self.device, dtype=torch.float32)
+        first = torch.as_tensor(is_first[None], device=self.device)
+        post = wm.observe(wm.encoder(obs_t), actions_t, first, sample=False)
+        recon = wm.decoder(torch.cat([post["z"], post["h"]], -1))[0]
+        context = max(1, min(context, len(obs)))
+        state = tuple(s[:, context - 1] for s in post["states"])
+        z, imagined = post["z"][:, context - 1], [recon[:context]]
+        for t in range(context, len(obs)):
+            state, h, z = wm.imagine_step(state, z, actions_t[:, t], sample=False)
+            imagined.append(wm.decoder(torch.cat([z, h], -1)))
+        real = torch.as_tensor(obs, device=self.device)
+        return torch.cat([real, input_to_frames(recon), input_to_frames(torch.cat(imagined))], dim=2).cpu().numpy()
+
+    # --- persistence -------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {
+            "world_model": self.world_model.state_dict(),
+            "actor": self.actor.state_dict(),
+            "critic": self.critic.state_dict(),
+            "targets": self.targets.state_dict(),
+            "model_optimizer": self.model_optimizer.state_dict(),
+            "actor_optimizer": self.actor_optimizer.state_dict(),
+            "critic_optimizer": self.critic_optimizer.state_dict(),
+            "num_updates": self.num_updates,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.world_model.load_state_dict(state["world_model"])
+        self.actor.load_state_dict(state["actor"])
+        self.critic.load_state_dict(state["critic"])
+        self.targets.load_state_dict(state["targets"])
+        self.model_optimizer.load_state_dict(state["model_optimizer"])
+        self.actor_optimizer.load_state_dict(state["actor_optimizer"])
+        self.critic_optimizer.load_state_dict(state["critic_optimizer"])
+        self.num_updates = int(state["num_updates"])
+
+    def save(self, path: str) -> None:
+        _atomic_torch_save(self.state_dict(), path)
+
+    def load(self, path: str) -> None:
+        self.load_state_dict(torch.load(path, map_location=self.device, weights_only=True))
+
+
+# =====================================================================================
+# 7. Checkpoints (DESIGN 4.6): tensors and plain Python types only, written atomically
+# =====================================================================================
+def _atomic_torch_save(obj, path: str) -> None:
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    tmp = path + ".tmp"
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def rng_state() -> dict:
+    """python, numpy and torch RNG states as tensors (restorable with set_rng_state)."""
+    np_state = np.random.get_state()
+    py_state = random.getstate()
+    state = {
+        "torch": torch.get_rng_state(),
+        "numpy_key": torch.from_numpy(np_state[1].astype(np.int64)),
+        "numpy_meta": torch.tensor([np_state[2], np_state[3]], dtype=torch.int64),
+        "numpy_gauss": torch.tensor(np_state[4], dtype=torch.float64),
+        "python": torch.tensor(py_state[1], dtype=torch.int64),
+        "python_gauss": torch.tensor(float("nan") if py_state[2] is None else py_state[2], dtype=torch.float64),
+    }
+    if torch.cuda.is_available():
+        state["cuda"] = torch.stack(torch.cuda.get_rng_state_all())
+    return state
+
+
+def set_rng_state(state: dict) -> None:
+    torch.set_rng_state(state["torch"])
+    meta = state["numpy_meta"].tolist()
+    key = state["numpy_key"].numpy().astype(np.uint32)
+    np.random.set_state(("MT19937", key, meta[0], meta[1], float(state["numpy_gauss"])))
+    gauss = float(state["python_gauss"])
+    random.setstate((3, tuple(state["python"].tolist()), None if math.isnan(gauss) else gauss))
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(list(state["cuda"]))
+
+
+def save_checkpoint(path: str, args: Args, agents: list[Agent], counters: dict, extra: dict | None = None) -> None:
+    """The one checkpoint format: variant, args (dict), counters, every agent's networks and optimisers, RNG states."""
+    checkpoint = {
+        "variant": VARIANT,
+        "args": dataclasses.asdict(args),
+        "counters": dict(counters),
+        "agents": [agent.state_dict() for agent in agents],
+        "rng": rng_state(),
+        "extra": extra or {},
+    }
+    _atomic_torch_save(checkpoint, path)
+
+
+def load_checkpoint(path: str, map_location="cpu") -> dict:
+    checkpoint = torch.load(path, map_location=map_location, weights_only=True)
+    if checkpoint.get("variant") != VARIANT:
+        raise ValueError(f"{path} holds a {checkpoint.get('variant')!r} agent, this script builds {VARIANT!r}")
+    return checkpoint
+
+
+def agent_from_checkpoint(path: str, index: int = 0, device="cpu") -> Agent:
+    """Build agent `index` of a checkpoint with the sizes it was trained with (used by race.py)."""
+    checkpoint = load_checkpoint(path, map_location=device)
+    agent = Agent(Args(**checkpoint["args"]), device=device)
+    agent.load_state_dict(checkpoint["agents"][index])
+    return agent
+
+
+def ghost_to_tensors(trajectory: dict) -> dict:
+    return {k: torch.as_tensor(np.asarray(v)) if isinstance(v, np.ndarray) else v for k, v in trajectory.items()}
+
+
+def ghost_from_tensors(trajectory: dict) -> dict:
+    return {k: v.numpy() if isinstance(v, torch.Tensor) else v for k, v in trajectory.items()}
+
+
+# =====================================================================================
+# 8. Training loop (Algorithm 1, DESIGN 4.5)
+# =====================================================================================
+class CarEpisode:
+    """One car's episode as it is being driven: frames at the encoder's size, the action that led to
+    each frame (zero for the first), the reward that came with it, and whether it is a terminal state."""
+
+    def __init__(self, first_frame: np.ndarray, action_dim: int = 2):
+        self.obs, self.action = [first_frame], [np.zeros(action_dim, dtype=np.float32)]
+        self.reward, self.terminated = [0.0], [False]
+        self.ret, self.final_info = 0.0, None
+
+    def add(self, frame, action, reward, terminated) -> None:
+        self.obs.append(frame)
+        self.action.append(np.asarray(action, dtype=np.float32))
+        self.reward.append(float(reward))
+        self.terminated.append(bool(terminated))
+        self.ret += float(reward)
+
+    def arrays(self) -> tuple[np.ndarray, ...]:
+        reward, terminated = np.asarray(self.reward, np.float32), np.asarray(self.terminated)
+        return np.stack(self.obs), np.stack(self.action), reward, terminated
+
+
+def evaluate(agents: list[Agent], args: Args, eval_envs) -> np.ndarray:
+    """Deterministic races on the held-out tracks eval_seed + i; returns per race and car the return (E, N)."""
+    n = args.num_agents
+    returns = np.zeros((args.eval_episodes, n))
+    for e in range(args.eval_episodes):
+        eval_envs.seed(args.eval_seed + e)
+        obs, states, is_first = eval_envs.reset(), [None] * n, np.ones(n, dtype=bool)
+        while True:
+            frames = preprocess_frames(obs, args.image_size)
+            actions = np.zeros((n, 2), dtype=np.float32)
+            for i, agent in enumerate(agents):
+                car = slice(i, i + 1)
+                actions[car], states[i] = agent.act(frames[car], states[i], is_first[car], deterministic=True)
+            obs, rewards, _, infos, _ = step_with_repeat(eval_envs, actions, args.action_repeat)
+            returns[e] += rewards  # cars that are out get reward 0
+            if infos[0]["is_first"]:
+                break
+            is_first[:] = False
+    return returns
+
+
+def train_agent(agent: Agent, replay: Replay, args: Args, update_times: list[float]) -> tuple[dict, float]:
+    """--train-steps-per-episode updates on uniformly sampled sequences; mean losses and updates per second."""
+    t_start, sums = time.time(), {}
+    for _ in range(args.train_steps_per_episode):
+        t_update = time.time()
+        metrics = agent.update(replay.sample(args.batch_size, args.seq_len))
+        for key, value in metrics.items():
+            sums[key] = sums.get(key, 0.0) + value
+        if len(update_times) < 4:
+            update_times.append(time.time() - t_update)
+    means = {key: total / args.train_steps_per_episode for key, total in sums.items()}
+    return means, args.train_steps_per_episode / (time.time() - t_start)
+
+
+def resolve_checkpoint(path: str) -> str:
+    """A run directory means its checkpoints/latest.pt."""
+    return os.path.join(path, "checkpoints", "latest.pt") if os.path.isdir(path) else path
+
+
+def main(args: Args) -> str:
+    """Train with `args`; returns the run directory."""
+    from tqdm import tqdm
+
+    from envs import race_winners
+    from utils import make_vec_env
+    from utils.logger import configure_logger, log_video, make_run_name
+
+    # --- set-up: resume or new run ------------------------------------------------------
+    resumed = None
+    if args.resume:
+        checkpoint_path = resolve_checkpoint(args.resume)
+        resumed = load_checkpoint(checkpoint_path)
+        args = Args(**{**resumed["args"], **{k: getattr(args, k) for k in RESUME_OVERRIDES}})
+        run_dir = os.path.dirname(os.path.dirname(os.path.abspath(checkpoint_path)))
+    else:
+        if args.stage in ("single", "ghost") and args.num_agents != 1:
+            print(f"stage {args.stage!r} races one car: --num-agents {args.num_agents} -> 1")
+            args = dataclasses.replace(args, num_agents=1)
+        if args.stage == "ghost":
+            if not args.checkpoint:
+                raise ValueError("--stage ghost needs --checkpoint (e.g. runs/<run>/checkpoints/best.pt)")
+            if args.num_races != 1:
+                print(f"stage 'ghost' races one track at a time: --num-races {args.num_races} -> 1")
+                args = dataclasses.replace(args, num_races=1)
+        if args.checkpoint:  # the networks must have the sizes they were trained with
+            start = load_checkpoint(args.checkpoint)
+            changed = {key: start["args"][key] for key in ARCHITECTURE if start["args"][key] != getattr(args, key)}
+            if changed:
+                print(f"network sizes from {args.checkpoint}: {changed}")
+                args = dataclasses.replace(args, **changed)
+        run_dir = os.path.join(args.runs_dir, make_run_name(args.env_id, args.exp_name, args.seed))
+    checkpoint_dir = os.path.join(run_dir, "checkpoints")
+    if args.malloc_fix:
+        keep_freed_memory()
+    if args.torch_threads > 0:
+        torch.set_num_threads(args.torch_threads)
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    torch.backends.cudnn.deterministic = args.torch_deterministic
+    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+    logger = configure_logger(run_dir, dataclasses.asdict(args))
+    with open(os.path.join(run_dir, "config.json"), "w") as f:  # plot.py groups runs by variant and stage
+        json.dump({"variant": VARIANT, **dataclasses.asdict(args)}, f, indent=1)
+    print(f"run directory: {run_dir} (device {device})")
+
+    n, k_races = args.num_agents, args.num_races
+    agents = [Agent(args, device=device) for _ in range(n)]
+    replays = [Replay(args.replay_capacity, args.image_size) for _ in range(n)]
+    counters = {"episode": 0, "global_step": 0, "best_eval_return": -math.inf}
+    ghosts: dict[int, dict] = {}  # ghost stage: track seed -> the best run on it so far
+    if resumed is not None:
+        for agent, state in zip(agents, resumed["agents"]):
+            agent.load_state_dict(state)
+        counters.update(resumed["counters"])
+        set_rng_state(resumed["rng"])
+        ghosts = {int(s): ghost_from_tensors(g) for s, g in resumed["extra"].get("ghosts", {}).items()}
+        for i, replay in enumerate(replays):
+            if os.path.exists(os.path.join(checkpoint_dir, f"replay_car_{i}", "meta.npz")):
+                replay.load(os.path.join(checkpoint_dir, f"replay_car_{i}"))
+        print(f"resumed from {checkpoint_path} at episode {counters['episode']}, step {counters['global_step']}")
+    elif args.checkpoint:
+        for i, agent in enumerate(agents):
+            agent.load_state_dict(start["agents"][i % len(start["agents"])])
+        print(f"agents start from {args.checkpoint}")
+    from_trained = resumed is not None or args.checkpoint is not None
+    # Updates start after the random prefill races; a ghost-stage run first races every ghost track
+    # once with the starting policy (those runs are the first ghosts and fill the replay).
+    learning_starts = args.ghost_tracks if args.stage == "ghost" else args.prefill_episodes
+    ghost_seeds = [args.ghost_seed + j for j in range(args.ghost_tracks)]
+
+    racing = args.env_id == "multi_car_racing"
+    kwargs = env_kwargs(args, dead_zone_at(counters["episode"], args))
+    envs = make_vec_env(args.env_id, k_races, args.seed + counters["episode"], args.use_subprocess, **kwargs)
+    eval_envs = None
+
+    def start_ghost_race():
+        """Ghost stage: reset on the next ghost track with its ghost (if it has one yet)."""
+        seed = ghost_seeds[counters["episode"] % len(ghost_seeds)]
+        envs.seed(seed)
+        envs.set_options({"ghosts": {"car_0": ghosts[seed]}} if seed in ghosts else {})
+        return envs.reset(), seed
+
+    # --- the loop: all agents act in K races; every finished race triggers training --------
+    obs, ghost_seed = start_ghost_race() if args.stage == "ghost" else (envs.reset(), None)
+    frames = preprocess_frames(obs, args.image_size)
+    is_first = np.ones(k_races * n, dtype=bool)
+    states: list = [None] * n
+    episodes: list[CarEpisode | None] = [None] * (k_races * n)
+    wins = [deque(maxlen=100) for _ in range(n)]
+    timer = {"env_time": 0.0, "env_steps": 0}
+    update_times: list[float] = []  # seconds of the first updates, reported once on a CPU
+    reported_update_time = False
+    pbar = tqdm(total=args.total_episodes, initial=counters["episode"], desc=f"{VARIANT} {args.stage}")
+    while counters["episode"] < args.total_episodes:
+        t0 = time.time()
+        for slot in np.flatnonzero(is_first):
+            episodes[slot] = CarEpisode(frames[slot])
+        actions = np.zeros((k_races * n, 2), dtype=np.float32)
+        for i, agent in enumerate(agents):
+            slots = np.arange(i, k_races * n, n)  # agent i drives car i of every race
+            if counters["episode"] < args.prefill_episodes and not from_trained and args.stage != "ghost":
+                actions[slots] = np.random.uniform(-1, 1, size=(len(slots), 2))
+            else:
+                actions[slots], states[i] = agent.act(frames[slots], states[i], is_first[slots])
+        obs, rewards, dones, infos, repeats = step_with_repeat(envs, actions, args.action_repeat)
+        frames = preprocess_frames(obs, args.image_size)
+        counters["global_step"] += k_races * repeats
+        timer["env_steps"] += k_races * repeats
+        for slot, info in enumerate(infos):  # each live car's transition goes to its own agent's episode
+            if not info["alive"]:
+                continue
+            if dones[slot]:
+                frame = preprocess_frames(info["terminal_observation"][None], args.image_size)[0]
+                episodes[slot].add(frame, actions[slot], rewards[slot], terminated=not info["TimeLimit.truncated"])
+                episodes[slot].final_info = info
+                replays[slot % n].add_episode(*episodes[slot].arrays())
+            else:
+                episodes[slot].add(frames[slot], actions[slot], rewards[slot], terminated=False)
+        is_first = np.array([info["is_first"] for info in infos], dtype=bool)
+        timer["env_time"] += time.time() - t0
+
+        if is_first.any():  # env steps per second while the agents act, since the last finished race
+            env_sps = timer["env_steps"] / max(timer["env_time"], 1e-9)
+            timer = {"env_time": 0.0, "env_steps": 0}
+        for race in range(k_races):
+            if not is_first[race * n]:
+                continue
+            # --- a race has finished: log it, then every agent trains ---------------------
+            counters["episode"] += 1
+            episode, step = counters["episode"], counters["global_step"]
+            cars = [episodes[race * n + j] for j in range(n)]
+            final_infos = [car.final_info or {} for car in cars]
+            race_won = race_winners(final_infos) if n > 1 else None
+            if args.stage == "ghost":  # a win is beating the ghost (races without a ghost yet do not count)
+                race_won = [bool(final_infos[0]["ghost_beaten"])] if "ghost_beaten" in final_infos[0] else None
+                record = final_infos[0]["trajectory"].to_dict()  # the env hands over the whole run
+                if ghost_seed not in ghosts or (race_won and race_won[0]):  # first run, or ghost beaten
+                    ghosts[ghost_seed] = record
+                logger.record("ghost/track_seed", ghost_seed)
+                logger.record("ghost/ghosts_recorded", len(ghosts))
+            for j, car in enumerate(cars):
+                prefix = f"car_{j}/"
+                logger.record(prefix + "charts/episodic_return", car.ret)
+                logger.record(prefix + "charts/progress", float(final_infos[j].get("progress", 0.0)))
+                if final_infos[j].get("lap_finished"):
+                    logger.record(prefix + "charts/lap_time", int(final_infos[j]["finish_step"]))
+                if race_won is not None:
+                    wins[j].append(float(race_won[j]))
+                    logger.record(prefix + "charts/win_rate", float(np.mean(wins[j])))
+                logger.record(prefix + "perf/env_sps", env_sps)
+            if racing:  # dead-zone schedule, applied between episodes (takes effect at each race's next reset)
+                envs.env_method("set_dead_zone", dead_zone_at(episode, args))
+
+            if episode >= learning_starts and all(r.can_sample(args.seq_len) for r in replays):
+                for j, (agent, replay) in enumerate(zip(agents, replays)):
+                    means, updates_per_s = train_agent(agent, replay, args, update_times)
+                    for key, value in means.items():
+                        logger.record(f"car_{j}/losses/{key}", value)
+                    logger.record(f"car_{j}/perf/updates_per_s", updates_per_s)
+                if device.type == "cpu" and len(update_times) >= 4 and not reported_update_time:
+                    per_update = float(np.median(update_times[1:4]))  # the first update warms up
+                    minutes = per_update * args.train_steps_per_episode * n / 60
+                    print(
+                        f"\nOn this CPU one update takes {per_update:.2f} s: {args.train_steps_per_episode} updates"
+                        f" x {n} agent(s) = {minutes:.1f} min of training per race. For a CPU-sized run see"
+                        f" README.md, e.g.\n  {CPU_COMMAND}"
+                    )
+                    reported_update_time = True
+
+            if args.video_every and episode % args.video_every == 0:
+                for j, (agent, car) in enumerate(zip(agents, cars)):
+                    ep_obs, ep_action, _, _ = car.arrays()
+                    length = min(len(ep_obs), args.video_length)
+                    first = np.zeros(length, dtype=bool)
+                    first[0] = True
+                    video = agent.video(ep_obs[:length], ep_action[:length], first)
+                    log_video(logger, f"car_{j}/videos/real_reconstruction_imagination", video, step, fps=25)
+
+            if args.eval_every and episode % args.eval_every == 0:
+                if eval_envs is None:
+                    eval_envs = make_vec_env(args.env_id, 1, None, **env_kwargs(args, args.dead_zone_end))
+                eval_returns = evaluate(agents, args, eval_envs)
+                for j in range(n):
+                    logger.record(f"car_{j}/eval/episodic_return", float(eval_returns[:, j].mean()))
+                if eval_returns.mean() > counters["best_eval_return"]:
+                    counters["best_eval_return"] = float(eval_returns.mean())
+                    save_checkpoint(os.path.join(checkpoint_dir, "best.pt"), args, agents, counters, _extra(ghosts))
+            if args.checkpoint_every and episode % args.checkpoint_every == 0:
+                save_checkpoint(os.path.join(checkpoint_dir, "latest.pt"), args, agents, counters, _extra(ghosts))
+            if args.replay_save_every and episode % args.replay_save_every == 0:
+                for j, replay in enumerate(replays):
+                    replay.save(os.path.join(checkpoint_dir, f"replay_car_{j}"))
+            logger.record("charts/episode", episode)
+            if racing:
+                logger.record("charts/dead_zone", dead_zone_at(episode, args))
+            logger.dump(step)
+            pbar.update(1)
+            pbar.set_postfix(episode=episode, ret=f"{np.mean([c.ret for c in cars]):.1f}", sps=f"{env_sps:.0f}")
+            if counters["episode"] >= args.total_episodes:
+                break
+
+        if args.stage == "ghost" and is_first.any() and counters["episode"] < args.total_episodes:
+            obs, ghost_seed = start_ghost_race()  # the next ghost track, with its ghost
+            frames = preprocess_frames(obs, args.image_size)
+            is_first[:] = True
+
+    save_checkpoint(os.path.join(checkpoint_dir, "latest.pt"), args, agents, counters, _extra(ghosts))
+    for j, replay in enumerate(replays):
+        replay.save(os.path.join(checkpoint_dir, f"replay_car_{j}"))
+    pbar.close()
+    envs.close()
+    if eval_envs is not None:
+        eval_envs.close()
+    logger.close()
+    return run_dir
+
+
+def _extra(ghosts: dict) -> dict:
+    return {"ghosts": {str(seed): ghost_to_tensors(g) for seed, g in ghosts.items()}}
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))
