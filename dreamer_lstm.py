@@ -107,6 +107,8 @@ class Args:
     # --- training loop (Algorithm 1)
     total_episodes: int = 1000
     """races to run (counting prefill races)"""
+    time_limit_hours: float = 0.0
+    """stop after the first race that ends past this many hours of this process, with checkpoints (0: no limit)"""
     prefill_episodes: int = 5
     """random-action races before the first update (from a --checkpoint the agent's own policy fills replay)"""
     train_steps_per_episode: int = 200
@@ -184,7 +186,7 @@ class Args:
 
 
 # Arguments a resumed run may change; everything else comes from the checkpoint.
-RESUME_OVERRIDES = ("resume", "total_episodes", "cuda", "torch_threads", "use_subprocess")
+RESUME_OVERRIDES = ("resume", "total_episodes", "time_limit_hours", "cuda", "torch_threads", "use_subprocess")
 # Arguments that fix the networks' shapes: a --checkpoint brings its own.
 ARCHITECTURE = ("image_size", "cnn_depth", "deter_size", "hidden_size", "mlp_size", "latent_size", "norm")
 CPU_COMMAND = (  # README's CPU-sized configuration (~0.7 s per update on 2 cores; paper size ~5 s)
@@ -1028,10 +1030,11 @@ class CarEpisode:
         return np.stack(self.obs), np.stack(self.action), reward, terminated
 
 
-def evaluate(agents: list[Agent], args: Args, eval_envs) -> np.ndarray:
-    """Deterministic races on the held-out tracks eval_seed + i; returns per race and car the return (E, N)."""
+def evaluate(agents: list[Agent], args: Args, eval_envs) -> tuple[np.ndarray, np.ndarray]:
+    """Deterministic races on the held-out tracks eval_seed + i; per race and car the return and the
+    final progress (fraction of tiles), each (E, N)."""
     n = args.num_agents
-    returns = np.zeros((args.eval_episodes, n))
+    returns, progress = np.zeros((args.eval_episodes, n)), np.zeros((args.eval_episodes, n))
     for e in range(args.eval_episodes):
         eval_envs.seed(args.eval_seed + e)
         obs, states, is_first = eval_envs.reset(), [None] * n, np.ones(n, dtype=bool)
@@ -1043,10 +1046,13 @@ def evaluate(agents: list[Agent], args: Args, eval_envs) -> np.ndarray:
                 actions[car], states[i] = agent.act(frames[car], states[i], is_first[car], deterministic=True)
             obs, rewards, _, infos, _ = step_with_repeat(eval_envs, actions, args.action_repeat)
             returns[e] += rewards  # cars that are out get reward 0
+            for i, info in enumerate(infos):
+                if info["alive"]:
+                    progress[e, i] = info.get("progress", 0.0)
             if infos[0]["is_first"]:
                 break
             is_first[:] = False
-    return returns
+    return returns, progress
 
 
 def train_agent(agent: Agent, replay: Replay, args: Args, update_times: list[float]) -> tuple[dict, float]:
@@ -1163,7 +1169,12 @@ def main(args: Args) -> str:
     update_times: list[float] = []  # seconds of the first updates, reported once on a CPU
     reported_update_time = False
     pbar = tqdm(total=args.total_episodes, initial=counters["episode"], desc=f"{VARIANT} {args.stage}")
-    while counters["episode"] < args.total_episodes:
+    started = time.time()
+
+    def out_of_time() -> bool:
+        return args.time_limit_hours > 0 and time.time() - started > 3600 * args.time_limit_hours
+
+    while counters["episode"] < args.total_episodes and not out_of_time():
         t0 = time.time()
         for slot in np.flatnonzero(is_first):
             episodes[slot] = CarEpisode(frames[slot])
@@ -1229,6 +1240,7 @@ def main(args: Args) -> str:
                     for key, value in means.items():
                         logger.record(f"car_{j}/losses/{key}", value)
                     logger.record(f"car_{j}/perf/updates_per_s", updates_per_s)
+                    logger.record(f"car_{j}/perf/updates", agent.num_updates)
                 if device.type == "cpu" and len(update_times) >= 4 and not reported_update_time:
                     per_update = float(np.median(update_times[1:4]))  # the first update warms up
                     minutes = per_update * args.train_steps_per_episode * n / 60
@@ -1251,9 +1263,10 @@ def main(args: Args) -> str:
             if args.eval_every and episode % args.eval_every == 0:
                 if eval_envs is None:
                     eval_envs = make_vec_env(args.env_id, 1, None, **env_kwargs(args, args.dead_zone_end))
-                eval_returns = evaluate(agents, args, eval_envs)
+                eval_returns, eval_progress = evaluate(agents, args, eval_envs)
                 for j in range(n):
                     logger.record(f"car_{j}/eval/episodic_return", float(eval_returns[:, j].mean()))
+                    logger.record(f"car_{j}/eval/progress", float(eval_progress[:, j].mean()))
                 if eval_returns.mean() > counters["best_eval_return"]:
                     counters["best_eval_return"] = float(eval_returns.mean())
                     save_checkpoint(os.path.join(checkpoint_dir, "best.pt"), args, agents, counters, _extra(ghosts))
@@ -1268,7 +1281,7 @@ def main(args: Args) -> str:
             logger.dump(step)
             pbar.update(1)
             pbar.set_postfix(episode=episode, ret=f"{np.mean([c.ret for c in cars]):.1f}", sps=f"{env_sps:.0f}")
-            if counters["episode"] >= args.total_episodes:
+            if counters["episode"] >= args.total_episodes or out_of_time():
                 break
 
         if args.stage == "ghost" and is_first.any() and counters["episode"] < args.total_episodes:

@@ -515,6 +515,8 @@ def test_single_stage_writes_scalars_video_and_checkpoints(single_run):
     import plot
 
     assert plot.run_identity(run_dir)[:2] == (script.VARIANT, "single")  # config.json groups the run
+    assert {"car_0/eval/episodic_return", "car_0/eval/progress"} <= set(scalars)
+    assert all(0.0 <= value <= 1.0 for _, value in scalars["car_0/eval/progress"])
     for name in ("latest.pt", "best.pt"):
         checkpoint = torch.load(os.path.join(run_dir, "checkpoints", name), weights_only=True)
         assert checkpoint["variant"] == script.VARIANT and len(checkpoint["agents"]) == 1
@@ -574,3 +576,9 @@ def test_race_stage_two_learning_agents(tmp_path, script):
     # independent agents: own networks (different initialisations and updates)
     w0, w1 = (a["world_model"]["encoder.fc.weight"] for a in latest["agents"])
     assert not torch.equal(w0, w1)
+
+
+def test_time_limit_stops_with_a_checkpoint(tmp_path, script):
+    run_dir = script.main(script.Args(stage="single", runs_dir=str(tmp_path), time_limit_hours=1e-9, **E2E))
+    latest = torch.load(os.path.join(run_dir, "checkpoints", "latest.pt"), weights_only=True)
+    assert latest["counters"]["episode"] == 0 < E2E["total_episodes"]
