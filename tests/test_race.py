@@ -64,3 +64,49 @@ def test_bad_arguments():
     with pytest.raises(SystemExit):
         race.main(["--opponent", "pursuit:fast", "--opponent", "pursuit"])
     assert math.isclose(race.wilson_interval(0, 0)[1], 1.0)
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoints(tmp_path_factory):
+    """A best.pt of each variant from a 1-race tiny single-stage run."""
+    import importlib
+
+    tiny = dict(
+        cnn_depth=4, deter_size=16, hidden_size=16, mlp_size=16, latent_size=4, image_size=64, batch_size=2, seq_len=8,
+        imagination_horizon=3, max_steps=30, train_steps_per_episode=1, prefill_episodes=1, replay_capacity=500,
+        total_episodes=1, eval_every=1, eval_episodes=1, video_every=0,
+    )  # fmt: skip
+    paths = {}
+    for variant in ("lstm", "gru"):
+        script = importlib.import_module(f"dreamer_{variant}")
+        root = tmp_path_factory.mktemp(variant)
+        run_dir = script.main(script.Args(stage="single", runs_dir=str(root), **tiny))
+        paths[variant] = f"{run_dir}/checkpoints/best.pt"
+    return paths
+
+
+def test_race_of_saved_agents_of_both_variants(tiny_checkpoints, tmp_path):
+    rows = race.main([tiny_checkpoints["lstm"], tiny_checkpoints["gru"], "--races", "2", "--max-steps", "30", "--no-video", "--out", str(tmp_path)])
+    assert [r["racer"].split(":")[0] for r in rows] == ["lstm", "gru"]
+    assert all(r["races"] == 2 for r in rows) and sum(r["wins"] for r in rows) <= 2
+
+
+def test_tiny_train_run_logs_per_agent_win_rates(tiny_checkpoints, tmp_path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    race.main(
+        [tiny_checkpoints["lstm"], tiny_checkpoints["gru"], "--train", "--episodes", "2", "--train-steps", "1",
+         "--max-steps", "30", "--runs-dir", str(tmp_path)]
+    )  # fmt: skip
+    (run_dir,) = list(tmp_path.iterdir())
+    acc = EventAccumulator(str(run_dir), size_guidance={"scalars": 0})
+    acc.Reload()
+    tags = set(acc.Tags()["scalars"])
+    for racer in ("racer_0_lstm", "racer_1_gru"):
+        assert f"{racer}/charts/win_rate" in tags and f"{racer}/charts/episodic_return" in tags
+        assert f"{racer}/losses/actor" in tags  # it kept learning
+        assert len(acc.Scalars(f"{racer}/charts/win_rate")) == 2
+        assert 0.0 <= acc.Scalars(f"{racer}/charts/win_rate")[-1].value <= 1.0
+    for i in (0, 1):
+        checkpoint = race.read_checkpoint(str(run_dir / "checkpoints" / f"racer_{i}.pt"))
+        assert checkpoint["counters"]["episode"] == 2
