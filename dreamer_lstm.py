@@ -189,7 +189,7 @@ class Args:
 RESUME_OVERRIDES = ("resume", "total_episodes", "time_limit_hours", "cuda", "torch_threads", "use_subprocess")
 # Arguments that fix the networks' shapes: a --checkpoint brings its own.
 ARCHITECTURE = ("image_size", "cnn_depth", "deter_size", "hidden_size", "mlp_size", "latent_size", "norm")
-CPU_COMMAND = (  # README's CPU-sized configuration (~0.7 s per update on 2 cores; paper size ~5 s)
+CPU_COMMAND = (  # the README's CPU-sized configuration (~0.5 s per update on 2 cores; paper size ~11 s)
     f"python {os.path.basename(__file__)} --seed 1 --cnn-depth 16 --deter-size 256 --hidden-size 256 --mlp-size 256 "
     "--image-size 64 --batch-size 16 --seq-len 32 --imagination-horizon 15 --imagination-starts 256"
 )
