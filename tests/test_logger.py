@@ -131,3 +131,22 @@ def test_missing_moviepy_editor_fails_loudly(tmp_path, monkeypatch):
     with pytest.raises(ImportError, match="moviepy"):
         configure_logger(str(tmp_path), {"a": 1}, formats=("tensorboard",))
     configure_logger(str(tmp_path), {"a": 1}, formats=("tensorboard",), check_videos=False).close()
+
+
+def test_resumed_run_keeps_its_csv_rows(tmp_path):
+    """SB3's CSV writer truncates progress.csv; a resumed run must keep the earlier rows."""
+    import csv
+
+    from utils.logger import configure_logger
+
+    for step, value in ((1, 1.0), (2, 2.0)):
+        logger = configure_logger(tmp_path, formats=("csv",))
+        logger.record("charts/a", value)
+        if step == 2:
+            logger.record("charts/b", 5.0)  # a new column after resuming
+        logger.dump(step)
+        logger.close()
+    with open(tmp_path / "progress.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["charts/a"] for r in rows] == ["1.0", "2.0"]
+    assert [r["charts/b"] for r in rows] == ["", "5.0"]

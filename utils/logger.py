@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 import torch as th
-from stable_baselines3.common.logger import Image, Logger, TensorBoardOutputFormat, Video, configure
+from stable_baselines3.common.logger import CSVOutputFormat, Image, Logger, TensorBoardOutputFormat, Video, configure
 
 #: Tag of the hyperparameter table in TensorBoard's text tab.
 HYPERPARAMETERS_TAG = "hyperparameters"
@@ -98,7 +98,15 @@ def configure_logger(
     formats = list(formats)
     if check_videos and "tensorboard" in formats:
         check_video_support()
+    csv_path = os.path.join(str(run_dir), "progress.csv")
+    previous_rows = open(csv_path).read() if "csv" in formats and os.path.exists(csv_path) else ""
     logger = configure(str(run_dir), formats)
+    if previous_rows:  # a resumed run: SB3 truncates progress.csv; put its rows back and append
+        for fmt in logger.output_formats:
+            if isinstance(fmt, CSVOutputFormat):
+                fmt.file.write(previous_rows)
+                fmt.file.flush()
+                fmt.keys = previous_rows.splitlines()[0].split(fmt.separator)
     if hyperparameters:
         _write_tensorboard(logger, HYPERPARAMETERS_TAG, hyperparameter_table(hyperparameters), 0)
     return logger
