@@ -44,6 +44,11 @@ LEARNING_CONFIG = {
     "num_agents": 1,
     "action_repeat": 2,  # decisions at 25 Hz: half the recurrent steps per lap
     "dead_zone_episodes": 30,  # the schedule ends within the run (paper: 200 races)
+    # Random prefill races end off the road after ~50 steps: 20 of them give the world model
+    # ~1000 steps to start from (paper: 5); 100 updates per race instead of 200 keeps the
+    # replay ratio sane while races are short and doubles the races per hour.
+    "prefill_episodes": 20,
+    "train_steps_per_episode": 100,
     "eval_every": EVAL_EVERY,
     "eval_episodes": 10,
     "video_every": 25,
