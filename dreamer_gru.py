@@ -26,6 +26,7 @@ import contextlib
 import copy
 import ctypes
 import dataclasses
+import glob
 import itertools
 import json
 import math
@@ -131,8 +132,11 @@ class Args:
     """steps per video"""
     checkpoint_every: int = 1
     """write checkpoints/latest.pt every this many races"""
-    replay_save_every: int = 25
-    """save the replay buffers beside the checkpoints every this many races (0: never)"""
+    replay_save_every: int = 1
+    """save the replay buffers beside the checkpoints every this many races (0: never); a resume restores the
+    replay as of its last save, so 1 makes a resume exact (only the chunks a race changed are written)"""
+    max_nonfinite_updates: int = 20
+    """stop the run (with a checkpoint) after this many updates in a row with a non-finite loss or gradient"""
 
     # --- world model, actor, critic (DESIGN 4.4)
     batch_size: int = 50
@@ -195,6 +199,116 @@ CPU_COMMAND = (  # the README's CPU-sized configuration (~0.5 s per update on 2 
 )
 
 
+class UsageError(ValueError):
+    """Bad input (an argument, a checkpoint file, a memory budget), found before any work starts; one-line message."""
+
+
+class CheckpointError(UsageError):
+    """A missing, truncated or foreign checkpoint (or replay) file; the message names the file."""
+
+
+class NumericalFault(RuntimeError):
+    """--max-nonfinite-updates updates in a row had a non-finite loss or gradient; the run stopped with a checkpoint."""
+
+
+def _flag(name: str) -> str:
+    return "--lambda" if name == "lambda_" else "--" + name.replace("_", "-")
+
+
+def validate_args(args: Args) -> None:
+    """Refuse impossible arguments before any work starts: raises UsageError (a ValueError) naming the flag."""
+
+    def require(ok: bool, name: str, requirement: str) -> None:
+        if not ok:
+            raise UsageError(f"{_flag(name)} {requirement}, got {getattr(args, name)!r}")
+
+    for field in dataclasses.fields(args):
+        value = getattr(args, field.name)
+        if isinstance(value, float):
+            require(math.isfinite(value), field.name, "must be a finite number")
+    for minimum, names in {
+        1: ("num_agents", "num_races", "max_steps", "action_repeat", "total_episodes", "replay_capacity", "batch_size",
+            "imagination_horizon", "eval_episodes", "ghost_tracks", "video_length", "max_nonfinite_updates",
+            "cnn_depth", "deter_size", "hidden_size", "mlp_size", "latent_size"),
+        2: ("seq_len",),  # a sequence model learns from transitions: at least two steps
+        0: ("torch_threads", "stall_steps", "dead_zone_episodes", "prefill_episodes", "train_steps_per_episode",
+            "eval_every", "video_every", "checkpoint_every", "replay_save_every", "imagination_starts",
+            "time_limit_hours", "entropy_coef", "free_bits", "kl_dyn_scale", "kl_rep_scale", "brake_speed_threshold",
+            "collision_penalty", "offroad_penalty", "eval_seed", "ghost_seed"),
+    }.items():  # fmt: skip
+        for name in names:
+            require(getattr(args, name) >= minimum, name, f"must be >= {minimum}")
+    for name in ("model_lr", "critic_lr", "actor_lr", "grad_clip"):
+        require(getattr(args, name) > 0, name, "must be > 0")
+    require(0 < args.gamma <= 1, "gamma", "must lie in (0, 1]")
+    require(0 <= args.lambda_ <= 1, "lambda_", "must lie in [0, 1]")
+    require(0 < args.tau <= 1, "tau", "must lie in (0, 1]")
+    for name in ("dead_zone_start", "dead_zone_end"):
+        require(-1 <= getattr(args, name) <= 0, name, "must lie in [-1, 0]")
+    require(0 <= args.seed < 2**32, "seed", "must lie in [0, 2**32)")
+    starts = args.batch_size * args.seq_len
+    require(args.imagination_starts <= starts, "imagination_starts", f"must be <= batch-size * seq-len = {starts}")
+    require(args.replay_capacity >= args.seq_len, "replay_capacity", f"must be >= --seq-len ({args.seq_len})")
+    from utils.vec_env import ENV_IDS
+
+    require(args.env_id in ENV_IDS, "env_id", f"must be one of {sorted(ENV_IDS)}")
+    if args.stage == "ghost":
+        require(args.env_id == "multi_car_racing", "env_id", "must be multi_car_racing for --stage ghost")
+        if not args.checkpoint and not args.resume:
+            raise UsageError("--stage ghost needs --checkpoint (e.g. runs/<run>/checkpoints/best.pt)")
+    if args.resume is not None:
+        require(os.path.isfile(resolve_checkpoint(args.resume)), "resume", "must be a run directory with "
+                "checkpoints/latest.pt or a checkpoint file")  # fmt: skip
+    elif args.checkpoint is not None:  # (a resumed run has its networks already)
+        require(os.path.isfile(args.checkpoint), "checkpoint", "must be a checkpoint file")
+
+
+def available_memory() -> tuple[int | None, str]:
+    """Bytes of memory a new allocation can use, and where the number comes from: MemAvailable of /proc/meminfo
+    (capped by a cgroup memory limit), else free physical pages (sysconf), else (None, "unknown")."""
+    available, source = None, "unknown"
+    with contextlib.suppress(OSError, ValueError):
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    available, source = int(line.split()[1]) * 1024, "MemAvailable in /proc/meminfo"
+    if available is None:
+        with contextlib.suppress(OSError, ValueError, AttributeError):
+            available, source = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"), "free pages (sysconf)"
+    cgroup_files = [("memory.max", "memory.current"), ("memory/memory.limit_in_bytes", "memory/memory.usage_in_bytes")]
+    for limit_file, usage_file in cgroup_files:
+        with contextlib.suppress(OSError, ValueError):  # a container's limit ("max": none)
+            with open(f"/sys/fs/cgroup/{limit_file}") as f, open(f"/sys/fs/cgroup/{usage_file}") as g:
+                room = int(f.read()) - int(g.read())
+            if available is None or room < available:
+                available, source = room, f"cgroup limit /sys/fs/cgroup/{limit_file}"
+    return available, source
+
+
+def _size(num_bytes: float) -> str:
+    return f"{num_bytes / 1e9:,.2f} GB" if num_bytes >= 1e9 else f"{num_bytes / 1e6:,.1f} MB"
+
+
+def check_replay_memory(args: Args) -> int:
+    """Print the replay buffers' size (all agents) and refuse a capacity that cannot fit in available memory.
+
+    The buffers are allocated lazily (pages are touched as they fill), so a run that does not fit would only
+    fail hours later; returns their size in bytes."""
+    step_bytes = Replay.bytes_per_step(args.image_size)
+    per_agent = args.replay_capacity * step_bytes
+    total = args.num_agents * per_agent
+    available, source = available_memory()
+    room = "unknown" if available is None else _size(available)
+    print(f"replay buffers: {args.num_agents} x {args.replay_capacity:,} steps x {step_bytes:,} B = {_size(total)}"
+          f" (memory available: {room}, {source})")  # fmt: skip
+    if available is not None and total > available:
+        raise UsageError(
+            f"--replay-capacity {args.replay_capacity}: the replay buffers need {args.num_agents} x {_size(per_agent)}"
+            f" = {_size(total)} but only {_size(available)} of memory is available ({source}); lower --replay-capacity"
+        )
+    return total
+
+
 def keep_freed_memory() -> bool:
     """Stop glibc from returning freed memory to the OS (DESIGN 6).
 
@@ -236,6 +350,12 @@ def dead_zone_at(episode: int, args: Args) -> float:
     """Linear dead-zone schedule: dead_zone_start at episode 0 to dead_zone_end at dead_zone_episodes."""
     frac = min(1.0, episode / max(1, args.dead_zone_episodes))
     return args.dead_zone_start + frac * (args.dead_zone_end - args.dead_zone_start)
+
+
+def race_seed(seed: int, episode: int) -> int:
+    """Track seed of training race `episode` (one race at a time): fixed by the run's seed and the episode number,
+    so a resumed run drives the very tracks the uninterrupted run would have."""
+    return int(np.random.SeedSequence([seed, episode]).generate_state(1)[0])
 
 
 def preprocess_frames(frames: np.ndarray, image_size: int) -> np.ndarray:
@@ -619,7 +739,7 @@ class Replay:
     sequences may cross episode boundaries, which is_first marks. Capacity is in steps.
     """
 
-    def __init__(self, capacity: int, image_size: int, action_dim: int = 2, chunk_size: int = 10_000):
+    def __init__(self, capacity: int, image_size: int, action_dim: int = 2, chunk_size: int = 1000):
         self.capacity, self.chunk_size = int(capacity), int(chunk_size)
         self.obs = np.zeros((self.capacity, image_size, image_size, 3), dtype=np.uint8)  # pages are touched lazily
         self.action = np.zeros((self.capacity, action_dim), dtype=np.float32)
@@ -629,6 +749,12 @@ class Replay:
         self.next_index, self.size, self.total_steps, self.episodes = 0, 0, 0, 0
         self._dirty: set[int] = set()
         self._saved_to: str | None = None
+        self._files: dict[int, str] = {}  # chunk -> its file in _saved_to
+
+    @staticmethod
+    def bytes_per_step(image_size: int, action_dim: int = 2) -> int:
+        """Memory of one stored step: frame, action (float32), reward (float32), is_first, terminated."""
+        return image_size * image_size * 3 + 4 * action_dim + 4 + 1 + 1
 
     def __len__(self) -> int:
         return self.size
@@ -663,49 +789,103 @@ class Replay:
             "terminated": self.terminated[idx],
         }
 
-    def save(self, directory: str) -> None:
-        """Chunked compressed .npz files (only chunks changed since the last save to the same directory)."""
+    def save(self, directory: str) -> dict:
+        """Save as chunked compressed .npz files; returns the manifest (counters and chunk files) that `load` takes.
+
+        Only chunks changed since the last save to the same directory are written, each to a new file (named by
+        total_steps), then meta.npz with the manifest; every write is atomic. Files of earlier saves stay until
+        `prune`, so a checkpoint holding an earlier manifest still loads: a kill at any moment loses nothing saved.
+        """
         os.makedirs(directory, exist_ok=True)
-        used = self.size  # filled steps: [0, size) until the buffer wraps, then all of it
-        num_chunks = math.ceil(used / self.chunk_size)
-        chunks = range(num_chunks) if self._saved_to != directory else sorted(c for c in self._dirty if c < num_chunks)
-        for c in chunks:
-            part = slice(c * self.chunk_size, min(used, (c + 1) * self.chunk_size))
+        num_chunks = math.ceil(self.size / self.chunk_size)  # filled steps: [0, size) until the buffer wraps
+        if self._saved_to != directory:
+            self._files, changed = {}, range(num_chunks)
+        else:
+            changed = sorted(c for c in self._dirty if c < num_chunks)
+        for c in changed:
+            name = f"chunk_{c:05d}_{self.total_steps:012d}.npz"
+            part = slice(c * self.chunk_size, min(self.size, (c + 1) * self.chunk_size))
             _atomic_npz(
-                os.path.join(directory, f"chunk_{c:05d}.npz"),
+                os.path.join(directory, name),
                 obs=self.obs[part], action=self.action[part], reward=self.reward[part],
                 is_first=self.is_first[part], terminated=self.terminated[part],
             )  # fmt: skip
-        _atomic_npz(
-            os.path.join(directory, "meta.npz"),
-            capacity=self.capacity, chunk_size=self.chunk_size, num_chunks=num_chunks, next_index=self.next_index,
-            size=self.size, total_steps=self.total_steps, episodes=self.episodes,
-        )  # fmt: skip
+            self._files[c] = name
+        manifest = self.manifest()
+        meta = {k: np.asarray(v, dtype=str) if k == "files" else np.asarray(v) for k, v in manifest.items()}
+        _atomic_npz(os.path.join(directory, "meta.npz"), **meta)
+        self._dirty.clear()
+        self._saved_to = directory
+        return manifest
+
+    def load(self, directory: str, manifest: dict | None = None) -> None:
+        """Restore a save: `manifest` (as a checkpoint holds it) or else the directory's meta.npz (the newest save)."""
+        if manifest is None:
+            with np.load(os.path.join(directory, "meta.npz")) as meta:
+                manifest = {k: meta[k].tolist() for k in meta.files}
+        if int(manifest["capacity"]) != self.capacity:
+            raise ValueError(f"replay in {directory} has capacity {manifest['capacity']}, this buffer {self.capacity}")
+        chunk_size = int(manifest["chunk_size"])
+        if "files" in manifest:
+            files = list(manifest["files"])
+        else:  # the layout before chunk files were versioned
+            files = [f"chunk_{c:05d}.npz" for c in range(manifest["num_chunks"])]
+        for c, name in enumerate(files):
+            with np.load(os.path.join(directory, name)) as chunk:
+                start = c * chunk_size
+                for key in ("obs", "action", "reward", "is_first", "terminated"):
+                    getattr(self, key)[start : start + len(chunk[key])] = chunk[key]
+        self.next_index, self.size = int(manifest["next_index"]), int(manifest["size"])
+        self.total_steps, self.episodes = int(manifest["total_steps"]), int(manifest["episodes"])
+        self.chunk_size = chunk_size
+        self._files = dict(enumerate(files))
         self._dirty.clear()
         self._saved_to = directory
 
-    def load(self, directory: str) -> None:
-        with np.load(os.path.join(directory, "meta.npz")) as meta:
-            meta = {k: int(v) for k, v in meta.items()}
-        if meta["capacity"] != self.capacity:
-            raise ValueError(f"replay in {directory} has capacity {meta['capacity']}, this buffer {self.capacity}")
-        for c in range(meta["num_chunks"]):
-            with np.load(os.path.join(directory, f"chunk_{c:05d}.npz")) as chunk:
-                start = c * meta["chunk_size"]
-                for key in ("obs", "action", "reward", "is_first", "terminated"):
-                    getattr(self, key)[start : start + len(chunk[key])] = chunk[key]
-        self.next_index, self.size = meta["next_index"], meta["size"]
-        self.total_steps, self.episodes = meta["total_steps"], meta["episodes"]
-        self.chunk_size = meta["chunk_size"]
-        self._dirty.clear()
-        self._saved_to = directory
+    def manifest(self) -> dict:
+        """What the last save holds, in plain types (a checkpoint names it): counters and chunk files."""
+        return {
+            "capacity": self.capacity, "chunk_size": self.chunk_size, "next_index": self.next_index,
+            "size": self.size, "total_steps": self.total_steps, "episodes": self.episodes,
+            "files": [self._files[c] for c in range(len(self._files))],
+        }  # fmt: skip
+
+    @staticmethod
+    def prune(directory: str, keep: dict) -> None:
+        """Delete the chunk files (and leftover temporary files) of `directory` that manifest `keep` does not name."""
+        keep_files = set(keep["files"])
+        for path in glob.glob(os.path.join(directory, "chunk_*.npz*")):
+            if os.path.basename(path) not in keep_files:
+                with contextlib.suppress(OSError):
+                    os.remove(path)
+
+
+def _atomic_write(path: str, write) -> None:
+    """Write a file so that a kill at any moment leaves the old file or the new one, never a part: write(f) into a
+    temporary file beside it, flush and fsync it, rename it over `path` (os.replace), fsync the directory."""
+    directory = os.path.dirname(os.path.abspath(path))
+    os.makedirs(directory, exist_ok=True)
+    tmp = path + ".tmp"
+    try:
+        with open(tmp, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.remove(tmp)
+        raise
+    with contextlib.suppress(OSError):  # the rename itself reaches the disk (not possible on every platform)
+        fd = os.open(directory, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
 
 
 def _atomic_npz(path: str, **arrays) -> None:
-    tmp = path + ".tmp"
-    with open(tmp, "wb") as f:
-        np.savez_compressed(f, **arrays)
-    os.replace(tmp, path)
+    _atomic_write(path, lambda f: np.savez_compressed(f, **arrays))
 
 
 # =====================================================================================
@@ -735,6 +915,8 @@ class Agent:
         self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=args.actor_lr)
         self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=args.critic_lr)
         self.num_updates = 0
+        self.nonfinite_updates = 0  # updates in which an optimiser step was skipped (non-finite loss or gradient)
+        self.nonfinite_in_a_row = 0  # ... of the latest updates, in a row
 
     # --- modes -------------------------------------------------------------------------
     def _set_training(self, training: bool) -> None:
@@ -819,15 +1001,23 @@ class Agent:
         metrics["imagined_return"] = returns.mean()
         return actor_loss, critic_loss, metrics
 
-    def _step(self, optimizer: torch.optim.Optimizer, loss: torch.Tensor, params) -> torch.Tensor:
+    def _step(self, optimizer: torch.optim.Optimizer, loss: torch.Tensor, params) -> bool:
+        """Backward, clip, step. A non-finite loss or gradient norm skips the step (the parameters and the
+        optimiser's state stay as they were); returns whether the step was taken."""
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         norm = nn.utils.clip_grad_norm_(params, self.args.grad_clip)
+        if not bool(torch.isfinite(loss.detach()) & torch.isfinite(norm)):
+            optimizer.zero_grad(set_to_none=True)
+            return False
         optimizer.step()
-        return norm
+        return True
 
     def update(self, batch: dict) -> dict[str, float]:
-        """One training update on a batch of B sequences of length L (numpy arrays from Replay.sample)."""
+        """One training update on a batch of B sequences of length L (numpy arrays from Replay.sample).
+
+        Each optimiser step whose loss or gradient is not finite is skipped: its network, its BatchNorm
+        statistics and its targets stay unchanged, and the update counts in nonfinite_updates."""
         dev = self.device
         obs = torch.as_tensor(batch["obs"], device=dev)
         actions = torch.as_tensor(batch["action"], device=dev, dtype=torch.float32)
@@ -835,17 +1025,27 @@ class Agent:
         is_first = torch.as_tensor(batch["is_first"], device=dev, dtype=torch.bool)
         terminated = torch.as_tensor(batch["terminated"], device=dev, dtype=torch.float32)
         self._set_training(True)
+        statistics = {m: [b.clone() for b in m.buffers()] for m in (self.world_model, self.actor)}  # BatchNorm
 
         model_loss, metrics, post = self.world_model_loss(obs, actions, rewards, is_first, terminated)
-        self._step(self.model_optimizer, model_loss, self.world_model.parameters())
-        self._update_targets()
+        model_ok = self._step(self.model_optimizer, model_loss, self.world_model.parameters())
+        if model_ok:
+            self._update_targets()
 
         actor_loss, critic_loss, behaviour_metrics = self.behaviour_losses(post)
-        self._step(self.actor_optimizer, actor_loss, self.actor.parameters())
-        self._step(self.critic_optimizer, critic_loss, self.critic.parameters())
-        if self.args.target_critic:
+        actor_ok = self._step(self.actor_optimizer, actor_loss, self.actor.parameters())
+        critic_ok = self._step(self.critic_optimizer, critic_loss, self.critic.parameters())
+        if self.args.target_critic and critic_ok:
             soft_update(self.targets["critic"], self.critic, self.args.tau)
+        for module, ok in ((self.world_model, model_ok), (self.actor, actor_ok)):
+            if not ok:  # the batch's forward pass moved the running statistics: put them back
+                with torch.no_grad():
+                    for buffer, saved in zip(module.buffers(), statistics[module]):
+                        buffer.copy_(saved)
         self.num_updates += 1
+        faulty = not (model_ok and actor_ok and critic_ok)
+        self.nonfinite_updates += int(faulty)
+        self.nonfinite_in_a_row = self.nonfinite_in_a_row + 1 if faulty else 0
 
         metrics.update(behaviour_metrics)
         values = torch.stack([v.detach().float() for v in metrics.values()]).tolist()  # one host sync per update
@@ -912,6 +1112,8 @@ class Agent:
             "actor_optimizer": self.actor_optimizer.state_dict(),
             "critic_optimizer": self.critic_optimizer.state_dict(),
             "num_updates": self.num_updates,
+            "nonfinite_updates": self.nonfinite_updates,
+            "nonfinite_in_a_row": self.nonfinite_in_a_row,
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -923,6 +1125,8 @@ class Agent:
         self.actor_optimizer.load_state_dict(state["actor_optimizer"])
         self.critic_optimizer.load_state_dict(state["critic_optimizer"])
         self.num_updates = int(state["num_updates"])
+        self.nonfinite_updates = int(state.get("nonfinite_updates", 0))
+        self.nonfinite_in_a_row = int(state.get("nonfinite_in_a_row", 0))
 
     def save(self, path: str) -> None:
         _atomic_torch_save(self.state_dict(), path)
@@ -935,10 +1139,7 @@ class Agent:
 # 7. Checkpoints (DESIGN 4.6): tensors and plain Python types only, written atomically
 # =====================================================================================
 def _atomic_torch_save(obj, path: str) -> None:
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    tmp = path + ".tmp"
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    _atomic_write(path, lambda f: torch.save(obj, f))
 
 
 def rng_state() -> dict:
@@ -982,18 +1183,61 @@ def save_checkpoint(path: str, args: Args, agents: list[Agent], counters: dict, 
     _atomic_torch_save(checkpoint, path)
 
 
+CHECKPOINT_KEYS = ("variant", "args", "counters", "agents", "rng")
+
+
+def _first_line(error: BaseException) -> str:
+    text = str(error).strip()
+    return text.splitlines()[0] if text else type(error).__name__
+
+
 def load_checkpoint(path: str, map_location="cpu") -> dict:
-    checkpoint = torch.load(path, map_location=map_location, weights_only=True)
-    if checkpoint.get("variant") != VARIANT:
-        raise ValueError(f"{path} holds a {checkpoint.get('variant')!r} agent, this script builds {VARIANT!r}")
+    """Load a checkpoint of this script with weights_only=True; a missing, truncated or foreign file (or one of
+    the other variant) raises CheckpointError, whose one-line message names the file."""
+    if not os.path.isfile(path):
+        raise CheckpointError(f"{path}: no such checkpoint file")
+    try:
+        checkpoint = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as e:  # truncated zip, not a torch file, a pickle weights_only refuses, ...
+        reason = _first_line(e)
+        raise CheckpointError(f"{path}: not a readable checkpoint (truncated or not a torch file): {reason}") from None
+    if not isinstance(checkpoint, dict) or not all(key in checkpoint for key in CHECKPOINT_KEYS):
+        raise CheckpointError(f"{path}: not a checkpoint of these scripts (needs entries {', '.join(CHECKPOINT_KEYS)})")
+    if checkpoint["variant"] != VARIANT:
+        raise CheckpointError(f"{path}: holds a {checkpoint['variant']!r} agent, this script builds {VARIANT!r}")
+    if not isinstance(checkpoint["agents"], list) or not checkpoint["agents"]:
+        raise CheckpointError(f"{path}: holds no agents")
     return checkpoint
+
+
+def args_from_checkpoint(checkpoint: dict, path: str, **overrides) -> Args:
+    """The Args a checkpoint was trained with (new flags keep their defaults, flags removed since are dropped)."""
+    names = {field.name for field in dataclasses.fields(Args)}
+    saved = checkpoint["args"] if isinstance(checkpoint["args"], dict) else {}
+    dropped = sorted(set(saved) - names)
+    if dropped:
+        print(f"note: {path} has arguments this script does not know (ignored): {', '.join(dropped)}")
+    try:
+        return Args(**{**{k: v for k, v in saved.items() if k in names}, **overrides})
+    except TypeError as e:
+        raise CheckpointError(f"{path}: its arguments do not fit this script: {_first_line(e)}") from None
+
+
+def load_agent_state(agent: Agent, state, path: str, index: int) -> None:
+    """agent.load_state_dict, with a one-line CheckpointError naming the file when the state does not fit."""
+    try:
+        agent.load_state_dict(state)
+    except (RuntimeError, KeyError, TypeError, ValueError, AttributeError) as e:
+        raise CheckpointError(f"{path}: agent {index} does not fit the networks it names: {_first_line(e)}") from None
 
 
 def agent_from_checkpoint(path: str, index: int = 0, device="cpu") -> Agent:
     """Build agent `index` of a checkpoint with the sizes it was trained with (used by race.py)."""
     checkpoint = load_checkpoint(path, map_location=device)
-    agent = Agent(Args(**checkpoint["args"]), device=device)
-    agent.load_state_dict(checkpoint["agents"][index])
+    if not 0 <= index < len(checkpoint["agents"]):
+        raise CheckpointError(f"{path}: has {len(checkpoint['agents'])} agent(s), asked for agent {index}")
+    agent = Agent(args_from_checkpoint(checkpoint, path), device=device)
+    load_agent_state(agent, checkpoint["agents"][index], path, index)
     return agent
 
 
@@ -1055,17 +1299,24 @@ def evaluate(agents: list[Agent], args: Args, eval_envs) -> tuple[np.ndarray, np
 
 
 def train_agent(agent: Agent, replay: Replay, args: Args, update_times: list[float]) -> tuple[dict, float]:
-    """--train-steps-per-episode updates on uniformly sampled sequences; mean losses and updates per second."""
-    t_start, sums = time.time(), {}
+    """--train-steps-per-episode updates on uniformly sampled sequences; mean losses and updates per second.
+
+    Non-finite losses are left out of the means. Stops early once the agent has had --max-nonfinite-updates
+    updates in a row with a non-finite loss or gradient (main then ends the run)."""
+    t_start, sums, counts, updates = time.time(), {}, {}, 0
     for _ in range(args.train_steps_per_episode):
         t_update = time.time()
         metrics = agent.update(replay.sample(args.batch_size, args.seq_len))
+        updates += 1
         for key, value in metrics.items():
-            sums[key] = sums.get(key, 0.0) + value
+            if math.isfinite(value):
+                sums[key], counts[key] = sums.get(key, 0.0) + value, counts.get(key, 0) + 1
         if len(update_times) < 4:
             update_times.append(time.time() - t_update)
-    means = {key: total / args.train_steps_per_episode for key, total in sums.items()}
-    return means, args.train_steps_per_episode / (time.time() - t_start)
+        if agent.nonfinite_in_a_row >= args.max_nonfinite_updates:
+            break
+    means = {key: total / counts[key] for key, total in sums.items()}
+    return means, updates / max(time.time() - t_start, 1e-9)
 
 
 def resolve_checkpoint(path: str) -> str:
@@ -1073,38 +1324,62 @@ def resolve_checkpoint(path: str) -> str:
     return os.path.join(path, "checkpoints", "latest.pt") if os.path.isdir(path) else path
 
 
+def restore_replay(replay: Replay, directory: str, manifest: dict | None, races: int) -> dict | None:
+    """Resume: load an agent's replay as the checkpoint names it (else the newest save in `directory`), say what
+    it lacks, and return the manifest loaded (None: nothing saved, the replay starts empty)."""
+    if manifest is not None and not all(os.path.isfile(os.path.join(directory, f)) for f in manifest["files"]):
+        print(f"note: {directory} no longer holds the replay save the checkpoint names; loading its newest save")
+        manifest = None
+    if manifest is None and not os.path.isfile(os.path.join(directory, "meta.npz")):
+        print(f"note: no replay saved in {directory}: it starts empty")
+        return None
+    try:
+        replay.load(directory, manifest)
+    except Exception as e:  # a chunk file damaged outside this program (the writes themselves are atomic)
+        raise CheckpointError(f"{directory}: replay not readable: {_first_line(e)}") from None
+    if replay.episodes < races:
+        print(f"note: {directory} was saved {races - replay.episodes} race(s) before the checkpoint"
+              " (--replay-save-every): the transitions of those races are not restored")  # fmt: skip
+    return replay.manifest()
+
+
 def main(args: Args) -> str:
-    """Train with `args`; returns the run directory."""
+    """Train with `args`; returns the run directory.
+
+    Bad input (an impossible argument, an unreadable checkpoint, a replay that cannot fit in memory) raises
+    UsageError before anything is written. --max-nonfinite-updates faulty updates in a row end the run with a
+    checkpoint and raise NumericalFault."""
     from tqdm import tqdm
 
     from envs import race_winners
     from utils import make_vec_env
     from utils.logger import configure_logger, log_video, make_run_name
 
-    # --- set-up: resume or new run ------------------------------------------------------
+    validate_args(args)
+    # --- set-up: resume or new run; everything is checked before the run directory is written -----
     resumed = None
     if args.resume:
         checkpoint_path = resolve_checkpoint(args.resume)
         resumed = load_checkpoint(checkpoint_path)
-        args = Args(**{**resumed["args"], **{k: getattr(args, k) for k in RESUME_OVERRIDES}})
+        args = args_from_checkpoint(resumed, checkpoint_path, **{k: getattr(args, k) for k in RESUME_OVERRIDES})
+        validate_args(args)
         run_dir = os.path.dirname(os.path.dirname(os.path.abspath(checkpoint_path)))
     else:
         if args.stage in ("single", "ghost") and args.num_agents != 1:
             print(f"stage {args.stage!r} races one car: --num-agents {args.num_agents} -> 1")
             args = dataclasses.replace(args, num_agents=1)
-        if args.stage == "ghost":
-            if not args.checkpoint:
-                raise ValueError("--stage ghost needs --checkpoint (e.g. runs/<run>/checkpoints/best.pt)")
-            if args.num_races != 1:
-                print(f"stage 'ghost' races one track at a time: --num-races {args.num_races} -> 1")
-                args = dataclasses.replace(args, num_races=1)
+        if args.stage == "ghost" and args.num_races != 1:
+            print(f"stage 'ghost' races one track at a time: --num-races {args.num_races} -> 1")
+            args = dataclasses.replace(args, num_races=1)
         if args.checkpoint:  # the networks must have the sizes they were trained with
             start = load_checkpoint(args.checkpoint)
-            changed = {key: start["args"][key] for key in ARCHITECTURE if start["args"][key] != getattr(args, key)}
+            sizes = args_from_checkpoint(start, args.checkpoint)
+            changed = {key: getattr(sizes, key) for key in ARCHITECTURE if getattr(sizes, key) != getattr(args, key)}
             if changed:
                 print(f"network sizes from {args.checkpoint}: {changed}")
                 args = dataclasses.replace(args, **changed)
         run_dir = os.path.join(args.runs_dir, make_run_name(args.env_id, args.exp_name, args.seed))
+    check_replay_memory(args)
     checkpoint_dir = os.path.join(run_dir, "checkpoints")
     if args.malloc_fix:
         keep_freed_memory()
@@ -1115,29 +1390,42 @@ def main(args: Args) -> str:
     torch.manual_seed(args.seed)
     torch.backends.cudnn.deterministic = args.torch_deterministic
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
-    logger = configure_logger(run_dir, dataclasses.asdict(args))
-    with open(os.path.join(run_dir, "config.json"), "w") as f:  # plot.py groups runs by variant and stage
-        json.dump({"variant": VARIANT, **dataclasses.asdict(args)}, f, indent=1)
-    print(f"run directory: {run_dir} (device {device})")
 
     n, k_races = args.num_agents, args.num_races
     agents = [Agent(args, device=device) for _ in range(n)]
     replays = [Replay(args.replay_capacity, args.image_size) for _ in range(n)]
     counters = {"episode": 0, "global_step": 0, "best_eval_return": -math.inf}
     ghosts: dict[int, dict] = {}  # ghost stage: track seed -> the best run on it so far
+    wins = [deque(maxlen=100) for _ in range(n)]
+    manifests: list[dict | None] = [None] * n  # per agent, the replay save that latest.pt names
+
+    def replay_dir(j: int) -> str:
+        return os.path.join(checkpoint_dir, f"replay_car_{j}")
+
     if resumed is not None:
-        for agent, state in zip(agents, resumed["agents"]):
-            agent.load_state_dict(state)
+        if len(resumed["agents"]) != n:
+            raise CheckpointError(f"{checkpoint_path}: holds {len(resumed['agents'])} agent(s), its arguments {n}")
+        for i, (agent, state) in enumerate(zip(agents, resumed["agents"])):
+            load_agent_state(agent, state, checkpoint_path, i)
         counters.update(resumed["counters"])
-        set_rng_state(resumed["rng"])
-        ghosts = {int(s): ghost_from_tensors(g) for s, g in resumed["extra"].get("ghosts", {}).items()}
-        for i, replay in enumerate(replays):
-            if os.path.exists(os.path.join(checkpoint_dir, f"replay_car_{i}", "meta.npz")):
-                replay.load(os.path.join(checkpoint_dir, f"replay_car_{i}"))
-        print(f"resumed from {checkpoint_path} at episode {counters['episode']}, step {counters['global_step']}")
+        extra = resumed.get("extra") or {}
+        ghosts = {int(s): ghost_from_tensors(g) for s, g in extra.get("ghosts", {}).items()}
+        for j, history in enumerate(extra.get("wins", [])[:n]):
+            wins[j].extend(history)
+        saved = list(extra.get("replays") or []) + [None] * n
+        for j, replay in enumerate(replays):
+            manifests[j] = restore_replay(replay, replay_dir(j), saved[j], counters["episode"])
     elif args.checkpoint:
         for i, agent in enumerate(agents):
-            agent.load_state_dict(start["agents"][i % len(start["agents"])])
+            source = i % len(start["agents"])
+            load_agent_state(agent, start["agents"][source], args.checkpoint, source)
+    logger = configure_logger(run_dir, dataclasses.asdict(args))
+    with open(os.path.join(run_dir, "config.json"), "w") as f:  # plot.py groups runs by variant and stage
+        json.dump({"variant": VARIANT, **dataclasses.asdict(args)}, f, indent=1)
+    print(f"run directory: {run_dir} (device {device})")
+    if resumed is not None:
+        print(f"resumed from {checkpoint_path} at episode {counters['episode']}, step {counters['global_step']}")
+    elif args.checkpoint:
         print(f"agents start from {args.checkpoint}")
     from_trained = resumed is not None or args.checkpoint is not None
     # Updates start after the random prefill races; a ghost-stage run first races every ghost track
@@ -1150,30 +1438,47 @@ def main(args: Args) -> str:
     envs = make_vec_env(args.env_id, k_races, args.seed + counters["episode"], args.use_subprocess, **kwargs)
     eval_envs = None
 
-    def start_ghost_race():
-        """Ghost stage: reset on the next ghost track with its ghost (if it has one yet)."""
-        seed = ghost_seeds[counters["episode"] % len(ghost_seeds)]
+    def start_race():
+        """One race at a time (K = 1): reset on the next race's track, a ghost track with its ghost (if it has one
+        yet) in the ghost stage, else the track race_seed(seed, episode), so a resumed run drives the same tracks."""
+        if args.stage == "ghost":
+            seed = ghost_seeds[counters["episode"] % len(ghost_seeds)]
+            envs.set_options({"ghosts": {"car_0": ghosts[seed]}} if seed in ghosts else {})
+        else:
+            seed = race_seed(args.seed, counters["episode"])
         envs.seed(seed)
-        envs.set_options({"ghosts": {"car_0": ghosts[seed]}} if seed in ghosts else {})
         return envs.reset(), seed
 
+    def save_latest() -> str:
+        """checkpoints/latest.pt, naming each agent's replay save; then the replay files it does not name go."""
+        path = os.path.join(checkpoint_dir, "latest.pt")
+        save_checkpoint(path, args, agents, counters, _extra(ghosts, manifests, wins))
+        for j, manifest in enumerate(manifests):
+            if manifest is not None:
+                Replay.prune(replay_dir(j), manifest)
+        return path
+
     # --- the loop: all agents act in K races; every finished race triggers training --------
-    obs, ghost_seed = start_ghost_race() if args.stage == "ghost" else (envs.reset(), None)
+    # K races run side by side with auto-resets (tracks from each race's seeded stream); one race at a time is
+    # reset explicitly on a track fixed by the episode number (see start_race).
+    obs, track_seed = start_race() if k_races == 1 else (envs.reset(), None)
     frames = preprocess_frames(obs, args.image_size)
     is_first = np.ones(k_races * n, dtype=bool)
     states: list = [None] * n
     episodes: list[CarEpisode | None] = [None] * (k_races * n)
-    wins = [deque(maxlen=100) for _ in range(n)]
     timer = {"env_time": 0.0, "env_steps": 0}
     update_times: list[float] = []  # seconds of the first updates, reported once on a CPU
     reported_update_time = False
+    fault: str | None = None  # set when an agent had --max-nonfinite-updates faulty updates in a row
     pbar = tqdm(total=args.total_episodes, initial=counters["episode"], desc=f"{VARIANT} {args.stage}")
+    if resumed is not None:  # last of the set-up: the random streams continue exactly where the checkpoint left them
+        set_rng_state(resumed["rng"])
     started = time.time()
 
     def out_of_time() -> bool:
         return args.time_limit_hours > 0 and time.time() - started > 3600 * args.time_limit_hours
 
-    while counters["episode"] < args.total_episodes and not out_of_time():
+    while counters["episode"] < args.total_episodes and not out_of_time() and fault is None:
         t0 = time.time()
         for slot in np.flatnonzero(is_first):
             episodes[slot] = CarEpisode(frames[slot])
@@ -1212,13 +1517,13 @@ def main(args: Args) -> str:
             episode, step = counters["episode"], counters["global_step"]
             cars = [episodes[race * n + j] for j in range(n)]
             final_infos = [car.final_info or {} for car in cars]
-            race_won = race_winners(final_infos) if n > 1 else None
+            race_won = race_winners(final_infos) if n > 1 and racing else None  # (highway-env has no ranks)
             if args.stage == "ghost":  # a win is beating the ghost (races without a ghost yet do not count)
                 race_won = [bool(final_infos[0]["ghost_beaten"])] if "ghost_beaten" in final_infos[0] else None
                 record = final_infos[0]["trajectory"].to_dict()  # the env hands over the whole run
-                if ghost_seed not in ghosts or (race_won and race_won[0]):  # first run, or ghost beaten
-                    ghosts[ghost_seed] = record
-                logger.record("ghost/track_seed", ghost_seed)
+                if track_seed not in ghosts or (race_won and race_won[0]):  # first run, or ghost beaten
+                    ghosts[track_seed] = record
+                logger.record("ghost/track_seed", track_seed)
                 logger.record("ghost/ghosts_recorded", len(ghosts))
             for j, car in enumerate(cars):
                 prefix = f"car_{j}/"
@@ -1230,7 +1535,7 @@ def main(args: Args) -> str:
                     wins[j].append(float(race_won[j]))
                     logger.record(prefix + "charts/win_rate", float(np.mean(wins[j])))
                 logger.record(prefix + "perf/env_sps", env_sps)
-            if racing:  # dead-zone schedule, applied between episodes (takes effect at each race's next reset)
+            if racing:  # dead-zone schedule, applied between episodes (takes effect at the next reset)
                 envs.env_method("set_dead_zone", dead_zone_at(episode, args))
 
             if episode >= learning_starts and all(r.can_sample(args.seq_len) for r in replays):
@@ -1240,6 +1545,11 @@ def main(args: Args) -> str:
                         logger.record(f"car_{j}/losses/{key}", value)
                     logger.record(f"car_{j}/perf/updates_per_s", updates_per_s)
                     logger.record(f"car_{j}/perf/updates", agent.num_updates)
+                    logger.record(f"car_{j}/faults/nonfinite_updates", agent.nonfinite_updates)
+                    if agent.nonfinite_in_a_row >= args.max_nonfinite_updates:
+                        fault = (f"car_{j}: {agent.nonfinite_in_a_row} updates in a row had a non-finite loss or"
+                                 f" gradient (--max-nonfinite-updates {args.max_nonfinite_updates})")  # fmt: skip
+                        break
                 if device.type == "cpu" and len(update_times) >= 4 and not reported_update_time:
                     per_update = float(np.median(update_times[1:4]))  # the first update warms up
                     minutes = per_update * args.train_steps_per_episode * n / 60
@@ -1249,6 +1559,9 @@ def main(args: Args) -> str:
                         f" README.md, e.g.\n  {CPU_COMMAND}"
                     )
                     reported_update_time = True
+            if fault is not None:  # the run ends here, with the checkpoint written after the loop
+                logger.dump(step)
+                break
 
             if args.video_every and episode % args.video_every == 0:
                 for j, (agent, car) in enumerate(zip(agents, cars)):
@@ -1268,12 +1581,13 @@ def main(args: Args) -> str:
                     logger.record(f"car_{j}/eval/progress", float(eval_progress[:, j].mean()))
                 if eval_returns.mean() > counters["best_eval_return"]:
                     counters["best_eval_return"] = float(eval_returns.mean())
-                    save_checkpoint(os.path.join(checkpoint_dir, "best.pt"), args, agents, counters, _extra(ghosts))
-            if args.checkpoint_every and episode % args.checkpoint_every == 0:
-                save_checkpoint(os.path.join(checkpoint_dir, "latest.pt"), args, agents, counters, _extra(ghosts))
+                    best = os.path.join(checkpoint_dir, "best.pt")
+                    save_checkpoint(best, args, agents, counters, _extra(ghosts, manifests, wins))
+            # The replay first, then latest.pt naming it: a kill between the two leaves the previous pair intact.
             if args.replay_save_every and episode % args.replay_save_every == 0:
-                for j, replay in enumerate(replays):
-                    replay.save(os.path.join(checkpoint_dir, f"replay_car_{j}"))
+                manifests = [replay.save(replay_dir(j)) for j, replay in enumerate(replays)]
+            if args.checkpoint_every and episode % args.checkpoint_every == 0:
+                save_latest()
             logger.record("charts/episode", episode)
             if racing:
                 logger.record("charts/dead_zone", dead_zone_at(episode, args))
@@ -1283,25 +1597,41 @@ def main(args: Args) -> str:
             if counters["episode"] >= args.total_episodes or out_of_time():
                 break
 
-        if args.stage == "ghost" and is_first.any() and counters["episode"] < args.total_episodes:
-            obs, ghost_seed = start_ghost_race()  # the next ghost track, with its ghost
+        if k_races == 1 and is_first.any() and counters["episode"] < args.total_episodes and fault is None:
+            obs, track_seed = start_race()  # the next race's own track (the ghost stage: with its ghost)
             frames = preprocess_frames(obs, args.image_size)
             is_first[:] = True
 
-    save_checkpoint(os.path.join(checkpoint_dir, "latest.pt"), args, agents, counters, _extra(ghosts))
-    for j, replay in enumerate(replays):
-        replay.save(os.path.join(checkpoint_dir, f"replay_car_{j}"))
+    manifests = [replay.save(replay_dir(j)) for j, replay in enumerate(replays)]
+    latest = save_latest()
     pbar.close()
     envs.close()
     if eval_envs is not None:
         eval_envs.close()
     logger.close()
+    if fault is not None:
+        raise NumericalFault(f"{fault}; stopped after race {counters['episode']} with the checkpoint {latest}")
     return run_dir
 
 
-def _extra(ghosts: dict) -> dict:
-    return {"ghosts": {str(seed): ghost_to_tensors(g) for seed, g in ghosts.items()}}
+def _extra(ghosts: dict, replays: list, wins: list) -> dict:
+    """The checkpoint's extra state: ghosts (ghost stage), the replay save of every agent, recent wins."""
+    return {
+        "ghosts": {str(seed): ghost_to_tensors(g) for seed, g in ghosts.items()},
+        "replays": list(replays),
+        "wins": [list(w) for w in wins],
+    }
+
+
+def cli(argv: list[str] | None = None) -> str:
+    """The command line: bad input and a run stopped by numerical faults end with a one-line error, no traceback."""
+    args = tyro.cli(Args, args=argv)
+    try:
+        return main(args)
+    except (UsageError, NumericalFault) as e:
+        message = " ".join(str(e).split())
+        raise SystemExit(f"{os.path.basename(__file__)}: error: {message}") from None
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    cli()

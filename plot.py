@@ -25,6 +25,7 @@ import argparse
 import dataclasses
 import glob
 import json
+import math
 import os
 import re
 import sys
@@ -67,14 +68,17 @@ def run_identity(run_dir: str) -> tuple[str, str, int]:
     """(variant, stage, seed) of a run: its config.json, else its CleanRL run name."""
     config_path = os.path.join(run_dir, "config.json")
     if os.path.exists(config_path):
-        with open(config_path) as f:
-            config = json.load(f)
         try:
+            with open(config_path) as f:
+                config = json.load(f)
             return str(config["variant"]), str(config["stage"]), int(config["seed"])
         except KeyError as e:
             raise ValueError(f"{config_path} lacks {e.args[0]!r} (needs variant, stage, seed)") from None
+        except (ValueError, TypeError, OSError) as e:  # not JSON, not an object, a seed that is no integer
+            reason = (str(e).strip().splitlines() or [type(e).__name__])[0]
+            raise ValueError(f"{config_path}: not a readable run config: {reason}") from None
     parts = os.path.basename(os.path.normpath(run_dir)).split("__")
-    if len(parts) < 3:
+    if len(parts) < 3 or not parts[2].lstrip("-").isdigit():
         raise ValueError(f"{run_dir}: no config.json and not a run name env__exp__seed__time")
     exp_name, seed = parts[1], parts[2]
     variant = next((v for v in VARIANTS if v in exp_name), exp_name)
@@ -185,8 +189,10 @@ def main(argv=None):
     args = parser.parse_args(argv)
     if not os.path.isdir(args.logdir):
         parser.error(f"logdir {args.logdir!r} is not a directory")
-    if args.sigma < 0:
-        parser.error(f"--sigma must be >= 0, got {args.sigma}")
+    if not math.isfinite(args.sigma) or args.sigma < 0:
+        parser.error(f"--sigma must be a finite number >= 0, got {args.sigma}")
+    if os.path.exists(args.out) and not os.path.isdir(args.out):
+        parser.error(f"--out {args.out!r} exists and is not a directory")
     try:
         figures = make_figures(args.logdir, args.out, args.sigma)
     except ValueError as e:

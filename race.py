@@ -71,7 +71,9 @@ def read_checkpoint(path: str, device="cpu") -> dict:
         raise CheckpointError(f"{path}: not a readable checkpoint (truncated or not a torch file): {first_line}") from None
     if not isinstance(checkpoint, dict) or "variant" not in checkpoint or "agents" not in checkpoint:
         raise CheckpointError(f"{path}: not a DLC checkpoint (no 'variant' and 'agents' entries)")
-    if checkpoint["variant"] not in VARIANT_SCRIPTS:
+    if not isinstance(checkpoint["agents"], list) or not isinstance(checkpoint.get("args"), dict):
+        raise CheckpointError(f"{path}: not a DLC checkpoint (its 'agents' or 'args' entry is malformed)")
+    if not isinstance(checkpoint["variant"], str) or checkpoint["variant"] not in VARIANT_SCRIPTS:
         raise CheckpointError(f"{path}: unknown variant {checkpoint['variant']!r}; known: {sorted(VARIANT_SCRIPTS)}")
     return checkpoint
 
@@ -87,9 +89,13 @@ class DreamerRacer:
             raise CheckpointError(f"{path}: has {len(checkpoint['agents'])} agent(s), asked for agent {self.index}")
         self.variant = checkpoint["variant"]
         self.module = importlib.import_module(VARIANT_SCRIPTS[self.variant])
-        self.args = self.module.Args(**checkpoint["args"])
-        self.agent = self.module.Agent(self.args, device=device)
-        self.agent.load_state_dict(checkpoint["agents"][self.index])
+        try:  # the script's own reading of its arguments and networks, with one-line errors naming the file
+            self.args = self.module.args_from_checkpoint(checkpoint, path)
+            self.agent = self.module.Agent(self.args, device=device)
+            self.module.load_agent_state(self.agent, checkpoint["agents"][self.index], path, self.index)
+        except (ValueError, RuntimeError, TypeError) as e:  # the script's CheckpointError, or impossible sizes
+            text = (str(e).strip().splitlines() or [type(e).__name__])[0]
+            raise CheckpointError(text if text.startswith(path) else f"{path}: does not build an agent: {text}") from None
         self.deterministic = deterministic
         self.name = f"{self.variant}:{os.path.basename(os.path.dirname(os.path.dirname(os.path.abspath(path))))}/{os.path.basename(path)}:{self.index}"
         self.state, self.learns = None, True
@@ -263,6 +269,13 @@ def parse_args(argv=None):
         parser.error(f"need at least two racers (checkpoints plus --opponent), got {racers}")
     if args.races < 1:
         parser.error(f"--races must be >= 1, got {args.races}")
+    if args.seed < 0:
+        parser.error(f"--seed must be >= 0 (track seeds derive from it), got {args.seed}")
+    if args.max_steps is not None and args.max_steps < 1:
+        parser.error(f"--max-steps must be >= 1, got {args.max_steps}")
+    for flag, path in (("--out", args.out), ("--runs-dir", args.runs_dir)):
+        if path is not None and os.path.exists(path) and not os.path.isdir(path):
+            parser.error(f"{flag} {path!r} exists and is not a directory")
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
     args.opponent_speeds = []
@@ -272,8 +285,8 @@ def parse_args(argv=None):
             value = float(speed) if speed else 70.0
         except ValueError:
             value = -1.0
-        if kind != "pursuit" or value <= 0:
-            parser.error(f"--opponent must be pursuit or pursuit:SPEED with SPEED > 0, got {spec!r}")
+        if kind != "pursuit" or not math.isfinite(value) or value <= 0:
+            parser.error(f"--opponent must be pursuit or pursuit:SPEED with a finite SPEED > 0, got {spec!r}")
         args.opponent_speeds.append(value)
     if args.train_steps is not None and args.train_steps < 0:
         parser.error(f"--train-steps must be >= 0, got {args.train_steps}")

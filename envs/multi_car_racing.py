@@ -773,19 +773,34 @@ class MultiCarRacing(ParallelEnv):
             if agent not in self.agents:
                 raise ValueError(f"action for {agent}, which is no longer racing (done earlier this race)")
             space = self.action_spaces[agent]
-            try:
-                a = np.asarray(action, dtype=np.float64)
-            except (TypeError, ValueError) as e:
-                raise ValueError(f"action for {agent} is not numeric: {action!r}") from e
+            a = self._real_array(agent, action)
             if a.shape != space.shape:
                 raise ValueError(f"action for {agent} has shape {a.shape}, expected {space.shape}")
             if not np.all(np.isfinite(a)):
                 raise ValueError(f"action for {agent} is not finite: {a.tolist()}")
-            controls[self._index[agent]] = np.clip(a, space.low, space.high)
+            with np.errstate(over="ignore"):  # a finite long double beyond float64 becomes inf, then clips
+                controls[self._index[agent]] = np.clip(a.astype(np.float64), space.low, space.high)
         missing = [a for a in self.agents if a not in actions]
         if missing:
             raise ValueError(f"no action for {', '.join(missing)} (every racing car needs one)")
         return controls
+
+    @staticmethod
+    def _real_array(agent: str, action) -> np.ndarray:
+        """The action as an array of real numbers (ints or floats), or ValueError: strings, bytes, booleans,
+        complex numbers, None and other objects are refused, never converted (numpy would turn "0.5" into 0.5,
+        True into 1.0 and drop an imaginary part)."""
+        try:
+            a = np.asarray(action)
+            if a.dtype.kind not in "iuf":
+                raise TypeError(f"dtype {a.dtype}")
+            if not isinstance(action, np.ndarray):  # a sequence numpy coerced: no bools mixed in with numbers
+                items = np.asarray(action, dtype=object).ravel()
+                if any(isinstance(x, (bool, np.bool_)) for x in items):
+                    raise TypeError("booleans")
+        except Exception as e:  # ragged sequences, tensors that refuse conversion, objects with a bad __array__ ...
+            raise ValueError(f"action for {agent} is not numeric (real numbers expected): {action!r:.200}") from e
+        return a
 
     def _apply_control(self, i: int, a: np.ndarray):
         car = self.cars[i]

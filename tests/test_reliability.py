@@ -1,0 +1,488 @@
+"""Issue 7, reliability: bad input, crashes mid-run and numerical faults lose nothing.
+
+Covers the dreamer scripts (both variants), race.py and plot.py: impossible arguments end with one line
+before any work; a save killed halfway leaves the previous checkpoint; unreadable checkpoints get one-line
+errors; a run killed mid-race and resumed ends exactly where the uninterrupted run ends; non-finite
+losses or gradients skip the step and stop the run after --max-nonfinite-updates in a row; a replay that
+cannot fit in memory is refused. (The env's bad-input fuzz test is tests/test_env_fuzz.py.)
+Training runs use tiny networks, 30-step races and one torch thread, so each takes about a second.
+"""
+
+from __future__ import annotations
+
+import copy
+import csv
+import glob
+import importlib
+import io
+import math
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SCRIPTS = ["dreamer_lstm", "dreamer_gru"]
+TINY = {
+    "cnn_depth": 4, "deter_size": 16, "hidden_size": 16, "mlp_size": 16, "latent_size": 4, "image_size": 64,
+    "batch_size": 3, "seq_len": 8, "imagination_horizon": 4,
+}  # fmt: skip
+RUN = dict(
+    **TINY, max_steps=30, train_steps_per_episode=2, prefill_episodes=1, replay_capacity=500, eval_every=0,
+    video_every=0, replay_save_every=1, torch_threads=1,
+)  # fmt: skip
+
+
+class Killed(BaseException):
+    """Stands for a kill: nothing in the scripts catches it."""
+
+
+@pytest.fixture(params=SCRIPTS)
+def script(request):
+    return importlib.import_module(request.param)
+
+
+@pytest.fixture(autouse=True)
+def one_torch_thread():
+    """Tiny networks run fastest on one thread (two threads on a busy 2-core machine wait on each other);
+    the rest of the suite keeps its own setting."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def flags(**kwargs) -> list[str]:
+    return [part for key, value in kwargs.items() for part in (f"--{key.replace('_', '-')}", str(value))]
+
+
+def random_batch(seed=0, batch=3, length=8, size=64):
+    rng = np.random.default_rng(seed)
+    is_first = np.zeros((batch, length), dtype=bool)
+    is_first[:, 0] = True
+    return {
+        "obs": rng.integers(0, 256, (batch, length, size, size, 3), dtype=np.uint8),
+        "action": rng.uniform(-1, 1, (batch, length, 2)).astype(np.float32),
+        "reward": rng.normal(size=(batch, length)).astype(np.float32),
+        "is_first": is_first,
+        "terminated": np.zeros((batch, length), dtype=bool),
+    }
+
+
+def assert_same(a, b, where=""):
+    """Bit-exact equality of nested dicts/lists of tensors, arrays and numbers."""
+    if isinstance(a, dict):
+        assert a.keys() == b.keys(), where
+        for key in a:
+            assert_same(a[key], b[key], f"{where}/{key}")
+    elif isinstance(a, (list, tuple)):
+        assert len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            assert_same(x, y, f"{where}[{i}]")
+    elif isinstance(a, torch.Tensor):
+        torch.testing.assert_close(a, b, rtol=0, atol=0, equal_nan=True, msg=where)
+    elif isinstance(a, np.ndarray):
+        np.testing.assert_array_equal(a, b, err_msg=where)
+    elif isinstance(a, float) and math.isnan(a):
+        assert math.isnan(b), where
+    else:
+        assert a == b, f"{where}: {a!r} != {b!r}"
+
+
+def exit_message(script, argv) -> str:
+    with pytest.raises(SystemExit) as exit_info:
+        script.cli(argv)
+    text = str(exit_info.value.code)
+    assert text.startswith(f"{script.__name__}.py: error: ") and "\n" not in text, text
+    return text
+
+
+# ------------------------------------------------------------------------------------------------
+# 1. Arguments
+# ------------------------------------------------------------------------------------------------
+BAD_ARGUMENTS = [
+    (["--num-agents", "0"], "--num-agents must be >= 1, got 0"),
+    (["--batch-size", "0"], "--batch-size must be >= 1, got 0"),
+    (["--seq-len", "1"], "--seq-len must be >= 2, got 1"),
+    (["--batch-size", "2", "--seq-len", "4", "--imagination-starts", "9"],
+     "--imagination-starts must be <= batch-size * seq-len = 8, got 9"),
+    (["--model-lr", "-0.001"], "--model-lr must be > 0, got -0.001"),
+    (["--critic-lr", "nan"], "--critic-lr must be a finite number, got nan"),
+    (["--actor-lr", "0"], "--actor-lr must be > 0, got 0.0"),
+    (["--env-id", "moon_buggy"],
+     "--env-id must be one of ['highway-intersection', 'multi_car_racing'], got 'moon_buggy'"),
+    (["--stage", "ghost"], "--stage ghost needs --checkpoint"),
+    (["--tau", "-0.005"], "--tau must lie in (0, 1], got -0.005"),
+    (["--gamma", "0"], "--gamma must lie in (0, 1], got 0.0"),
+    (["--gamma", "1.01"], "--gamma must lie in (0, 1], got 1.01"),
+    (["--lambda", "-0.5"], "--lambda must lie in [0, 1], got -0.5"),
+    (["--entropy-coef", "-1"], "--entropy-coef must be >= 0, got -1.0"),
+    (["--grad-clip", "inf"], "--grad-clip must be a finite number, got inf"),
+    (["--replay-capacity", "40"], "--replay-capacity must be >= --seq-len (50), got 40"),
+    (["--dead-zone-end", "0.2"], "--dead-zone-end must lie in [-1, 0], got 0.2"),
+    (["--action-repeat", "0"], "--action-repeat must be >= 1, got 0"),
+    (["--total-episodes", "0"], "--total-episodes must be >= 1, got 0"),
+    (["--max-nonfinite-updates", "0"], "--max-nonfinite-updates must be >= 1, got 0"),
+    (["--seed", "-3"], "--seed must lie in [0, 2**32), got -3"),
+    (["--resume", "no/such/run"], "--resume must be a run directory with checkpoints/latest.pt or a checkpoint file"),
+    (["--checkpoint", "no/such.pt"], "--checkpoint must be a checkpoint file, got 'no/such.pt'"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("argv, message", BAD_ARGUMENTS, ids=[" ".join(a) for a, _ in BAD_ARGUMENTS])
+def test_impossible_arguments_end_with_one_line_before_any_work(script, tmp_path, argv, message):
+    text = exit_message(script, [*argv, "--runs-dir", str(tmp_path / "runs")])
+    assert message in text
+    assert not (tmp_path / "runs").exists()  # no run directory, nothing written
+
+
+def test_validate_args_raises_value_error_naming_the_flag(script, tmp_path):
+    script.validate_args(script.Args())  # the defaults are valid
+    with pytest.raises(ValueError, match=r"^--batch-size must be >= 1, got 0$"):
+        script.validate_args(script.Args(batch_size=0))
+    with pytest.raises(ValueError, match="--tau"):  # main checks first, before it writes anything
+        script.main(script.Args(tau=2.0, runs_dir=str(tmp_path / "runs")))
+    assert not (tmp_path / "runs").exists()
+    expected = f"{script.__name__}.py: error: --batch-size must be >= 1, got 0"
+    assert exit_message(script, ["--batch-size", "0"]) == expected
+
+
+def test_the_command_line_prints_one_line_and_exits_1(tmp_path):
+    result = subprocess.run(
+        [sys.executable, "dreamer_lstm.py", "--batch-size", "0", "--runs-dir", str(tmp_path / "runs")],
+        cwd=ROOT, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert result.returncode == 1
+    assert result.stderr.strip().splitlines()[-1] == "dreamer_lstm.py: error: --batch-size must be >= 1, got 0"
+    assert "Traceback" not in result.stderr
+    assert not (tmp_path / "runs").exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# 2. Checkpoints: atomic writes, unreadable files, kill and resume
+# ------------------------------------------------------------------------------------------------
+def test_a_checkpoint_save_killed_halfway_leaves_the_previous_one(script, tmp_path, monkeypatch):
+    args = script.Args(**TINY)
+    agents = [script.Agent(args)]
+    path = tmp_path / "checkpoints" / "latest.pt"
+    counters = {"episode": 1, "global_step": 30, "best_eval_return": -math.inf}
+    # The write order: the temporary file is fsynced, then renamed over latest.pt, then the directory fsynced.
+    events, real_fsync, real_replace = [], os.fsync, os.replace
+
+    def fsync(fd):
+        events.append(("fsync", os.readlink(f"/proc/self/fd/{fd}")))  # which file or directory
+        real_fsync(fd)
+
+    def replace(src, dst):
+        events.append(("replace", str(src), str(dst)))
+        real_replace(src, dst)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "replace", replace)
+    script.save_checkpoint(str(path), args, agents, counters)
+    assert events == [("fsync", f"{path}.tmp"), ("replace", f"{path}.tmp", str(path)), ("fsync", str(path.parent))]
+    before = path.read_bytes()
+
+    real_save = torch.save
+
+    def half_then_killed(obj, f, *a, **kw):
+        buffer = io.BytesIO()
+        real_save(obj, buffer, *a, **kw)
+        f.write(buffer.getvalue()[: len(buffer.getvalue()) // 2])
+        raise Killed
+
+    monkeypatch.setattr(torch, "save", half_then_killed)
+    agents[0].update(random_batch())  # something new to save
+    with pytest.raises(Killed):
+        script.save_checkpoint(str(path), args, agents, {**counters, "episode": 2})
+    monkeypatch.undo()
+    assert path.read_bytes() == before  # the old checkpoint, whole
+    assert script.load_checkpoint(str(path))["counters"]["episode"] == 1
+    assert os.listdir(path.parent) == ["latest.pt"]  # and no temporary file left behind
+
+
+def make_episode(length, episode_id, size=8):
+    rng = np.random.default_rng(episode_id)
+    terminated = np.zeros(length, bool)
+    terminated[-1] = True
+    obs = rng.integers(0, 256, (length, size, size, 3), dtype=np.uint8)
+    action = rng.uniform(-1, 1, (length, 2)).astype(np.float32)
+    return obs, action, rng.normal(size=length).astype(np.float32), terminated
+
+
+def test_a_replay_save_killed_halfway_keeps_the_saved_replay(script, tmp_path, monkeypatch):
+    directory = str(tmp_path / "replay_car_0")
+    replay = script.Replay(capacity=50, image_size=8, chunk_size=16)
+    for e in range(3):
+        replay.add_episode(*make_episode(13, e))
+    first = replay.save(directory)
+    saved = {key: getattr(replay, key).copy() for key in ("obs", "action", "reward", "is_first", "terminated")}
+    replay.add_episode(*make_episode(20, 7))  # wraps around: rewrites chunks that the first save holds
+
+    real_savez, calls = np.savez_compressed, []
+
+    def killed_on_second_file(f, **arrays):
+        calls.append(1)
+        if len(calls) == 2:
+            f.write(b"PK\x03\x04 half a zip")
+            raise Killed
+        real_savez(f, **arrays)
+
+    monkeypatch.setattr(np, "savez_compressed", killed_on_second_file)
+    with pytest.raises(Killed):
+        replay.save(directory)
+    monkeypatch.undo()
+    for manifest in (None, first):  # meta.npz, and the manifest a checkpoint would hold: both the first save
+        loaded = script.Replay(capacity=50, image_size=8)
+        loaded.load(directory, manifest)
+        assert loaded.manifest() == first
+        for key, value in saved.items():
+            np.testing.assert_array_equal(getattr(loaded, key), value)
+    second = replay.save(directory)  # a complete save; the first stays loadable until pruned
+    loaded = script.Replay(capacity=50, image_size=8)
+    loaded.load(directory, first)
+    assert loaded.episodes == 3
+    script.Replay.prune(directory, second)
+    assert sorted(os.listdir(directory)) == sorted(second["files"] + ["meta.npz"])
+    loaded.load(directory)
+    np.testing.assert_array_equal(loaded.obs, replay.obs)
+    assert loaded.episodes == 4
+
+
+def test_unreadable_checkpoints_get_one_line_errors_naming_the_file(script, tmp_path):
+    other = importlib.import_module(next(s for s in SCRIPTS if s != script.__name__))
+    counters = {"episode": 1, "global_step": 30, "best_eval_return": 0.0}
+    good = tmp_path / "good.pt"
+    script.save_checkpoint(str(good), script.Args(**TINY), [script.Agent(script.Args(**TINY))], counters)
+    files = {"truncated": good.read_bytes()[: good.stat().st_size // 2], "text": b"not a checkpoint\n", "empty": b""}
+    for name, content in files.items():
+        (tmp_path / f"{name}.pt").write_bytes(content)
+    torch.save({"weights": torch.zeros(3)}, tmp_path / "foreign.pt")
+    other.save_checkpoint(str(tmp_path / "other.pt"), other.Args(**TINY), [other.Agent(other.Args(**TINY))], counters)
+    (tmp_path / "run" / "checkpoints").mkdir(parents=True)
+    (tmp_path / "run" / "checkpoints" / "latest.pt").write_bytes(files["truncated"])
+    expected = {
+        "truncated.pt": "not a readable checkpoint", "text.pt": "not a readable checkpoint",
+        "empty.pt": "not a readable checkpoint", "foreign.pt": "not a checkpoint of these scripts",
+        "other.pt": f"holds a {other.VARIANT!r} agent, this script builds {script.VARIANT!r}",
+    }  # fmt: skip
+    runs = tmp_path / "runs"
+    for name, reason in expected.items():
+        path = str(tmp_path / name)
+        for argv in (["--resume", path], ["--stage", "ghost", "--checkpoint", path]):
+            text = exit_message(script, [*argv, "--runs-dir", str(runs)])
+            assert f"{path}: {reason}" in text
+    text = exit_message(script, ["--resume", str(tmp_path / "run"), "--runs-dir", str(runs)])  # a run directory
+    assert f"{tmp_path / 'run' / 'checkpoints' / 'latest.pt'}: not a readable checkpoint" in text
+    assert not runs.exists()
+
+
+def last_row(run_dir) -> dict:
+    with open(os.path.join(run_dir, "progress.csv")) as f:
+        return list(csv.DictReader(f))[-1]
+
+
+def test_a_run_killed_mid_race_resumes_exactly(script, tmp_path, monkeypatch, capsys):
+    """Race stage, two agents: one run of 3 races; another killed while it trains after race 3, resumed from its
+    race-2 checkpoint. Both end with the same counters, networks, optimisers, RNG states and replays."""
+    whole = script.main(script.Args(stage="race", total_episodes=3, runs_dir=str(tmp_path / "a"), **RUN))
+    assert "replay buffers: 2 x 500 steps x 12,302 B = 12.3 MB" in capsys.readouterr().out
+
+    real_update, calls = script.Agent.update, []
+
+    def update_then_killed(self, batch):
+        calls.append(1)
+        if len(calls) == 9:  # updates 1-4 follow race 1, 5-8 race 2: this is the first after race 3
+            raise Killed
+        return real_update(self, batch)
+
+    monkeypatch.setattr(script.Agent, "update", update_then_killed)
+    with pytest.raises(Killed):
+        script.main(script.Args(stage="race", total_episodes=3, runs_dir=str(tmp_path / "b"), **RUN))
+    monkeypatch.undo()
+    (killed,) = glob.glob(str(tmp_path / "b" / "*"))
+    assert script.load_checkpoint(f"{killed}/checkpoints/latest.pt")["counters"]["episode"] == 2
+    script.main(script.Args(resume=killed, total_episodes=3, torch_threads=1))
+
+    a = script.load_checkpoint(f"{whole}/checkpoints/latest.pt")
+    b = script.load_checkpoint(f"{killed}/checkpoints/latest.pt")
+    assert a["counters"] == b["counters"] and a["counters"]["episode"] == 3
+    assert [s["num_updates"] for s in b["agents"]] == [6, 6]
+    assert_same(a["agents"], b["agents"], "agents")  # networks, targets, optimisers: bit-exact
+    assert_same(a["rng"], b["rng"], "rng")
+    assert_same(a["extra"]["wins"], b["extra"]["wins"], "wins")
+    for j in range(2):
+        replays = []
+        for run in (whole, killed):
+            replay = script.Replay(RUN["replay_capacity"], RUN["image_size"])
+            replay.load(f"{run}/checkpoints/replay_car_{j}")
+            replays.append(replay)
+            named = script.load_checkpoint(f"{run}/checkpoints/latest.pt")["extra"]["replays"][j]["files"]
+            files = sorted(os.listdir(f"{run}/checkpoints/replay_car_{j}"))  # pruned: only what latest.pt names
+            assert files == sorted([*named, "meta.npz"])
+        assert replays[0].manifest() == replays[1].manifest() and replays[0].episodes == 3
+        for key in ("obs", "action", "reward", "is_first", "terminated"):
+            np.testing.assert_array_equal(getattr(replays[0], key), getattr(replays[1], key))
+    row_a, row_b = last_row(whole), last_row(killed)
+    losses = [key for key in row_a if "/losses/" in key]
+    assert losses and all(float(row_b[key]) == pytest.approx(float(row_a[key]), rel=1e-6) for key in losses)
+
+
+# ------------------------------------------------------------------------------------------------
+# 3. Numerical faults
+# ------------------------------------------------------------------------------------------------
+def test_a_nonfinite_loss_or_gradient_skips_that_step(script):
+    torch.manual_seed(0)
+    agent = script.Agent(script.Args(**TINY))
+    agent.update(random_batch(0))  # the optimisers have state
+    before = copy.deepcopy(agent.state_dict())
+
+    batch = random_batch(1)
+    batch["reward"][1, 3] = np.nan  # a NaN reward: the world model's loss is NaN, the behaviour losses are not
+    metrics = agent.update(batch)
+    after = agent.state_dict()
+    assert math.isnan(metrics["reward"])
+    assert_same(after["world_model"], before["world_model"], "world model")  # parameters and BatchNorm statistics
+    assert_same(after["model_optimizer"], before["model_optimizer"], "model optimiser")
+    for name in ("encoder", "representation", "transition"):  # no soft update toward an unchanged model either
+        assert all(torch.equal(v, before["targets"][k]) for k, v in after["targets"].items() if k.startswith(name))
+    assert not torch.equal(after["actor"]["net.net.0.weight"], before["actor"]["net.net.0.weight"])  # stepped
+    assert (agent.nonfinite_updates, agent.nonfinite_in_a_row) == (1, 1)
+
+    # A finite loss with a non-finite gradient: only the critic's step is skipped.
+    before = copy.deepcopy(agent.state_dict())
+    hook = agent.critic.net.net[0].weight.register_hook(lambda grad: torch.full_like(grad, float("nan")))
+    metrics = agent.update(random_batch(2))
+    hook.remove()
+    after = agent.state_dict()
+    assert math.isfinite(metrics["critic"])
+    assert_same(after["critic"], before["critic"], "critic")
+    assert_same(after["critic_optimizer"], before["critic_optimizer"], "critic optimiser")
+    assert not torch.equal(after["world_model"]["decoder.fc.weight"], before["world_model"]["decoder.fc.weight"])
+    assert (agent.nonfinite_updates, agent.nonfinite_in_a_row) == (2, 2)
+
+    agent.update(random_batch(3))  # a clean update ends the streak; the total stays
+    assert (agent.nonfinite_updates, agent.nonfinite_in_a_row) == (2, 0)
+    assert agent.state_dict()["nonfinite_updates"] == 2  # saved with the agent
+
+
+def test_the_run_stops_after_max_nonfinite_updates_in_a_row(script, tmp_path, monkeypatch):
+    real_sample = script.Replay.sample
+
+    def sample_with_nan_reward(self, *args, **kwargs):
+        batch = real_sample(self, *args, **kwargs)
+        batch["reward"][0, 0] = np.nan
+        return batch
+
+    monkeypatch.setattr(script.Replay, "sample", sample_with_nan_reward)
+    runs = tmp_path / "runs"
+    settings = {**RUN, "train_steps_per_episode": 5, "max_nonfinite_updates": 3}
+    argv = ["--stage", "single", "--total-episodes", "3", "--runs-dir", str(runs), *flags(**settings)]
+    text = exit_message(script, argv)
+    (run_dir,) = glob.glob(str(runs / "*"))
+    latest = os.path.join(run_dir, "checkpoints", "latest.pt")
+    assert "car_0: 3 updates in a row had a non-finite loss or gradient (--max-nonfinite-updates 3)" in text
+    assert f"stopped after race 1 with the checkpoint {latest}" in text
+    checkpoint = script.load_checkpoint(latest)
+    assert checkpoint["counters"]["episode"] == 1  # stopped in the first training race ...
+    agent = checkpoint["agents"][0]
+    assert (agent["num_updates"], agent["nonfinite_updates"], agent["nonfinite_in_a_row"]) == (3, 3, 3)  # ... early
+    assert agent["model_optimizer"]["state"] == {}  # the world model never took a step
+    assert float(last_row(run_dir)["car_0/faults/nonfinite_updates"]) == 3
+
+
+# ------------------------------------------------------------------------------------------------
+# 4. Memory
+# ------------------------------------------------------------------------------------------------
+def test_a_replay_that_cannot_fit_in_memory_is_refused(script, tmp_path, capsys):
+    assert script.Replay.bytes_per_step(96) == 96 * 96 * 3 + 4 * 2 + 4 + 1 + 1
+    runs = tmp_path / "runs"
+    text = exit_message(script, ["--replay-capacity", str(10**12), "--runs-dir", str(runs)])
+    per_agent = 10**12 * script.Replay.bytes_per_step(96)
+    assert f"--replay-capacity {10**12}: the replay buffers need 2 x {per_agent / 1e9:,.2f} GB =" in text
+    assert "of memory is available" in text
+    assert "replay buffers: 2 x 1,000,000,000,000 steps x 27,662 B" in capsys.readouterr().out
+    assert not runs.exists()
+
+
+def test_available_memory_reads_meminfo_or_falls_back(script, monkeypatch):
+    available, source = script.available_memory()
+    assert available > 0 and ("MemAvailable" in source or "cgroup" in source)
+
+    def no_proc(path, *args, **kwargs):
+        raise OSError(f"{path}: not here")
+
+    monkeypatch.setattr(script, "open", no_proc, raising=False)  # no /proc/meminfo, no cgroup files
+    available, source = script.available_memory()
+    assert available > 0 and "sysconf" in source
+
+
+# ------------------------------------------------------------------------------------------------
+# race.py and plot.py
+# ------------------------------------------------------------------------------------------------
+TWO = ["--opponent", "pursuit", "--opponent", "pursuit"]
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--opponent", "pursuit:nan", "--opponent", "pursuit"], "--opponent must be pursuit or pursuit:SPEED"),
+        (["--opponent", "pursuit:inf", "--opponent", "pursuit"], "with a finite SPEED > 0"),
+        ([*TWO, "--max-steps", "0"], "--max-steps must be >= 1, got 0"),
+        ([*TWO, "--seed", "-1"], "--seed must be >= 0"),
+        ([*TWO, "--races", "0"], "--races must be >= 1, got 0"),
+        ([*TWO, "--train", "--episodes", "0"], "--episodes must be >= 1, got 0"),
+    ],
+)
+def test_race_bad_arguments(argv, message, capsys):
+    import race
+
+    with pytest.raises(SystemExit) as exit_info:
+        race.main(argv)
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err.strip().splitlines()[-1]
+
+
+def test_race_out_must_be_a_directory(tmp_path, capsys):
+    import race
+
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(SystemExit):
+        race.main([*TWO, "--out", str(tmp_path / "file")])
+    assert "--out" in capsys.readouterr().err and not (tmp_path / "file").is_dir()
+
+
+def test_race_checkpoint_that_builds_no_agent_is_one_line(tmp_path):
+    import race
+
+    lstm = importlib.import_module("dreamer_lstm")
+    path = str(tmp_path / "mismatch.pt")
+    agent = lstm.Agent(lstm.Args(**TINY))
+    lstm.save_checkpoint(path, lstm.Args(**{**TINY, "cnn_depth": 8}), [agent], {"episode": 0})  # sizes do not fit
+    with pytest.raises(SystemExit) as exit_info:
+        race.main([path, "--opponent", "pursuit"])
+    text = str(exit_info.value.code)
+    assert text.startswith(f"race.py: {path}: agent 0 does not fit the networks it names") and "\n" not in text
+
+
+def test_plot_bad_input(tmp_path, capsys):
+    import plot
+
+    run = tmp_path / "runs" / "multi_car_racing__lstm__1__1"
+    run.mkdir(parents=True)
+    (run / "events.out.tfevents.1").write_bytes(b"garbage")
+    (run / "config.json").write_text("{not json")
+    with pytest.raises(SystemExit) as exit_info:
+        plot.main([str(tmp_path / "runs"), "--out", str(tmp_path / "figures")])
+    assert str(exit_info.value.code).startswith(f"plot.py: {run / 'config.json'}: not a readable run config")
+    bad = [
+        (["--sigma", "nan"], "--sigma must be a finite number >= 0"),
+        (["--out", str(run / "config.json")], "is not a directory"),
+    ]
+    for argv, message in bad:
+        with pytest.raises(SystemExit):
+            plot.main([str(tmp_path / "runs"), *argv])
+        assert message in capsys.readouterr().err
