@@ -16,6 +16,8 @@ Each curve is smoothed with a Gaussian filter (``--sigma`` in logged points, sci
 * ``multi_agent_return.png``   - stage ``race``: episodic return
 * ``multi_agent_win_rate.png`` - stage ``race``: win rate
 * ``ghost_return.png``         - stage ``ghost``: episodic return (when present)
+* ``single_agent_eval_{return,progress}.png`` - stage ``single``: deterministic evaluation on the
+  held-out tracks (when logged)
 * ``losses.png``               - actor, critic, reconstruction, KL (dyn) for every group
 """
 
@@ -47,6 +49,8 @@ FIGURES = {
     "multi_agent_return.png": ("race", "charts/episodic_return", "episodic return"),
     "multi_agent_win_rate.png": ("race", "charts/win_rate", "win rate"),
     "ghost_return.png": ("ghost", "charts/episodic_return", "episodic return"),
+    "single_agent_eval_return.png": ("single", "eval/episodic_return", "evaluation return (held-out tracks)"),
+    "single_agent_eval_progress.png": ("single", "eval/progress", "evaluation progress (held-out tracks)"),
 }
 LOSSES = ("losses/actor", "losses/critic", "losses/reconstruction", "losses/kl_dyn")
 
@@ -144,7 +148,7 @@ def plot_metric(ax, groups, tag: str, sigma: float, stage: str | None = None) ->
         if result is None:
             continue
         grid, mean, std, n = result
-        label = f"{variant} ({len(runs)} seeds)" if stage else f"{variant}/{group_stage}"
+        label = f"{variant} ({len(runs)} seed{'s' * (len(runs) > 1)})" if stage else f"{variant}/{group_stage}"
         (line,) = ax.plot(grid, mean, label=label)
         ax.fill_between(grid, mean - std, mean + std, color=line.get_color(), alpha=0.2)
         labels.append(label)

@@ -24,6 +24,8 @@ steps. About 32 steps per second on one core here.
 
 Rendering uses pygame. ``SDL_VIDEODRIVER`` defaults to ``"offscreen"`` (set on import if unset);
 never use ``"dummy"``: highway-env then skips drawing and every frame and observation is blank.
+``SDL_NO_SIGNAL_HANDLERS`` defaults to ``"1"`` so that ``pygame.init()`` leaves SIGINT and SIGTERM
+alone (SDL would turn them into quit events and the process would survive Ctrl-C and ``kill``).
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from __future__ import annotations
 import os
 
 os.environ.setdefault("SDL_VIDEODRIVER", "offscreen")
+os.environ.setdefault("SDL_NO_SIGNAL_HANDLERS", "1")
 
 import warnings  # noqa: E402
 from typing import Any  # noqa: E402

@@ -91,3 +91,17 @@ def test_bad_logdir_is_a_clear_error(tmp_path, capsys):
     with pytest.raises(SystemExit):
         plot.main([str(tmp_path / "missing")])
     assert "is not a directory" in capsys.readouterr().err
+
+
+def test_evaluation_figures_appear_when_evaluations_are_logged(tmp_path):
+    run_dir = str(tmp_path / "multi_car_racing__learning_lstm__1__1700000000")
+    writer = SummaryWriter(run_dir)
+    for step, (ret, progress) in enumerate([(-80.0, 0.02), (100.0, 0.2), (400.0, 0.5)]):
+        writer.add_scalar("car_0/eval/episodic_return", ret, step * 1000)
+        writer.add_scalar("car_0/eval/progress", progress, step * 1000)
+    writer.close()
+    figures = plot.make_figures(str(tmp_path), str(tmp_path / "figures"), sigma=0.0)
+    assert set(figures) == {"single_agent_eval_return.png", "single_agent_eval_progress.png"}
+    line = figures["single_agent_eval_progress.png"].axes[0].lines[0]
+    assert line.get_label() == "lstm (1 seed)"
+    np.testing.assert_allclose(line.get_ydata()[[0, -1]], [0.02, 0.5], atol=1e-6)  # sigma 0: the logged values

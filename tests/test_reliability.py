@@ -486,3 +486,21 @@ def test_plot_bad_input(tmp_path, capsys):
         with pytest.raises(SystemExit):
             plot.main([str(tmp_path / "runs"), *argv])
         assert message in capsys.readouterr().err
+
+
+# --- signals: pygame (moviepy's import, highway-env's viewer) must not swallow Ctrl-C or kill ----------------
+SIGNAL_PROBES = {
+    "video logging": "from utils.logger import check_video_support; check_video_support()",
+    "highway-env": "from envs.highway import HighwayIntersection; env = HighwayIntersection(); env.reset(seed=0)",
+}
+
+
+@pytest.mark.parametrize("probe", sorted(SIGNAL_PROBES))
+def test_sigterm_still_ends_the_process_after_pygame_starts(probe):
+    """SDL installs SIGINT/SIGTERM handlers that turn the signal into a quit event unless SDL_NO_SIGNAL_HANDLERS
+    is set; then `kill` (or a cluster's pre-emption) would leave a training run going."""
+    code = f"import os, signal, time\n{SIGNAL_PROBES[probe]}\nos.kill(os.getpid(), signal.SIGTERM)\ntime.sleep(5)\n"
+    env = {k: v for k, v in os.environ.items() if k != "SDL_NO_SIGNAL_HANDLERS"}
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    result = subprocess.run([sys.executable, "-c", code], cwd=root, env=env, capture_output=True, timeout=120)
+    assert result.returncode == -15, result.stderr.decode()[-500:]

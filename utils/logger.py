@@ -53,9 +53,12 @@ def check_video_support() -> None:
     """Raise ``ImportError`` unless ``torch.utils.tensorboard`` can encode videos (needs ``moviepy.editor``).
 
     Importing ``moviepy.editor`` runs ``pygame.init()``; ``SDL_AUDIODRIVER`` defaults to ``"dummy"``
-    here so that this does not probe sound cards (the video driver is left alone).
+    here so that this does not probe sound cards (the video driver is left alone), and
+    ``SDL_NO_SIGNAL_HANDLERS`` to ``"1"``: SDL would otherwise turn SIGINT and SIGTERM into quit
+    events nobody reads, and a training run would survive Ctrl-C and ``kill``.
     """
     os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
+    os.environ.setdefault("SDL_NO_SIGNAL_HANDLERS", "1")
     try:
         from moviepy import editor  # noqa: F401
     except ImportError as exc:
