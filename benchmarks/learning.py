@@ -75,33 +75,40 @@ def train(variant: str, seed: int, hours: float, resume: bool) -> str:
 
 
 def eval_curve(run_dir: str) -> list[dict]:
-    """Evaluation points of a run, with the update count and wall time at each."""
+    """Evaluation points of a run, with the update count and the training hours at each.
+
+    A resumed run writes one event file per sitting; hours add up the sittings (each from its first
+    logged scalar to its last), so the time between sittings does not count."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    acc = EventAccumulator(run_dir, size_guidance={"scalars": 0})
-    acc.Reload()
-    tags = acc.Tags()["scalars"]
-    if "car_0/eval/episodic_return" not in tags:
-        return []
-    returns = acc.Scalars("car_0/eval/episodic_return")
-    progress = {e.step: e.value for e in acc.Scalars("car_0/eval/progress")} if "car_0/eval/progress" in tags else {}
-    updates = acc.Scalars("car_0/perf/updates") if "car_0/perf/updates" in tags else []
-    start = min(e.wall_time for e in acc.Scalars(tags[0]))
-    update_steps = np.array([e.step for e in updates])
-    update_values = np.array([e.value for e in updates])
-    rows = []
-    for e in returns:
-        before = update_steps <= e.step
-        rows.append(
-            {
-                "env_steps": int(e.step),
-                "updates": int(update_values[before][-1]) if before.any() else 0,
-                "wall_hours": round((e.wall_time - start) / 3600, 4),  # of this process; resumed runs restart the clock
-                "eval_return": round(float(e.value), 2),
-                "eval_progress": round(float(progress.get(e.step, float("nan"))), 4),
-            }
-        )
-    return rows
+    rows, hours_before = [], 0.0
+    for events_file in sorted(glob.glob(os.path.join(run_dir, "events.out.tfevents.*"))):
+        acc = EventAccumulator(events_file, size_guidance={"scalars": 0})
+        acc.Reload()
+        tags = acc.Tags()["scalars"]
+        if not tags:
+            continue
+        wall_times = [e.wall_time for tag in tags for e in acc.Scalars(tag)]
+        start, end = min(wall_times), max(wall_times)
+        if "car_0/eval/episodic_return" in tags:
+            progress = {e.step: e.value for e in acc.Scalars("car_0/eval/progress")} if "car_0/eval/progress" in tags else {}
+            updates = acc.Scalars("car_0/perf/updates") if "car_0/perf/updates" in tags else []
+            update_steps = np.array([e.step for e in updates])
+            update_values = np.array([e.value for e in updates])
+            for e in acc.Scalars("car_0/eval/episodic_return"):
+                before = update_steps <= e.step
+                rows.append(
+                    {
+                        "env_steps": int(e.step),
+                        "updates": int(update_values[before][-1]) if before.any() else 0,
+                        "wall_hours": round(hours_before + (e.wall_time - start) / 3600, 4),
+                        "eval_return": round(float(e.value), 2),
+                        "eval_progress": round(float(progress.get(e.step, float("nan"))), 4),
+                    }
+                )
+        hours_before += (end - start) / 3600
+    rows.sort(key=lambda row: row["env_steps"])
+    return [row for i, row in enumerate(rows) if i == 0 or row["env_steps"] != rows[i - 1]["env_steps"]]
 
 
 def baselines(eval_seed: int = 10_000, episodes: int = 10) -> dict:
