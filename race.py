@@ -9,7 +9,9 @@ Every checkpoint names its variant (``"lstm"`` -> ``dreamer_lstm.py``, ``"gru"``
 checkpoint path may end in ``:k`` to pick agent ``k`` of a multi-agent checkpoint (default 0).
 
 Races run on seeded tracks: track ``j`` is raced once per car with the start grid rotated, so
-every car starts from every grid slot equally often. Actions are deterministic (posterior mean
+every car starts from every grid slot equally often. Each Dreamer racer decides at the rate it was
+trained at: a new action every ``action_repeat`` env steps of its own, held in between (its
+recorded transitions sum the rewards of the held steps). Actions are deterministic (posterior mean
 and actor mean) unless ``--stochastic``. The table per racer (also as CSV and JSON in
 ``--out``): wins, win rate with a Wilson 95% interval, mean finish time of finished races,
 mean progress, eliminations, collision steps; plus an mp4 of the first race (``--video``).
@@ -99,13 +101,19 @@ class DreamerRacer:
         self.deterministic = deterministic
         self.name = f"{self.variant}:{os.path.basename(os.path.dirname(os.path.dirname(os.path.abspath(path))))}/{os.path.basename(path)}:{self.index}"
         self.state, self.learns = None, True
+        self.action_repeat = int(self.args.action_repeat)  # as in training: one decision per this many env steps
+        self.held, self.held_steps = None, 0
 
     def reset(self, env, agent):
-        self.state = None
+        self.state, self.held, self.held_steps = None, None, 0
 
     def act(self, obs: np.ndarray, is_first: bool) -> np.ndarray:
-        action, self.state = self.agent.act(obs[None], self.state, np.array([is_first]), deterministic=self.deterministic)
-        return action[0]
+        """A new action every --action-repeat env steps of this racer (the rate it was trained at), else the held one."""
+        if self.held is None or self.held_steps == self.action_repeat:
+            action, self.state = self.agent.act(obs[None], self.state, np.array([is_first]), deterministic=self.deterministic)
+            self.held, self.held_steps = action[0], 0
+        self.held_steps += 1
+        return self.held
 
 
 class PursuitRacer:
@@ -126,17 +134,23 @@ class PursuitRacer:
 
 
 class EpisodeRecorder:
-    """A learning racer's own car episode, frames at its encoder's size (its script's CarEpisode)."""
+    """A learning racer's own car episode, frames at its encoder's size (its script's CarEpisode), one transition
+    per decision as in training: rewards summed over the racer's action repeat, the frame after the last of them."""
 
     def __init__(self, racer: DreamerRacer, first_obs: np.ndarray):
         self.racer = racer
         self.episode = racer.module.CarEpisode(self._frame(first_obs))
+        self.reward, self.steps = 0.0, 0
 
     def _frame(self, obs):
         return self.racer.module.preprocess_frames(obs[None], self.racer.args.image_size)[0]
 
-    def add(self, obs, action, reward, terminated):
-        self.episode.add(self._frame(obs), action, reward, terminated)
+    def add(self, obs, action, reward, terminated, done):
+        """One env step of the car; `done`: its episode ended with this step (terminated or truncated)."""
+        self.reward, self.steps = self.reward + reward, self.steps + 1
+        if self.steps == self.racer.action_repeat or done:
+            self.episode.add(self._frame(obs), action, self.reward, terminated)
+            self.reward, self.steps = 0.0, 0
 
 
 # --- One race -------------------------------------------------------------------------------
@@ -162,13 +176,13 @@ def run_race(env: MultiCarRacing, racers: list, seed: int, grid: list[int], reco
     first = True
     while env.agents:
         actions = {a: racers[i].act(obs[a], first) for i, a in enumerate(agents) if a in env.agents}
-        obs, rewards, terms, _, infos = env.step(actions)
+        obs, rewards, terms, truncs, infos = env.step(actions)
         first = False
         for i, a in enumerate(agents):
             if a in rewards:
                 returns[i] += rewards[a]
                 if recorders[i] is not None:
-                    recorders[i].add(obs[a], actions[a], rewards[a], terms[a])
+                    recorders[i].add(obs[a], actions[a], rewards[a], terms[a], terms[a] or truncs[a])
         final.update(infos)
         if record_video:
             frames.append(env.render())
@@ -258,6 +272,7 @@ def parse_args(argv=None):
     parser.add_argument("--video", action=argparse.BooleanOptionalAction, default=True, help="save an mp4 of the first race")
     parser.add_argument("--max-steps", type=int, default=None, help="env max_steps (default: the first checkpoint's)")
     parser.add_argument("--cuda", action=argparse.BooleanOptionalAction, default=True, help="use CUDA when available")
+    parser.add_argument("--torch-threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     parser.add_argument("--train", action="store_true", help="the multi-agent phase: keep training every agent while racing")
     parser.add_argument("--episodes", type=int, default=200, help="--train: races to train for")
     parser.add_argument("--train-steps", type=int, default=None, help="--train: updates per agent per race (default: each agent's own)")
@@ -267,6 +282,8 @@ def parse_args(argv=None):
     racers = len(args.checkpoints) + len(args.opponent)
     if racers < 1 or (racers < 2 and not args.train):
         parser.error(f"need at least two racers (checkpoints plus --opponent), got {racers}")
+    if args.torch_threads < 0:
+        parser.error(f"--torch-threads must be >= 0, got {args.torch_threads}")
     if args.races < 1:
         parser.error(f"--races must be >= 1, got {args.races}")
     if args.seed < 0:
@@ -406,6 +423,8 @@ def train(args, racers, device) -> None:
 def main(argv=None):
     args = parse_args(argv)
     device = torch.device("cuda" if args.cuda and torch.cuda.is_available() else "cpu")
+    if args.torch_threads > 0:
+        torch.set_num_threads(args.torch_threads)
     try:
         racers = build_racers(args, device)
     except CheckpointError as e:

@@ -110,3 +110,26 @@ def test_tiny_train_run_logs_per_agent_win_rates(tiny_checkpoints, tmp_path):
     for i in (0, 1):
         checkpoint = race.read_checkpoint(str(run_dir / "checkpoints" / f"racer_{i}.pt"))
         assert checkpoint["counters"]["episode"] == 2
+
+
+def test_dreamer_racer_decides_every_action_repeat_steps_and_records_summed_rewards(tiny_checkpoints):
+    """A racer acts at its training rate: one decision per action_repeat env steps, one transition per decision."""
+    from envs import MultiCarRacing
+
+    racer = race.DreamerRacer(tiny_checkpoints["lstm"], "cpu", deterministic=True)
+    racer.action_repeat = 3
+    decisions, act = [], racer.agent.act
+
+    def counting_act(obs, state, is_first, deterministic=False):
+        decisions.append(bool(is_first[0]))
+        return act(obs, state, is_first, deterministic=deterministic)
+
+    racer.agent.act = counting_act
+    env = MultiCarRacing(num_agents=2, max_steps=31)
+    result = race.run_race(env, [racer, race.PursuitRacer(60.0)], seed=3, grid=[0, 1], episodes=[lambda obs: race.EpisodeRecorder(racer, obs), None])
+    steps = result.final_infos[0]["step"]  # env steps car_0 raced
+    assert steps > 3
+    assert decisions == [True] + [False] * (math.ceil(steps / 3) - 1)  # is_first only at the race's first decision
+    obs, actions, rewards, terminated = result.episodes[0].episode.arrays()
+    assert len(obs) == 1 + math.ceil(steps / 3)  # the first frame, then one frame per decision
+    assert rewards.sum() == pytest.approx(result.returns[0], abs=1e-4)
