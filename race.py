@@ -17,7 +17,8 @@ and actor mean) unless ``--stochastic``. The table per racer (also as CSV and JS
 mean progress, eliminations, collision steps; plus an mp4 of the first race (``--video``).
 
 ``--train``: the multi-agent phase of the paper. Every Dreamer racer keeps training,
-decentralized (Algorithm 1): its own replay buffer, filled with its own car's transitions, and
+decentralized (Algorithm 1): its own replay buffer (the one saved beside its checkpoint, in
+``checkpoints/replay_car_k/``, unless ``--fresh-replay``), filled with its own car's transitions, and
 ``--train-steps`` updates after every race; TensorBoard logging per racer (return, progress,
 win rate, losses) and a checkpoint per racer in ``runs/<run>/checkpoints/``.
 """
@@ -276,6 +277,9 @@ def parse_args(argv=None):
     parser.add_argument("--train", action="store_true", help="the multi-agent phase: keep training every agent while racing")
     parser.add_argument("--episodes", type=int, default=200, help="--train: races to train for")
     parser.add_argument("--train-steps", type=int, default=None, help="--train: updates per agent per race (default: each agent's own)")
+    parser.add_argument(
+        "--fresh-replay", action="store_true", help="--train: start from empty replays (default: each checkpoint's saved replay)"
+    )
     parser.add_argument("--runs-dir", default="runs", help="--train: where the run directory goes")
     parser.add_argument("--exp-name", default="race", help="--train: experiment name of the run")
     args = parser.parse_args(argv)
@@ -382,6 +386,10 @@ def train(args, racers, device) -> None:
     for i in learners:
         r = racers[i]
         replays[i] = r.module.Replay(r.args.replay_capacity, r.args.image_size)
+        saved = os.path.join(os.path.dirname(os.path.abspath(r.path)), f"replay_car_{r.index}")
+        if not args.fresh_replay and os.path.isdir(saved):  # the agent keeps learning from all it has seen
+            r.module.restore_replay(replays[i], saved, None, races=0)
+            print(f"{r.name}: continues with the replay in {saved} ({len(replays[i]):,} steps)")
     rng = np.random.RandomState(args.seed)
     wins = {i: [] for i in range(len(racers))}
     env_steps = 0

@@ -5,6 +5,8 @@ is printed next to its ratio to the reference measured in the same process with 
 setting: a bare 4-layer conv encoder (3-32-64-128-256, kernel 4, stride 2) forward + backward on
 750 frames of 96x96 (one paper-size batch, B*L = 15*50), so figures compare across machines
 (DESIGN 6: peers spend 4-12x the reference per update; target at paper size with 100 starts <= 3x).
+Each configuration also prints its matmul/conv FLOPs per update as a ratio to the reference's: the time
+ratio it would have if it ran at the reference's efficiency (paper size, 100 starts: 3.1x).
 
 Also measured: env steps per second of one two-car race while both agents act (and with random
 actions, for reference).
@@ -27,6 +29,7 @@ import numpy as np
 import torch
 import tyro
 from torch import nn
+from torch.utils.flop_counter import FlopCounterMode
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -49,19 +52,24 @@ class Args:
     configs: tuple[Literal["paper-100", "paper-all", "cpu"], ...] = ("cpu",)
     """configurations to time: paper size with 100 / all imagination starts, the CPU size"""
     updates: int = 5
-    """timed updates per configuration (after one warm-up update); the median is reported"""
+    """timed updates per configuration (after the warm-up updates); the median is reported"""
+    warmup: int = 2
+    """untimed updates first (the first updates of a process page-fault while the heap grows; compiling)"""
     reference_repeats: int = 3
     """timed repeats of the bare-encoder reference (after one warm-up); the median is reported"""
     threads: int = 0
     """torch threads (0: torch's default)"""
     malloc_fix: bool = True
-    """glibc mallopt setting of the scripts (DESIGN 6)"""
+    """glibc mallopt setting of the scripts (DESIGN 6), applied once for the reference and the agents alike"""
+    compile: bool = False
+    """torch.compile the agents' networks (the scripts' --compile)"""
     env_steps: int = 300
     """env steps for the acting throughput (0: skip)"""
 
 
-def median_time(fn, repeats: int) -> float:
-    fn()  # warm-up
+def median_time(fn, repeats: int, warmup: int = 1) -> float:
+    for _ in range(warmup):
+        fn()
     times = []
     for _ in range(repeats):
         t = time.perf_counter()
@@ -70,8 +78,15 @@ def median_time(fn, repeats: int) -> float:
     return float(np.median(times))
 
 
-def bare_encoder_reference(repeats: int) -> float:
-    """4-layer conv (3-32-64-128-256, k4 s2) + ReLU, forward and backward on 750 frames of 96x96."""
+def counted_flops(fn) -> int:
+    """Matmul and conv FLOPs of one call: how much arithmetic the method itself needs, at any efficiency."""
+    with FlopCounterMode(display=False) as counter:
+        fn()
+    return counter.get_total_flops()
+
+
+def bare_encoder_reference(repeats: int) -> tuple[float, int]:
+    """4-layer conv (3-32-64-128-256, k4 s2) + ReLU, forward and backward on 750 frames of 96x96: time, FLOPs."""
     layers, channels = [], [3, 32, 64, 128, 256]
     for c_in, c_out in itertools.pairwise(channels):
         layers += [nn.Conv2d(c_in, c_out, 4, 2), nn.ReLU()]
@@ -82,7 +97,7 @@ def bare_encoder_reference(repeats: int) -> float:
         encoder.zero_grad(set_to_none=True)
         encoder(frames).sum().backward()
 
-    return median_time(step, repeats)
+    return median_time(step, repeats), counted_flops(step)
 
 
 def filled_replay(script, args, steps: int = 3000):
@@ -97,12 +112,12 @@ def filled_replay(script, args, steps: int = 3000):
     return replay
 
 
-def time_update(script, overrides: dict, repeats: int) -> dict:
+def time_update(script, overrides: dict, repeats: int, warmup: int) -> dict:
     args = script.Args(**overrides)
     agent = script.Agent(args)
     replay = filled_replay(script, args)
     batch = replay.sample(args.batch_size, args.seq_len)
-    total = median_time(lambda: agent.update(batch), repeats)
+    total = median_time(lambda: agent.update(batch), repeats, warmup)
 
     def world_model_step():
         tensors = [torch.as_tensor(batch[k]) for k in ("obs", "action", "reward", "is_first")]
@@ -111,11 +126,13 @@ def time_update(script, overrides: dict, repeats: int) -> dict:
         agent._step(agent.model_optimizer, loss, agent.world_model.parameters())
 
     world_model = median_time(world_model_step, repeats)
+    flops = counted_flops(lambda: agent.update(batch))
     starts = args.imagination_starts or args.batch_size * args.seq_len
     return {
         "total": total,
         "world_model": world_model,
         "behaviour": total - world_model,
+        "flops": flops,
         "starts": starts,
         "args": args,
     }
@@ -154,17 +171,17 @@ def main(args: Args) -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, script {args.script}")
-    reference = bare_encoder_reference(args.reference_repeats)
+    reference, reference_flops = bare_encoder_reference(args.reference_repeats)
     print(f"bare encoder reference (750 frames 96x96, fwd+bwd): {reference:.2f} s")
     for name in args.configs:
-        r = time_update(script, CONFIGS[name], args.updates)
+        r = time_update(script, {**CONFIGS[name], "compile": args.compile}, args.updates, args.warmup)
         a = r["args"]
         print(
             f"{name:10s} B={a.batch_size} L={a.seq_len} H={a.imagination_horizon} {a.image_size}px depth={a.cnn_depth} "
             f"deter={a.deter_size} hidden={a.hidden_size} starts={r['starts']}: update {r['total']:.2f} s "
             f"= {r['total'] / reference:.2f}x reference (world model {r['world_model']:.2f} s = "
             f"{r['world_model'] / reference:.2f}x, imagination+actor+critic {r['behaviour']:.2f} s = "
-            f"{r['behaviour'] / reference:.2f}x)",
+            f"{r['behaviour'] / reference:.2f}x); its FLOPs are {r['flops'] / reference_flops:.2f}x the reference's",
             flush=True,
         )
     if args.env_steps:

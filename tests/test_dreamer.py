@@ -155,6 +155,42 @@ def test_shapes_through_every_network(script, image_size, norm):
     assert log_pis.shape == (4, B * L) and actions.shape == (4, B * L, 2)
 
 
+@pytest.mark.parametrize("c_in, c_out, kernel, stride, size", [(4, 3, 12, 4, 14), (8, 4, 4, 2, 6), (8, 8, 3, 1, 4)])
+def test_subpixel_conv_transpose_equals_conv_transpose(script, c_in, c_out, kernel, stride, size):
+    torch.manual_seed(0)
+    layer = nn.ConvTranspose2d(c_in, c_out, kernel, stride, bias=c_out == 3)
+    x = torch.randn(5, c_in, size, size, requires_grad=True)
+    expected, got = layer(x), script.conv_transpose_as_subpixel(x, layer)
+    torch.testing.assert_close(got, expected)
+    upstream = torch.randn_like(expected)
+    grads = torch.autograd.grad((got * upstream).sum(), [x, layer.weight])
+    expected_grads = torch.autograd.grad((expected * upstream).sum(), [x, layer.weight])
+    for grad, expected_grad in zip(grads, expected_grads):
+        torch.testing.assert_close(grad, expected_grad, rtol=1e-4, atol=1e-4)
+
+
+def compile_works() -> bool:
+    try:
+        return torch.compile(lambda x: x + 1)(torch.zeros(1)).item() == 1
+    except Exception:  # no C++ compiler, unsupported platform, ...
+        return False
+
+
+@pytest.mark.skipif(not compile_works(), reason="torch.compile is not supported here")
+def test_compile_gives_the_losses_of_eager(script, tmp_path):
+    metrics = {}
+    for compile_ in (False, True):
+        torch.manual_seed(0)
+        agent = script.Agent(tiny_args(script, compile=compile_))
+        metrics[compile_] = agent.update(random_batch())  # world-model step, then behaviour on the stepped model
+        agent.save(str(tmp_path / f"{compile_}.pt"))
+    assert metrics[True].keys() == metrics[False].keys()
+    for key, value in metrics[False].items():
+        assert metrics[True][key] == pytest.approx(value, rel=1e-4, abs=1e-5), key
+    eager, compiled = (torch.load(tmp_path / f"{c}.pt", weights_only=True) for c in (False, True))
+    assert eager["world_model"].keys() == compiled["world_model"].keys()  # checkpoints unchanged
+
+
 def test_imagination_starts_subset(script):
     agent = script.Agent(tiny_args(script, imagination_starts=7))
     post = agent.world_model.observe(torch.zeros(3, 5, 16), torch.zeros(3, 5, 2), torch.zeros(3, 5, dtype=torch.bool))

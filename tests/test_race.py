@@ -133,3 +133,19 @@ def test_dreamer_racer_decides_every_action_repeat_steps_and_records_summed_rewa
     obs, actions, rewards, terminated = result.episodes[0].episode.arrays()
     assert len(obs) == 1 + math.ceil(steps / 3)  # the first frame, then one frame per decision
     assert rewards.sum() == pytest.approx(result.returns[0], abs=1e-4)
+
+
+def test_train_continues_with_the_replay_saved_beside_the_checkpoint(tiny_checkpoints, tmp_path, capsys):
+    import os
+
+    import numpy as np
+
+    replay_dir = os.path.join(os.path.dirname(tiny_checkpoints["gru"]), "replay_car_0")
+    with np.load(os.path.join(replay_dir, "meta.npz")) as meta:
+        saved_steps = int(meta["size"])
+    assert saved_steps > 0
+    args = [tiny_checkpoints["gru"], "--opponent", "pursuit", "--train", "--episodes", "1", "--train-steps", "1", "--max-steps", "30"]
+    race.main([*args, "--runs-dir", str(tmp_path / "kept")])
+    assert f"continues with the replay in {replay_dir} ({saved_steps:,} steps)" in capsys.readouterr().out
+    race.main([*args, "--runs-dir", str(tmp_path / "fresh"), "--fresh-replay"])
+    assert "continues with the replay" not in capsys.readouterr().out
