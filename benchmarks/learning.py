@@ -37,6 +37,7 @@ from train_throughput import CPU_SIZE  # noqa: E402  (one definition of the CPU 
 RESULTS = os.path.join(ROOT, "benchmarks", "results")
 RUNS = os.path.join(ROOT, "runs", "learning")
 EVAL_EVERY = 5
+BAR_RETURN, BAR_PROGRESS = 300.0, 0.40  # issue 6: mean evaluation return and progress on the 10 tracks
 # Deviations from the paper's defaults for CPU learning (listed in the README):
 LEARNING_CONFIG = {
     **CPU_SIZE,
@@ -111,9 +112,9 @@ def eval_curve(run_dir: str) -> list[dict]:
     return [row for i, row in enumerate(rows) if i == 0 or row["env_steps"] != rows[i - 1]["env_steps"]]
 
 
-def baselines(eval_seed: int = 10_000, episodes: int = 10) -> dict:
+def baselines(eval_seed: int = 10_000, episodes: int = 10, results_dir: str = RESULTS) -> dict:
     """Random actions and the pursuit driver on the held-out tracks (the env settings of training)."""
-    path = os.path.join(RESULTS, "baselines.json")
+    path = os.path.join(results_dir, "baselines.json")
     if os.path.exists(path):
         with open(path) as f:
             return json.load(f)
@@ -136,60 +137,103 @@ def baselines(eval_seed: int = 10_000, episodes: int = 10) -> dict:
             returns.append(total)
             progress.append(infos["car_0"]["progress"])
         results[name] = {"eval_return": float(np.mean(returns)), "eval_progress": float(np.mean(progress))}
-    os.makedirs(RESULTS, exist_ok=True)
+    os.makedirs(results_dir, exist_ok=True)
     with open(path, "w") as f:
         json.dump(results, f, indent=2)
     return results
 
 
-def report() -> None:
-    """CSV per run, one PNG of every curve with the baselines, and a markdown table."""
+def read_curve(csv_path: str) -> list[dict]:
+    """Rows of a saved ``learning_*.csv`` with their numeric types back."""
+    kinds = {"env_steps": int, "updates": int, "wall_hours": float, "eval_return": float, "eval_progress": float}
+    with open(csv_path, newline="") as f:
+        return [{key: kinds[key](value) for key, value in row.items()} for row in csv.DictReader(f)]
+
+
+def load_curves(runs_dir: str = RUNS, results_dir: str = RESULTS) -> dict[str, list[dict]]:
+    """Every learning curve by name (``learning_<variant>_seed<S>``): read from the run's event files when
+    the run is on this machine (and written to its CSV), else from the CSV committed by an earlier sitting,
+    so runs on other machines stay in the table and the figure. A saved CSV that reaches further than the
+    run here (a run restarted from scratch) is kept, never overwritten by the shorter curve."""
+    curves = {}
+    for run_dir in sorted(glob.glob(os.path.join(runs_dir, "*__learning_*"))):
+        _, exp_name, seed = os.path.basename(run_dir).split("__")[:3]
+        rows = eval_curve(run_dir)
+        if not rows:
+            continue
+        name = f"{exp_name}_seed{seed}"
+        csv_path = os.path.join(results_dir, name + ".csv")
+        saved = read_curve(csv_path) if os.path.exists(csv_path) else []
+        if saved and saved[-1]["env_steps"] > rows[-1]["env_steps"]:
+            # a restarted run has not caught up with the curve an earlier sitting saved: keep that one
+            print(f"note: {run_dir} ({rows[-1]['env_steps']} env steps) is behind {csv_path}; keeping the CSV")
+            continue
+        with open(csv_path, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+        curves[name] = rows
+    for csv_path in sorted(glob.glob(os.path.join(results_dir, "learning_*_seed*.csv"))):
+        name = os.path.basename(csv_path).removesuffix(".csv")
+        if name not in curves:
+            rows = read_curve(csv_path)
+            if rows:
+                curves[name] = rows
+    return dict(sorted(curves.items()))
+
+
+def first_at_bar(rows: list[dict]) -> dict | None:
+    """The first evaluation at which both halves of the bar hold (return and progress of the same eval)."""
+    return next((r for r in rows if r["eval_return"] >= BAR_RETURN and r["eval_progress"] >= BAR_PROGRESS), None)
+
+
+def summary_table(curves: dict[str, list[dict]], base: dict) -> str:
+    """Markdown: per run its last point, its best evaluation, and where it first met the bar."""
+    lines = [
+        "| run | env steps | updates | hours | last eval return | last progress | best eval return (progress) | bar first met at |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for name, rows in curves.items():
+        last, best, hit = rows[-1], max(rows, key=lambda r: r["eval_return"]), first_at_bar(rows)
+        met = f"{hit['env_steps']} steps, {hit['wall_hours']:.2f} h" if hit else "not met"
+        lines.append(
+            f"| {name.removeprefix('learning_')} | {last['env_steps']} | {last['updates']} | {last['wall_hours']:.2f} "
+            f"| {last['eval_return']:.1f} | {last['eval_progress']:.2f} | {best['eval_return']:.1f} ({best['eval_progress']:.2f}) | {met} |"
+        )
+    for bname, b in base.items():
+        lines.append(f"| {bname} (baseline) | | | | {b['eval_return']:.1f} | {b['eval_progress']:.2f} | | |")
+    return "\n".join(lines) + "\n"
+
+
+def report(runs_dir: str = RUNS, results_dir: str = RESULTS) -> None:
+    """CSV per run, one PNG of every curve with the baselines and the bar, and a markdown table."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    os.makedirs(RESULTS, exist_ok=True)
-    base = baselines()
-    curves = {}
-    for run_dir in sorted(glob.glob(os.path.join(RUNS, "*__learning_*"))):
-        variant, seed = os.path.basename(run_dir).split("__")[1].removeprefix("learning_"), os.path.basename(run_dir).split("__")[2]
-        rows = eval_curve(run_dir)
-        if not rows:
-            continue
-        name = f"learning_{variant}_seed{seed}"
-        with open(os.path.join(RESULTS, name + ".csv"), "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
-        curves[name] = rows
+    os.makedirs(results_dir, exist_ok=True)
+    base = baselines(results_dir=results_dir)
+    curves = load_curves(runs_dir, results_dir)
     fig, axes = plt.subplots(1, 2, figsize=(12, 4))
-    for ax, key, label in ((axes[0], "eval_return", "evaluation return"), (axes[1], "eval_progress", "evaluation progress")):
+    panels = ((axes[0], "eval_return", "evaluation return", BAR_RETURN), (axes[1], "eval_progress", "evaluation progress", BAR_PROGRESS))
+    for ax, key, label, bar in panels:
         for name, rows in curves.items():
             ax.plot([r["env_steps"] for r in rows], [r[key] for r in rows], marker="o", label=name.removeprefix("learning_"))
         for (bname, b), style in zip(base.items(), (":", "--")):
             ax.axhline(b[key], color="gray", linestyle=style, label=bname)
+        ax.axhline(bar, color="red", linestyle="-.", alpha=0.6, label="bar (issue 6)")
         ax.set_xlabel("env steps")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
-        ax.legend()
+        ax.legend(fontsize="small")
     fig.tight_layout()
-    fig.savefig(os.path.join(RESULTS, "learning.png"), dpi=100)
-    lines = [
-        "| run | env steps | updates | hours | last eval return | best eval return | last progress |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    for name, rows in curves.items():
-        last = rows[-1]
-        best = max(r["eval_return"] for r in rows)
-        lines.append(
-            f"| {name.removeprefix('learning_')} | {last['env_steps']} | {last['updates']} | {last['wall_hours']:.2f} | {last['eval_return']:.1f} | {best:.1f} | {last['eval_progress']:.2f} |"
-        )
-    for bname, b in base.items():
-        lines.append(f"| {bname} (baseline) | | | | {b['eval_return']:.1f} | | {b['eval_progress']:.2f} |")
-    with open(os.path.join(RESULTS, "learning.md"), "w") as f:
-        f.write("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    fig.savefig(os.path.join(results_dir, "learning.png"), dpi=100)
+    plt.close(fig)
+    table = summary_table(curves, base)
+    with open(os.path.join(results_dir, "learning.md"), "w") as f:
+        f.write(table)
+    print(table)
 
 
 def main():

@@ -1,0 +1,83 @@
+"""benchmarks/learning.py's bookkeeping: curves from event files over resumed sittings, the saved CSVs
+that stand in for runs not on this machine, and the bar of issue 6."""
+
+import csv
+import json
+import os
+import sys
+
+import pytest
+from torch.utils.tensorboard import SummaryWriter
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
+import learning  # noqa: E402
+
+BASELINES = {"random": {"eval_return": -76.6, "eval_progress": 0.03}, "pursuit@70": {"eval_return": 909.0, "eval_progress": 1.0}}
+
+
+def write_sitting(run_dir, points, wall_start, updates_every=100):
+    """One event file: eval points (env_steps, return, progress, updates) at 1000 s apart from wall_start."""
+    writer = SummaryWriter(run_dir, filename_suffix=f".{wall_start}")
+    for i, (steps, ret, progress, updates) in enumerate(points):
+        wall = wall_start + 1000.0 * i
+        writer.add_scalar("car_0/perf/updates", updates, steps, walltime=wall)
+        writer.add_scalar("car_0/eval/episodic_return", ret, steps, walltime=wall)
+        writer.add_scalar("car_0/eval/progress", progress, steps, walltime=wall)
+    writer.close()
+
+
+@pytest.fixture
+def dirs(tmp_path):
+    runs, results = tmp_path / "runs", tmp_path / "results"
+    results.mkdir()
+    with open(results / "baselines.json", "w") as f:
+        json.dump(BASELINES, f)
+    return str(runs), str(results)
+
+
+def test_eval_curve_adds_up_sittings_not_the_gap_between_them(dirs):
+    runs, _ = dirs
+    run_dir = os.path.join(runs, "multi_car_racing__learning_gru__1__1700000000")
+    write_sitting(run_dir, [(500, -80.0, 0.02, 0), (1000, 50.0, 0.2, 300)], wall_start=1_000_000.0)
+    # the second sitting starts a day later: its hours continue from the first sitting's 1000 s
+    write_sitting(run_dir, [(1000, 50.0, 0.2, 300), (2000, 310.0, 0.45, 800)], wall_start=1_086_400.0)
+    rows = learning.eval_curve(run_dir)
+    assert [r["env_steps"] for r in rows] == [500, 1000, 2000]  # the repeated point once
+    assert [r["updates"] for r in rows] == [0, 300, 800]
+    assert rows[-1]["wall_hours"] == pytest.approx(2000 / 3600, abs=1e-4)
+    assert rows[-1]["eval_progress"] == pytest.approx(0.45, abs=1e-6)
+
+
+def test_first_at_bar_needs_return_and_progress_at_the_same_evaluation():
+    rows = [
+        {"env_steps": 1, "eval_return": 350.0, "eval_progress": 0.30},  # return only
+        {"env_steps": 2, "eval_return": 250.0, "eval_progress": 0.50},  # progress only
+        {"env_steps": 3, "eval_return": 300.0, "eval_progress": 0.40},  # both, at the edges
+    ]
+    assert learning.first_at_bar(rows)["env_steps"] == 3
+    assert learning.first_at_bar(rows[:2]) is None
+
+
+def test_report_keeps_saved_curves_and_never_shrinks_one(dirs):
+    runs, results = dirs
+    fields = ["env_steps", "updates", "wall_hours", "eval_return", "eval_progress"]
+    saved = {
+        "learning_lstm_seed1": [[500, 0, 0.1, -80.0, 0.02], [4000, 2000, 1.2, 320.0, 0.41]],  # run not here
+        "learning_gru_seed2": [[500, 0, 0.1, -80.0, 0.02], [4000, 2000, 1.2, 40.0, 0.15]],  # restarted here
+    }
+    for name, rows in saved.items():
+        with open(os.path.join(results, name + ".csv"), "w", newline="") as f:
+            csv.writer(f).writerows([fields, *rows])
+    write_sitting(os.path.join(runs, "multi_car_racing__learning_gru__2__1700000000"), [(500, -80.0, 0.02, 0)], 1e6)
+    write_sitting(os.path.join(runs, "multi_car_racing__learning_gru__3__1700000000"), [(700, -60.0, 0.05, 100)], 1e6)
+
+    learning.report(runs, results)
+    curves = learning.load_curves(runs, results)
+    assert sorted(curves) == ["learning_gru_seed2", "learning_gru_seed3", "learning_lstm_seed1"]
+    assert curves["learning_gru_seed2"][-1]["env_steps"] == 4000  # the restarted run is behind: CSV kept
+    assert learning.read_curve(os.path.join(results, "learning_gru_seed3.csv"))[-1]["updates"] == 100
+    table = open(os.path.join(results, "learning.md")).read().splitlines()
+    assert "| lstm_seed1 | 4000 | 2000 | 1.20 | 320.0 | 0.41 | 320.0 (0.41) | 4000 steps, 1.20 h |" in table
+    assert "| gru_seed2 | 4000 | 2000 | 1.20 | 40.0 | 0.15 | 40.0 (0.15) | not met |" in table
+    assert table[-1] == "| pursuit@70 (baseline) | | | | 909.0 | 1.00 | | |"
+    assert os.path.getsize(os.path.join(results, "learning.png")) > 0
