@@ -68,6 +68,8 @@ class Args:
     """keep freed memory in the process (glibc mallopt, DESIGN 6): halves update time on these VMs"""
     compile: bool = False
     """torch.compile the networks (same losses up to float rounding; minutes of compiling at the start)"""
+    amp: Literal["auto", "on", "off"] = "auto"
+    """bfloat16 autocast of the update's forward passes (losses stay float32); auto: on with CUDA, off on the CPU"""
     runs_dir: str = "runs"
     """directory holding the run directories `{env_id}__{exp_name}__{seed}__{time}`"""
     resume: str | None = None
@@ -193,7 +195,7 @@ class Args:
 
 # Arguments a resumed run may change; everything else comes from the checkpoint.
 RESUME_OVERRIDES = (
-    "resume", "total_episodes", "time_limit_hours", "cuda", "torch_threads", "use_subprocess", "compile",
+    "resume", "total_episodes", "time_limit_hours", "cuda", "torch_threads", "use_subprocess", "compile", "amp",
 )  # fmt: skip
 # Arguments that fix the networks' shapes: a --checkpoint brings its own.
 ARCHITECTURE = ("image_size", "cnn_depth", "deter_size", "hidden_size", "mlp_size", "latent_size", "norm")
@@ -491,7 +493,7 @@ class Decoder(nn.Module):
         lead = features.shape[:-1]
         x = self.fc(features.reshape(-1, features.shape[-1])).reshape(-1, self.channels, self.start, self.start)
         x = conv_transpose_as_subpixel(self.net[:-1](x), self.net[-1])  # = self.net(x), faster on CPU
-        return x.reshape(*lead, *x.shape[1:])
+        return x.float().reshape(*lead, *x.shape[1:])  # float32 for the loss, also under --amp
 
     def sigma(self) -> torch.Tensor:
         return self.log_sigma.clamp(-5.0, 2.0).exp()
@@ -545,8 +547,9 @@ class Representation(nn.Module):
 
 
 def gaussian_params(out: torch.Tensor, min_std: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Split a head's output into the mean and sigma (softplus plus a minimum) of a diagonal Gaussian."""
-    mean, raw_std = out.chunk(2, dim=-1)
+    """Split a head's output into the mean and sigma (softplus plus a minimum) of a diagonal Gaussian, in float32
+    (under --amp the head computed in bfloat16; distributions and losses do not)."""
+    mean, raw_std = out.float().chunk(2, dim=-1)
     return mean, F.softplus(raw_std) + min_std
 
 
@@ -585,20 +588,26 @@ class WorldModel(nn.Module):
         state = tuple(torch.where(mask, s0, s) for s0, s in zip(initial, state))
         return state, torch.where(mask, 0.0, z), torch.where(mask, 0.0, prev_action)
 
+    def core_step(self, state, x):
+        """Advance the recurrent core on x = z||a. Its state stays float32: under --amp the cell's matmuls run
+        in bfloat16, and a bfloat16 state carried over 50 steps would round away what the cell remembers."""
+        state, h = self.cell.step(state, self.recurrent_input(x))
+        return tuple(s.float() for s in state), h.float()
+
     def observe_step(self, state, z, prev_action, embed_part, is_first, sample: bool = True):
         """One posterior step: reset at episode starts, advance the core, sample z_t ~ q(z | h_t, e_t).
 
         embed_part = representation.embed_part(e_t), the embedding's share of the posterior's first layer.
         """
         state, z, prev_action = self.reset_where(is_first, state, z, prev_action)
-        state, h = self.cell.step(state, self.recurrent_input(torch.cat([z, prev_action], -1)))
+        state, h = self.core_step(state, torch.cat([z, prev_action], -1))
         mean, std = gaussian_params(self.representation(embed_part, h), LATENT_MIN_STD)
         z = mean + std * torch.randn_like(std) if sample else mean
         return state, h, z, mean, std
 
     def imagine_step(self, state, z, action, sample: bool = True):
         """One prior step: advance the core with (z, a), sample z ~ p(z | h) by rsample."""
-        state, h = self.cell.step(state, self.recurrent_input(torch.cat([z, action], -1)))
+        state, h = self.core_step(state, torch.cat([z, action], -1))
         mean, std = gaussian_params(self.transition(h), LATENT_MIN_STD)
         z = mean + std * torch.randn_like(std) if sample else mean
         return state, h, z
@@ -633,7 +642,7 @@ class Actor(nn.Module):
         self.net = MLP(feature_size, [mlp_size] * 4, 2 * action_dim, norm)
 
     def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        mean, raw_std = self.net(features).chunk(2, dim=-1)
+        mean, raw_std = self.net(features).float().chunk(2, dim=-1)
         return ACTOR_MEAN_SCALE * torch.tanh(mean / ACTOR_MEAN_SCALE), F.softplus(raw_std) + ACTOR_MIN_STD
 
     def sample(self, features: torch.Tensor, deterministic: bool = False):
@@ -939,11 +948,17 @@ class Agent:
         if args.compile:  # in place (nn.Module.compile): parameter names, and so checkpoints, stay the same
             for module in (*self.world_model.children(), self.actor, self.critic, *self.targets.values()):
                 module.compile()
+        # --amp: bfloat16 autocast of the update (not of acting); needs no loss scaling, unlike float16
+        self.amp = args.amp == "on" or (args.amp == "auto" and self.device.type == "cuda")
         self.num_updates = 0
         self.nonfinite_updates = 0  # updates in which an optimiser step was skipped (non-finite loss or gradient)
         self.nonfinite_in_a_row = 0  # ... of the latest updates, in a row
 
     # --- modes -------------------------------------------------------------------------
+    def autocast(self) -> torch.autocast:
+        """The forward passes of an update: bfloat16 matmuls and convolutions under --amp, else float32."""
+        return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.amp)
+
     def _set_training(self, training: bool) -> None:
         """Train mode (batch statistics) for updates, eval mode (running statistics) for acting."""
         if self.world_model.training != training or self.actor.training != training:
@@ -973,7 +988,7 @@ class Agent:
         image_nll = image_gaussian_nll(frames_to_input(obs), wm.decoder(features), wm.decoder.sigma())
         reward_mean, reward_std = gaussian_params(wm.reward(features), HEAD_MIN_STD)
         reward_nll = gaussian_nll(rewards, reward_mean.squeeze(-1), reward_std.squeeze(-1))
-        cont_nll = F.binary_cross_entropy_with_logits(wm.cont(features).squeeze(-1), 1.0 - terminated, reduction="none")
+        cont_nll = F.binary_cross_entropy_with_logits(wm.cont(features).float().squeeze(-1), 1.0 - terminated, reduction="none")
         # Stop-gradient sides of the KL terms come from the target networks, computed once per update.
         with torch.no_grad():
             target_embed = self.targets["encoder"](obs)
@@ -1014,7 +1029,7 @@ class Agent:
         with frozen(wm, self.critic):  # only the actor's parameters take gradient from the actor loss
             features, log_pi, _ = imagine_rollout(wm, self.actor, state, h, z, args.imagination_horizon)
             rewards = gaussian_params(wm.reward(features[1:]), HEAD_MIN_STD)[0].squeeze(-1)  # r_1..r_H
-            continues = torch.sigmoid(wm.cont(features[1:]).squeeze(-1))  # c_1..c_H
+            continues = torch.sigmoid(wm.cont(features[1:]).float().squeeze(-1))  # c_1..c_H
             values = bootstrap(features[1:])[0]  # V(s_1..s_H)
             returns = lambda_returns(rewards, continues, values, log_pi, args.gamma, args.lambda_, args.entropy_coef)
             weights = discount_weights(continues, args.gamma)
@@ -1052,12 +1067,14 @@ class Agent:
         self._set_training(True)
         statistics = {m: [b.clone() for b in m.buffers()] for m in (self.world_model, self.actor)}  # BatchNorm
 
-        model_loss, metrics, post = self.world_model_loss(obs, actions, rewards, is_first, terminated)
+        with self.autocast():
+            model_loss, metrics, post = self.world_model_loss(obs, actions, rewards, is_first, terminated)
         model_ok = self._step(self.model_optimizer, model_loss, self.world_model.parameters())
         if model_ok:
             self._update_targets()
 
-        actor_loss, critic_loss, behaviour_metrics = self.behaviour_losses(post)
+        with self.autocast():
+            actor_loss, critic_loss, behaviour_metrics = self.behaviour_losses(post)
         actor_ok = self._step(self.actor_optimizer, actor_loss, self.actor.parameters())
         critic_ok = self._step(self.critic_optimizer, critic_loss, self.critic.parameters())
         if self.args.target_critic and critic_ok:

@@ -63,6 +63,8 @@ class Args:
     """glibc mallopt setting of the scripts (DESIGN 6), applied once for the reference and the agents alike"""
     compile: bool = False
     """torch.compile the agents' networks (the scripts' --compile)"""
+    amp: Literal["auto", "on", "off"] = "auto"
+    """bfloat16 autocast of the update (the scripts' --amp; auto: on with CUDA only)"""
     env_steps: int = 300
     """env steps for the acting throughput (0: skip)"""
 
@@ -174,7 +176,7 @@ def main(args: Args) -> None:
     reference, reference_flops = bare_encoder_reference(args.reference_repeats)
     print(f"bare encoder reference (750 frames 96x96, fwd+bwd): {reference:.2f} s")
     for name in args.configs:
-        r = time_update(script, {**CONFIGS[name], "compile": args.compile}, args.updates, args.warmup)
+        r = time_update(script, {**CONFIGS[name], "compile": args.compile, "amp": args.amp}, args.updates, args.warmup)
         a = r["args"]
         print(
             f"{name:10s} B={a.batch_size} L={a.seq_len} H={a.imagination_horizon} {a.image_size}px depth={a.cnn_depth} "

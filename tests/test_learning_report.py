@@ -76,7 +76,8 @@ def test_report_keeps_saved_curves_and_never_shrinks_one(dirs):
     assert sorted(curves) == ["learning_gru_seed2", "learning_gru_seed3", "learning_lstm_seed1"]
     assert curves["learning_gru_seed2"][-1]["env_steps"] == 4000  # the restarted run is behind: CSV kept
     assert learning.read_curve(os.path.join(results, "learning_gru_seed3.csv"))[-1]["updates"] == 100
-    table = open(os.path.join(results, "learning.md")).read().splitlines()
+    with open(os.path.join(results, "learning.md")) as f:
+        table = f.read().splitlines()
     assert "| lstm_seed1 | 4000 | 2000 | 1.20 | 320.0 | 0.41 | 320.0 (0.41) | 4000 steps, 1.20 h |" in table
     assert "| gru_seed2 | 4000 | 2000 | 1.20 | 40.0 | 0.15 | 40.0 (0.15) | not met |" in table
     assert table[-1] == "| pursuit@70 (baseline) | | | | 909.0 | 1.00 | | |"
