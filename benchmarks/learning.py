@@ -24,6 +24,7 @@ import csv
 import glob
 import importlib
 import json
+import math
 import os
 import sys
 
@@ -58,20 +59,27 @@ LEARNING_CONFIG = {
 }
 
 
-def find_run(variant: str, seed: int) -> str | None:
-    runs = sorted(glob.glob(os.path.join(RUNS, f"*__learning_{variant}__{seed}__*")))
+def experiment_name(variant: str, entropy_coef: float | None = None) -> str:
+    """``learning_<variant>``, or ``learning_<variant>_alpha<coef>`` for a run with another entropy scale."""
+    return f"learning_{variant}" + (f"_alpha{entropy_coef:g}" if entropy_coef is not None else "")
+
+
+def find_run(exp_name: str, seed: int) -> str | None:
+    runs = sorted(glob.glob(os.path.join(RUNS, f"*__{exp_name}__{seed}__*")))
     return runs[-1] if runs else None
 
 
-def train(variant: str, seed: int, hours: float, resume: bool) -> str:
+def train(variant: str, seed: int, hours: float, resume: bool, entropy_coef: float | None = None) -> str:
     script = importlib.import_module(f"dreamer_{variant}")
-    existing = find_run(variant, seed)
+    exp_name = experiment_name(variant, entropy_coef)
+    existing = find_run(exp_name, seed)
     if resume and existing:
         args = script.Args(resume=existing, time_limit_hours=hours, total_episodes=LEARNING_CONFIG["total_episodes"], torch_threads=1)
     else:
         if existing and not resume:
             print(f"note: {existing} exists; starting a new run (use --resume to continue it)")
-        args = script.Args(seed=seed, exp_name=f"learning_{variant}", runs_dir=RUNS, time_limit_hours=hours, **LEARNING_CONFIG)
+        config = {**LEARNING_CONFIG, **({"entropy_coef": entropy_coef} if entropy_coef is not None else {})}
+        args = script.Args(seed=seed, exp_name=exp_name, runs_dir=RUNS, time_limit_hours=hours, **config)
     return script.main(args)
 
 
@@ -243,11 +251,17 @@ def main():
     parser.add_argument("--hours", type=float, default=2.0, help="wall-clock budget of this sitting")
     parser.add_argument("--resume", action="store_true", help="continue the latest run of this variant and seed")
     parser.add_argument("--report", action="store_true", help="only write the curves and the table")
+    parser.add_argument(
+        "--entropy-coef", type=float, default=None,
+        help="an ablation: this alpha instead of the paper's 6e-4 (the run is named learning_<variant>_alpha<coef>)",
+    )
     args = parser.parse_args()
     if args.hours <= 0:
         parser.error(f"--hours must be > 0, got {args.hours}")
+    if args.entropy_coef is not None and not (math.isfinite(args.entropy_coef) and args.entropy_coef >= 0):
+        parser.error(f"--entropy-coef must be a finite number >= 0, got {args.entropy_coef}")
     if not args.report:
-        train(args.variant, args.seed, args.hours, args.resume)
+        train(args.variant, args.seed, args.hours, args.resume, args.entropy_coef)
     report()
 
 

@@ -70,10 +70,12 @@ def test_report_keeps_saved_curves_and_never_shrinks_one(dirs):
             csv.writer(f).writerows([fields, *rows])
     write_sitting(os.path.join(runs, "multi_car_racing__learning_gru__2__1700000000"), [(500, -80.0, 0.02, 0)], 1e6)
     write_sitting(os.path.join(runs, "multi_car_racing__learning_gru__3__1700000000"), [(700, -60.0, 0.05, 100)], 1e6)
+    ablation = learning.experiment_name("lstm", entropy_coef=0.03)  # an entropy-scale ablation is its own curve
+    write_sitting(os.path.join(runs, f"multi_car_racing__{ablation}__3__1700000000"), [(900, 10.0, 0.1, 200)], 1e6)
 
     learning.report(runs, results)
     curves = learning.load_curves(runs, results)
-    assert sorted(curves) == ["learning_gru_seed2", "learning_gru_seed3", "learning_lstm_seed1"]
+    assert sorted(curves) == ["learning_gru_seed2", "learning_gru_seed3", "learning_lstm_alpha0.03_seed3", "learning_lstm_seed1"]
     assert curves["learning_gru_seed2"][-1]["env_steps"] == 4000  # the restarted run is behind: CSV kept
     assert learning.read_curve(os.path.join(results, "learning_gru_seed3.csv"))[-1]["updates"] == 100
     with open(os.path.join(results, "learning.md")) as f:
