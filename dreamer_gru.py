@@ -987,7 +987,8 @@ class Agent:
         image_nll = image_gaussian_nll(frames_to_input(obs), wm.decoder(features), wm.decoder.sigma())
         reward_mean, reward_std = gaussian_params(wm.reward(features), HEAD_MIN_STD)
         reward_nll = gaussian_nll(rewards, reward_mean.squeeze(-1), reward_std.squeeze(-1))
-        cont_nll = F.binary_cross_entropy_with_logits(wm.cont(features).float().squeeze(-1), 1.0 - terminated, reduction="none")
+        cont_logits = wm.cont(features).float().squeeze(-1)
+        cont_nll = F.binary_cross_entropy_with_logits(cont_logits, 1.0 - terminated, reduction="none")
         # Stop-gradient sides of the KL terms come from the target networks, computed once per update.
         with torch.no_grad():
             target_embed = self.targets["encoder"](obs)

@@ -191,7 +191,7 @@ def test_compile_gives_the_losses_of_eager(script, tmp_path):
     assert eager["world_model"].keys() == compiled["world_model"].keys()  # checkpoints unchanged
 
 
-def test_amp_runs_the_networks_in_bfloat16_and_keeps_losses_and_state_float32(script):
+def test_amp_runs_the_networks_in_bfloat16_and_keeps_the_losses_of_float32(script):
     assert not script.Agent(tiny_args(script)).amp  # auto: off on the CPU
     matmul_dtypes = []
     metrics = {}
@@ -202,11 +202,8 @@ def test_amp_runs_the_networks_in_bfloat16_and_keeps_losses_and_state_float32(sc
         metrics[amp] = agent.update(random_batch())
         hook.remove()
         assert all(p.dtype == torch.float32 for p in agent.world_model.parameters())  # master weights stay float32
-        with agent.autocast():
-            post = agent.world_model.observe(torch.randn(3, 5, 16), torch.zeros(3, 5, 2), torch.zeros(3, 5, dtype=torch.bool))
-        assert post["h"].dtype == torch.float32 and all(s.dtype == torch.float32 for s in post["states"])
     assert matmul_dtypes == [torch.float32, torch.bfloat16]
-    for key, value in metrics["off"].items():  # bfloat16 matmuls: the same losses to ~1%
+    for key, value in metrics["off"].items():  # bfloat16 matmuls: within 3% (losses taken in bfloat16: kl_dyn 9% off)
         assert math.isfinite(metrics["on"][key])
         assert metrics["on"][key] == pytest.approx(value, rel=3e-2, abs=2e-2), key
 

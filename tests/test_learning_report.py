@@ -15,7 +15,7 @@ import learning  # noqa: E402
 BASELINES = {"random": {"eval_return": -76.6, "eval_progress": 0.03}, "pursuit@70": {"eval_return": 909.0, "eval_progress": 1.0}}
 
 
-def write_sitting(run_dir, points, wall_start, updates_every=100):
+def write_sitting(run_dir, points, wall_start):
     """One event file: eval points (env_steps, return, progress, updates) at 1000 s apart from wall_start."""
     writer = SummaryWriter(run_dir, filename_suffix=f".{wall_start}")
     for i, (steps, ret, progress, updates) in enumerate(points):
