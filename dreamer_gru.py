@@ -171,6 +171,8 @@ class Args:
     """beta_dyn: weight of L_dyn = max(free_bits, KL(sg(posterior) || prior))"""
     kl_rep_scale: float = 1.0
     """beta_rep: weight of L_rep = max(free_bits, KL(posterior || sg(prior)))"""
+    decoder_min_log_sigma: float = -5.0
+    """floor of the decoder's learned log sigma (paper: learned; 0 gives Dreamer's unit-variance pixel loss)"""
     grad_clip: float = 100.0
     """global gradient-norm clip of every optimiser"""
     target_critic: bool = True
@@ -249,6 +251,7 @@ def validate_args(args: Args) -> None:
     require(0 < args.gamma <= 1, "gamma", "must lie in (0, 1]")
     require(0 <= args.lambda_ <= 1, "lambda_", "must lie in [0, 1]")
     require(0 < args.tau <= 1, "tau", "must lie in (0, 1]")
+    require(-5 <= args.decoder_min_log_sigma <= MAX_LOG_SIGMA, "decoder_min_log_sigma", f"must lie in [-5, {MAX_LOG_SIGMA:g}]")
     for name in ("dead_zone_start", "dead_zone_end"):
         require(-1 <= getattr(args, name) <= 0, name, "must lie in [-1, 0]")
     require(0 <= args.seed < 2**32, "seed", "must lie in [0, 2**32)")
@@ -391,6 +394,7 @@ def step_with_repeat(envs, actions: np.ndarray, repeat: int):
 # 3. Networks (DESIGN 4.1; paper appendix)
 # =====================================================================================
 LATENT_MIN_STD = 0.1  # sigma of posterior and prior: softplus(.) + this minimum
+MAX_LOG_SIGMA = 2.0  # ceiling of the decoder's log sigma (floor: --decoder-min-log-sigma)
 HEAD_MIN_STD = 0.1  # sigma of the reward and critic Gaussians
 ACTOR_MIN_STD = 0.05  # sigma of the actor's pre-tanh Gaussian
 ACTOR_MEAN_SCALE = 5.0  # actor mean = 5 tanh(mean / 5), so tanh(u) does not saturate early (Dreamer v1)
@@ -475,8 +479,9 @@ class Decoder(nn.Module):
     (4 -> 6 -> 14 -> 64). The output is the mean of a Gaussian over pixels with one learned log sigma.
     """
 
-    def __init__(self, feature_size: int, depth: int, image_size: int, norm: str):
+    def __init__(self, feature_size: int, depth: int, image_size: int, norm: str, min_log_sigma: float = -5.0):
         super().__init__()
+        self.min_log_sigma = min_log_sigma
         self.start, self.channels = (8 if image_size == 96 else 4), 2 * depth
         c = self.channels
         self.fc = nn.Linear(feature_size, c * self.start * self.start, bias=False)
@@ -496,7 +501,9 @@ class Decoder(nn.Module):
         return x.float().reshape(*lead, *x.shape[1:])  # float32 for the loss, also under --amp
 
     def sigma(self) -> torch.Tensor:
-        return self.log_sigma.clamp(-5.0, 2.0).exp()
+        # A floor at 0 with log sigma starting at 0 fixes sigma = 1: the pixel term keeps its weight
+        # against the KL instead of growing as the reconstructions sharpen (README: learning).
+        return self.log_sigma.clamp(self.min_log_sigma, MAX_LOG_SIGMA).exp()
 
 
 class RecurrentCell(nn.Module):
@@ -575,7 +582,7 @@ class WorldModel(nn.Module):
         hidden, latent = [args.hidden_size] * 2, args.latent_size
         self.representation = Representation(args.hidden_size, args.deter_size, args.hidden_size, latent, args.norm)
         self.transition = MLP(args.deter_size, hidden, 2 * latent, args.norm)  # on h
-        self.decoder = Decoder(feature_size, args.cnn_depth, args.image_size, args.norm)
+        self.decoder = Decoder(feature_size, args.cnn_depth, args.image_size, args.norm, args.decoder_min_log_sigma)
         self.decoder.to(memory_format=torch.channels_last)
         self.reward = MLP(feature_size, [args.mlp_size] * 2, 2, args.norm)
         self.cont = MLP(feature_size, [args.mlp_size] * 2, 1, args.norm)

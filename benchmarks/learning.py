@@ -59,9 +59,17 @@ LEARNING_CONFIG = {
 }
 
 
-def experiment_name(variant: str, entropy_coef: float | None = None) -> str:
-    """``learning_<variant>``, or ``learning_<variant>_alpha<coef>`` for a run with another entropy scale."""
-    return f"learning_{variant}" + (f"_alpha{entropy_coef:g}" if entropy_coef is not None else "")
+# Ablations: a flag of the dreamer scripts changed from LEARNING_CONFIG, and its tag in the run's name.
+ABLATION_TAGS = {"entropy_coef": "alpha", "decoder_min_log_sigma": "logsigmamin"}
+
+
+def experiment_name(variant: str, **ablation: float | None) -> str:
+    """``learning_<variant>``, plus ``_<tag><value>`` per ablated flag (e.g. ``learning_lstm_alpha0.03``)."""
+    unknown = set(ablation) - set(ABLATION_TAGS)
+    if unknown:
+        raise ValueError(f"not an ablation flag: {', '.join(sorted(unknown))} (known: {', '.join(ABLATION_TAGS)})")
+    tags = "".join(f"_{tag}{ablation[name]:g}" for name, tag in ABLATION_TAGS.items() if ablation.get(name) is not None)
+    return f"learning_{variant}{tags}"
 
 
 def find_run(exp_name: str, seed: int) -> str | None:
@@ -69,16 +77,16 @@ def find_run(exp_name: str, seed: int) -> str | None:
     return runs[-1] if runs else None
 
 
-def train(variant: str, seed: int, hours: float, resume: bool, entropy_coef: float | None = None) -> str:
+def train(variant: str, seed: int, hours: float, resume: bool, **ablation: float | None) -> str:
     script = importlib.import_module(f"dreamer_{variant}")
-    exp_name = experiment_name(variant, entropy_coef)
+    exp_name = experiment_name(variant, **ablation)
     existing = find_run(exp_name, seed)
     if resume and existing:
         args = script.Args(resume=existing, time_limit_hours=hours, total_episodes=LEARNING_CONFIG["total_episodes"], torch_threads=1)
     else:
         if existing and not resume:
             print(f"note: {existing} exists; starting a new run (use --resume to continue it)")
-        config = {**LEARNING_CONFIG, **({"entropy_coef": entropy_coef} if entropy_coef is not None else {})}
+        config = {**LEARNING_CONFIG, **{name: value for name, value in ablation.items() if value is not None}}
         args = script.Args(seed=seed, exp_name=exp_name, runs_dir=RUNS, time_limit_hours=hours, **config)
     return script.main(args)
 
@@ -255,13 +263,18 @@ def main():
         "--entropy-coef", type=float, default=None,
         help="an ablation: this alpha instead of the paper's 6e-4 (the run is named learning_<variant>_alpha<coef>)",
     )
+    parser.add_argument(
+        "--decoder-min-log-sigma", type=float, default=None,
+        help="an ablation: floor the decoder's learned log sigma (0: unit variance; run named ..._logsigmamin<value>)",
+    )
     args = parser.parse_args()
     if args.hours <= 0:
         parser.error(f"--hours must be > 0, got {args.hours}")
     if args.entropy_coef is not None and not (math.isfinite(args.entropy_coef) and args.entropy_coef >= 0):
         parser.error(f"--entropy-coef must be a finite number >= 0, got {args.entropy_coef}")
     if not args.report:
-        train(args.variant, args.seed, args.hours, args.resume, args.entropy_coef)
+        ablation = {name: getattr(args, name) for name in ABLATION_TAGS}
+        train(args.variant, args.seed, args.hours, args.resume, **ablation)
     report()
 
 

@@ -390,23 +390,26 @@ def test_update_returns_the_logged_losses(script):
         assert isinstance(metrics[key], float) and math.isfinite(metrics[key])
 
 
-def test_world_model_loss_falls_on_a_fixed_batch(script):
-    torch.manual_seed(0)
-    args = tiny_args(script, cnn_depth=8, deter_size=32, hidden_size=32, mlp_size=32, latent_size=8, model_lr=3e-3)
-    agent = script.Agent(args)
-    # Structured frames: a bright square moving across a dark background; rewards follow its position.
-    B, L, S = 4, 8, 64
+def moving_square_batch(B=4, L=8, S=64):
+    """Structured frames: a bright square moving across a dark background; rewards follow its position."""
     obs = np.full((B, L, S, S, 3), 30, dtype=np.uint8)
     for b in range(B):
         for t in range(L):
             x = 4 + 6 * t + 3 * b
             obs[b, t, 20:36, x : x + 12] = (230, 200, 40)
-    batch = {
-        "obs": obs, "action": np.zeros((B, L, 2), np.float32), "reward": np.linspace(0, 1, L, dtype=np.float32)[None].repeat(B, 0),
-        "is_first": np.eye(1, L, dtype=bool).repeat(B, 0), "terminated": np.zeros((B, L), bool),
-    }  # fmt: skip
-    tensors = [torch.as_tensor(batch[k]) for k in ("obs", "action", "reward", "is_first")]
-    terminated = torch.as_tensor(batch["terminated"]).float()
+    reward = np.linspace(0, 1, L, dtype=np.float32)[None].repeat(B, 0)
+    tensors = [torch.as_tensor(obs), torch.zeros(B, L, 2), torch.as_tensor(reward), torch.as_tensor(np.eye(1, L, dtype=bool).repeat(B, 0))]
+    return tensors, torch.zeros(B, L)  # (obs, action, reward, is_first), terminated
+
+
+def small_model_args(script, **overrides):
+    return tiny_args(script, cnn_depth=8, deter_size=32, hidden_size=32, mlp_size=32, latent_size=8, model_lr=3e-3, **overrides)
+
+
+def test_world_model_loss_falls_on_a_fixed_batch(script):
+    torch.manual_seed(0)
+    agent = script.Agent(small_model_args(script))
+    tensors, terminated = moving_square_batch()
     target = script.frames_to_input(tensors[0])
     losses, squared_errors = [], []
     for _ in range(40):
@@ -419,6 +422,28 @@ def test_world_model_loss_falls_on_a_fixed_batch(script):
     # The loss holds a constant 0.5 log(2 pi) per pixel (~11,300 nats at 64 px); the fitted part falls clearly.
     assert np.mean(squared_errors[-5:]) < 0.3 * np.mean(squared_errors[:5])
     assert np.mean(losses[-5:]) < np.mean(losses[:5]) - 1000
+
+
+def test_decoder_min_log_sigma_zero_keeps_the_unit_variance_pixel_loss(script):
+    tensors, terminated = moving_square_batch()
+    pixels = tensors[0][0, 0].numel()
+    sigmas = {}
+    for floor in (-5.0, 0.0):
+        torch.manual_seed(0)
+        agent = script.Agent(small_model_args(script, decoder_min_log_sigma=floor))
+        for _ in range(15):
+            loss, metrics, post = agent.world_model_loss(*tensors, terminated)
+            agent._step(agent.model_optimizer, loss, agent.world_model.parameters())
+        sigmas[floor] = agent.world_model.decoder.sigma().item()
+    assert sigmas[-5.0] < 0.97  # the learned sigma falls as the reconstructions sharpen (the paper's choice)
+    assert sigmas[0.0] == 1.0  # the floor holds it at Dreamer's unit variance
+    # ... so the image term is 0.5 * squared error + a constant, as in Dreamer's MSE loss.
+    with torch.no_grad():
+        _, metrics, post = agent.world_model_loss(*tensors, terminated)
+        recon = agent.world_model.decoder(torch.cat([post["z"], post["h"]], -1))
+        squared_error = (recon - script.frames_to_input(tensors[0])).pow(2).sum((-3, -2, -1)).mean()
+    expected = 0.5 * squared_error + 0.5 * pixels * math.log(2 * math.pi)
+    assert float(metrics["reconstruction"]) == pytest.approx(expected.item(), rel=1e-5)
 
 
 # ------------------------------------------------------------------------------------------

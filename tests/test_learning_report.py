@@ -2,6 +2,8 @@
 that stand in for runs not on this machine, and the bar of issue 6."""
 
 import csv
+import dataclasses
+import importlib
 import json
 import os
 import sys
@@ -84,3 +86,14 @@ def test_report_keeps_saved_curves_and_never_shrinks_one(dirs):
     assert "| gru_seed2 | 4000 | 2000 | 1.20 | 40.0 | 0.15 | 40.0 (0.15) | not met |" in table
     assert table[-1] == "| pursuit@70 (baseline) | | | | 909.0 | 1.00 | | |"
     assert os.path.getsize(os.path.join(results, "learning.png")) > 0
+
+
+def test_ablation_runs_are_named_by_every_changed_flag():
+    assert learning.experiment_name("gru") == "learning_gru"
+    assert learning.experiment_name("lstm", entropy_coef=0.03, decoder_min_log_sigma=0.0) == "learning_lstm_alpha0.03_logsigmamin0"
+    assert learning.experiment_name("lstm", entropy_coef=None, decoder_min_log_sigma=-1.5) == "learning_lstm_logsigmamin-1.5"
+    with pytest.raises(ValueError, match="^not an ablation flag: free_bits"):
+        learning.experiment_name("lstm", free_bits=2.0)
+    for name in learning.ABLATION_TAGS:  # each ablation is a real flag of both scripts
+        for variant in ("lstm", "gru"):
+            assert name in {f.name for f in dataclasses.fields(importlib.import_module(f"dreamer_{variant}").Args)}

@@ -143,6 +143,8 @@ def test_validate_args_raises_value_error_naming_the_flag(script, tmp_path):
     script.validate_args(script.Args())  # the defaults are valid
     with pytest.raises(ValueError, match=r"^--batch-size must be >= 1, got 0$"):
         script.validate_args(script.Args(batch_size=0))
+    with pytest.raises(ValueError, match=r"^--decoder-min-log-sigma must lie in \[-5, 2\], got 3.0$"):
+        script.validate_args(script.Args(decoder_min_log_sigma=3.0))
     with pytest.raises(ValueError, match="--tau"):  # main checks first, before it writes anything
         script.main(script.Args(tau=2.0, runs_dir=str(tmp_path / "runs")))
     assert not (tmp_path / "runs").exists()
