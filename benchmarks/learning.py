@@ -60,16 +60,20 @@ LEARNING_CONFIG = {
 
 
 # Ablations: a flag of the dreamer scripts changed from LEARNING_CONFIG, and its tag in the run's name.
-ABLATION_TAGS = {"entropy_coef": "alpha", "decoder_min_log_sigma": "logsigmamin"}
+ABLATION_TAGS = {"entropy_coef": "alpha", "decoder_min_log_sigma": "logsigmamin", "norm": "norm"}
 
 
-def experiment_name(variant: str, **ablation: float | None) -> str:
+def experiment_name(variant: str, **ablation: float | str | None) -> str:
     """``learning_<variant>``, plus ``_<tag><value>`` per ablated flag (e.g. ``learning_lstm_alpha0.03``)."""
     unknown = set(ablation) - set(ABLATION_TAGS)
     if unknown:
         raise ValueError(f"not an ablation flag: {', '.join(sorted(unknown))} (known: {', '.join(ABLATION_TAGS)})")
-    tags = "".join(f"_{tag}{ablation[name]:g}" for name, tag in ABLATION_TAGS.items() if ablation.get(name) is not None)
-    return f"learning_{variant}{tags}"
+    tags = [
+        f"_{tag}{value:g}" if isinstance(value, float) else f"_{tag}{value}"
+        for name, tag in ABLATION_TAGS.items()
+        if (value := ablation.get(name)) is not None
+    ]
+    return f"learning_{variant}" + "".join(tags)
 
 
 def find_run(exp_name: str, seed: int) -> str | None:
@@ -77,7 +81,7 @@ def find_run(exp_name: str, seed: int) -> str | None:
     return runs[-1] if runs else None
 
 
-def train(variant: str, seed: int, hours: float, resume: bool, **ablation: float | None) -> str:
+def train(variant: str, seed: int, hours: float, resume: bool, **ablation: float | str | None) -> str:
     script = importlib.import_module(f"dreamer_{variant}")
     exp_name = experiment_name(variant, **ablation)
     existing = find_run(exp_name, seed)
@@ -266,6 +270,10 @@ def main():
     parser.add_argument(
         "--decoder-min-log-sigma", type=float, default=None,
         help="an ablation: floor the decoder's learned log sigma (0: unit variance; run named ..._logsigmamin<value>)",
+    )
+    parser.add_argument(
+        "--norm", choices=["batch", "layer"], default=None,
+        help="an ablation: this normalisation instead of BatchNorm (DESIGN 4.1; run named ..._norm<choice>)",
     )
     args = parser.parse_args()
     if args.hours <= 0:

@@ -92,6 +92,7 @@ def test_ablation_runs_are_named_by_every_changed_flag():
     assert learning.experiment_name("gru") == "learning_gru"
     assert learning.experiment_name("lstm", entropy_coef=0.03, decoder_min_log_sigma=0.0) == "learning_lstm_alpha0.03_logsigmamin0"
     assert learning.experiment_name("lstm", entropy_coef=None, decoder_min_log_sigma=-1.5) == "learning_lstm_logsigmamin-1.5"
+    assert learning.experiment_name("gru", norm="layer") == "learning_gru_normlayer"
     with pytest.raises(ValueError, match="^not an ablation flag: free_bits"):
         learning.experiment_name("lstm", free_bits=2.0)
     for name in learning.ABLATION_TAGS:  # each ablation is a real flag of both scripts
