@@ -251,7 +251,8 @@ def validate_args(args: Args) -> None:
     require(0 < args.gamma <= 1, "gamma", "must lie in (0, 1]")
     require(0 <= args.lambda_ <= 1, "lambda_", "must lie in [0, 1]")
     require(0 < args.tau <= 1, "tau", "must lie in (0, 1]")
-    require(-5 <= args.decoder_min_log_sigma <= MAX_LOG_SIGMA, "decoder_min_log_sigma", f"must lie in [-5, {MAX_LOG_SIGMA:g}]")
+    low, high = LOG_SIGMA_RANGE
+    require(low <= args.decoder_min_log_sigma <= high, "decoder_min_log_sigma", f"must lie in [{low:g}, {high:g}]")
     for name in ("dead_zone_start", "dead_zone_end"):
         require(-1 <= getattr(args, name) <= 0, name, "must lie in [-1, 0]")
     require(0 <= args.seed < 2**32, "seed", "must lie in [0, 2**32)")
@@ -394,7 +395,7 @@ def step_with_repeat(envs, actions: np.ndarray, repeat: int):
 # 3. Networks (DESIGN 4.1; paper appendix)
 # =====================================================================================
 LATENT_MIN_STD = 0.1  # sigma of posterior and prior: softplus(.) + this minimum
-MAX_LOG_SIGMA = 2.0  # ceiling of the decoder's log sigma (floor: --decoder-min-log-sigma)
+LOG_SIGMA_RANGE = (-5.0, 2.0)  # bounds of the decoder's log sigma (--decoder-min-log-sigma raises the floor)
 HEAD_MIN_STD = 0.1  # sigma of the reward and critic Gaussians
 ACTOR_MIN_STD = 0.05  # sigma of the actor's pre-tanh Gaussian
 ACTOR_MEAN_SCALE = 5.0  # actor mean = 5 tanh(mean / 5), so tanh(u) does not saturate early (Dreamer v1)
@@ -476,10 +477,11 @@ class Decoder(nn.Module):
     """Linear(z||h -> 2d*s*s), reshape (2d, s, s), ConvT 2d->2d (k3 s1), 2d->d (k4 s2), d->3 (k12 s4).
 
     At 96 px s = 8 (8 -> 10 -> 22 -> 96, the appendix's 64-channel decoder for d = 32); at 64 px s = 4
-    (4 -> 6 -> 14 -> 64). The output is the mean of a Gaussian over pixels with one learned log sigma.
+    (4 -> 6 -> 14 -> 64). The output is the mean of a Gaussian over pixels with one learned log sigma
+    (clamped below at --decoder-min-log-sigma).
     """
 
-    def __init__(self, feature_size: int, depth: int, image_size: int, norm: str, min_log_sigma: float = -5.0):
+    def __init__(self, feature_size: int, depth: int, image_size: int, norm: str, min_log_sigma: float):
         super().__init__()
         self.min_log_sigma = min_log_sigma
         self.start, self.channels = (8 if image_size == 96 else 4), 2 * depth
@@ -503,7 +505,7 @@ class Decoder(nn.Module):
     def sigma(self) -> torch.Tensor:
         # A floor at 0 with log sigma starting at 0 fixes sigma = 1: the pixel term keeps its weight
         # against the KL instead of growing as the reconstructions sharpen (README: learning).
-        return self.log_sigma.clamp(self.min_log_sigma, MAX_LOG_SIGMA).exp()
+        return self.log_sigma.clamp(self.min_log_sigma, LOG_SIGMA_RANGE[1]).exp()
 
 
 class RecurrentCell(nn.Module):

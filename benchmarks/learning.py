@@ -24,7 +24,6 @@ import csv
 import glob
 import importlib
 import json
-import math
 import os
 import sys
 
@@ -81,7 +80,9 @@ def find_run(exp_name: str, seed: int) -> str | None:
     return runs[-1] if runs else None
 
 
-def train(variant: str, seed: int, hours: float, resume: bool, **ablation: float | str | None) -> str:
+def run_args(variant: str, seed: int, hours: float, resume: bool, **ablation: float | str | None):
+    """The dreamer script of ``variant`` and the Args of this sitting: a new run at LEARNING_CONFIG with the
+    ablated flags changed, or (``resume``) the latest run of the same name and seed, continued."""
     script = importlib.import_module(f"dreamer_{variant}")
     exp_name = experiment_name(variant, **ablation)
     existing = find_run(exp_name, seed)
@@ -92,7 +93,7 @@ def train(variant: str, seed: int, hours: float, resume: bool, **ablation: float
             print(f"note: {existing} exists; starting a new run (use --resume to continue it)")
         config = {**LEARNING_CONFIG, **{name: value for name, value in ablation.items() if value is not None}}
         args = script.Args(seed=seed, exp_name=exp_name, runs_dir=RUNS, time_limit_hours=hours, **config)
-    return script.main(args)
+    return script, args
 
 
 def eval_curve(run_dir: str) -> list[dict]:
@@ -278,11 +279,14 @@ def main():
     args = parser.parse_args()
     if args.hours <= 0:
         parser.error(f"--hours must be > 0, got {args.hours}")
-    if args.entropy_coef is not None and not (math.isfinite(args.entropy_coef) and args.entropy_coef >= 0):
-        parser.error(f"--entropy-coef must be a finite number >= 0, got {args.entropy_coef}")
     if not args.report:
         ablation = {name: getattr(args, name) for name in ABLATION_TAGS}
-        train(args.variant, args.seed, args.hours, args.resume, **ablation)
+        script, script_args = run_args(args.variant, args.seed, args.hours, args.resume, **ablation)
+        try:  # an ablated value the script refuses ends here, before any work, naming the flag
+            script.validate_args(script_args)
+        except script.UsageError as e:
+            parser.error(str(e))
+        script.main(script_args)
     report()
 
 

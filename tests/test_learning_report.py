@@ -98,3 +98,14 @@ def test_ablation_runs_are_named_by_every_changed_flag():
     for name in learning.ABLATION_TAGS:  # each ablation is a real flag of both scripts
         for variant in ("lstm", "gru"):
             assert name in {f.name for f in dataclasses.fields(importlib.import_module(f"dreamer_{variant}").Args)}
+
+
+def test_an_ablation_reaches_the_script_and_a_refused_value_names_its_flag(tmp_path, monkeypatch):
+    monkeypatch.setattr(learning, "RUNS", str(tmp_path))  # no runs here: every sitting starts a new run
+    script, args = learning.run_args("gru", 2, 1.5, False, decoder_min_log_sigma=0.0, entropy_coef=None, norm="layer")
+    assert script.VARIANT == "gru" and args.exp_name == "learning_gru_logsigmamin0_normlayer"
+    assert (args.decoder_min_log_sigma, args.norm, args.entropy_coef) == (0.0, "layer", 6e-4)  # None: the default
+    assert (args.seed, args.time_limit_hours, args.image_size) == (2, 1.5, learning.LEARNING_CONFIG["image_size"])
+    script, args = learning.run_args("lstm", 1, 1.0, False, decoder_min_log_sigma=3.0)
+    with pytest.raises(script.UsageError, match=r"^--decoder-min-log-sigma must lie in \[-5, 2\], got 3.0$"):
+        script.validate_args(args)
