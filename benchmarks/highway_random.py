@@ -2,17 +2,22 @@
 
     python benchmarks/highway_random.py                  # seeds 10000..10004, 2 draws of actions each
     python benchmarks/highway_random.py --episodes 10 --repeats 3
+    python benchmarks/highway_random.py --run runs/<highway run> --csv benchmarks/results/highway.csv
 
 The dreamer scripts evaluate with ``--env-id highway-intersection`` on the scenarios
 ``eval_seed + e`` (``evaluate()``: one race per seed, rewards of every slot summed until the race
 resets). This runs the same loop with uniform random actions in [-1, 1]^2, so the agents' logged
-``car_i/eval/episodic_return`` has a reference on exactly those scenarios.
+``car_i/eval/episodic_return`` has a reference on exactly those scenarios. With ``--run`` it also
+prints (and with ``--csv`` saves) that run's evaluations next to the random reference.
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
+import glob
 import os
+import re
 import sys
 
 import numpy as np
@@ -41,19 +46,70 @@ def random_returns(episodes: int, repeats: int, eval_seed: int = 10_000, num_age
     return returns
 
 
+EVAL_TAG = re.compile(r"^car_(\d+)/eval/episodic_return$")
+
+
+def agent_evaluations(run_dir: str) -> list[dict]:
+    """A dreamer run's evaluations, read from its event files: one row per evaluation (in env-step order)
+    with ``env_steps``, ``updates`` (of car 0, the last logged at or before it) and ``car_i`` returns."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    event_files = sorted(glob.glob(os.path.join(run_dir, "events.out.tfevents.*")))
+    if not event_files:
+        raise FileNotFoundError(f"no TensorBoard event file in {run_dir!r} (expected a dreamer run directory)")
+    evaluations: dict[int, dict] = {}
+    updates: list[tuple[int, float]] = []
+    for events_file in event_files:  # a resumed run writes one file per sitting
+        acc = EventAccumulator(events_file, size_guidance={"scalars": 0})
+        acc.Reload()
+        for tag in acc.Tags()["scalars"]:
+            if tag == "car_0/perf/updates":
+                updates += [(e.step, e.value) for e in acc.Scalars(tag)]
+            elif match := EVAL_TAG.match(tag):
+                for e in acc.Scalars(tag):
+                    evaluations.setdefault(e.step, {})[f"car_{match.group(1)}"] = round(float(e.value), 2)
+    if not evaluations:
+        raise ValueError(f"{run_dir!r} logged no evaluation (car_i/eval/episodic_return); is --eval-every set?")
+    updates.sort()
+    rows = []
+    for step in sorted(evaluations):
+        done = [value for at, value in updates if at <= step]
+        cars = dict(sorted(evaluations[step].items(), key=lambda kv: int(kv[0].split("_")[1])))
+        rows.append({"env_steps": step, "updates": int(done[-1]) if done else 0, **cars})
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--episodes", type=int, default=5, help="scenarios eval_seed .. eval_seed + episodes - 1")
     parser.add_argument("--repeats", type=int, default=2, help="independent draws of random actions per scenario")
     parser.add_argument("--eval-seed", type=int, default=10_000)
+    parser.add_argument("--run", help="a dreamer run on highway-intersection: print its evaluations too")
+    parser.add_argument("--csv", help="with --run: write its evaluations and the random reference to this CSV")
     args = parser.parse_args()
     if args.episodes < 1 or args.repeats < 1:
         parser.error(f"--episodes and --repeats must be >= 1, got {args.episodes} and {args.repeats}")
+    if args.csv and not args.run:
+        parser.error("--csv needs --run (it saves that run's evaluations)")
+    try:
+        evaluations = agent_evaluations(args.run) if args.run else []
+    except (FileNotFoundError, ValueError) as error:
+        parser.error(str(error))
     returns = random_returns(args.episodes, args.repeats, args.eval_seed)
     per_agent = returns.mean(axis=(0, 1))
     spread = returns.mean(axis=2).std()
     print(f"random actions, {args.episodes} scenarios x {args.repeats} draws: mean return per agent "
           + ", ".join(f"car_{i} {v:.1f}" for i, v in enumerate(per_agent)) + f" (std over races {spread:.1f})")
+    random_row = {"env_steps": "random", "updates": "", **{f"car_{i}": round(float(v), 2) for i, v in enumerate(per_agent)}}
+    for row in evaluations:
+        print(f"{args.run}: after {row['env_steps']} env steps, {row['updates']} updates: "
+              + ", ".join(f"{key} {value:.1f}" for key, value in row.items() if key.startswith("car_")))
+    if args.csv:
+        with open(args.csv, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(random_row))
+            writer.writeheader()
+            writer.writerows([*evaluations, random_row])
+        print(f"wrote {args.csv}")
 
 
 if __name__ == "__main__":

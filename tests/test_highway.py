@@ -7,6 +7,7 @@ and actions), highway-env's own render() frame, and PettingZoo's API test.
 from __future__ import annotations
 
 import os
+import sys
 import warnings
 
 import cv2
@@ -156,3 +157,34 @@ def test_runs_through_make_vec_env_in_worker_processes():
             np.testing.assert_array_equal(obs[2 * k + j], reference_obs[agent])
             assert rewards[2 * k + j] == pytest.approx(reference_rewards[agent])
     venv.close()
+
+
+def test_highway_random_reads_a_runs_evaluations_per_car_over_sittings(tmp_path):
+    sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
+    from highway_random import agent_evaluations
+    from torch.utils.tensorboard import SummaryWriter
+
+    run_dir = str(tmp_path / "highway-intersection__dreamer_lstm__1__1700000000")
+    # (env step, updates, car_0 return, car_1 return); the second sitting (--resume) is a second file
+    for suffix, points in ((".a", [(594, 50, 3.0, 2.0)]), (".b", [(848, 550, 13.6, 5.6), (1200, 1050, 21.8, 18.2)])):
+        writer = SummaryWriter(run_dir, filename_suffix=suffix)
+        for step, updates, *returns in points:
+            writer.add_scalar("car_0/perf/updates", updates, step)
+            writer.add_scalar("car_0/charts/episodic_return", -1.0, step)  # training races are not evaluations
+            for i, value in enumerate(returns[::-1]):  # car_1 first: the rows still list car_0, car_1
+                writer.add_scalar(f"car_{1 - i}/eval/episodic_return", value, step)
+        writer.close()
+    assert agent_evaluations(run_dir) == [
+        {"env_steps": 594, "updates": 50, "car_0": 3.0, "car_1": 2.0},
+        {"env_steps": 848, "updates": 550, "car_0": 13.6, "car_1": 5.6},
+        {"env_steps": 1200, "updates": 1050, "car_0": 21.8, "car_1": 18.2},
+    ]
+
+    with pytest.raises(FileNotFoundError, match="no TensorBoard event file in .*empty"):
+        agent_evaluations(str(tmp_path / "empty"))
+    no_eval = str(tmp_path / "no_eval")
+    writer = SummaryWriter(no_eval)
+    writer.add_scalar("car_0/charts/episodic_return", 1.0, 10)
+    writer.close()
+    with pytest.raises(ValueError, match="logged no evaluation .*--eval-every"):
+        agent_evaluations(no_eval)
