@@ -98,12 +98,21 @@ def main() -> None:
     returns = random_returns(args.episodes, args.repeats, args.eval_seed)
     per_agent = returns.mean(axis=(0, 1))
     spread = returns.mean(axis=2).std()
-    print(f"random actions, {args.episodes} scenarios x {args.repeats} draws: mean return per agent "
-          + ", ".join(f"car_{i} {v:.1f}" for i, v in enumerate(per_agent)) + f" (std over races {spread:.1f})")
-    random_row = {"env_steps": "random", "updates": "", **{f"car_{i}": round(float(v), 2) for i, v in enumerate(per_agent)}}
+    print(
+        f"random actions, {args.episodes} scenarios x {args.repeats} draws: mean return per agent "
+        + ", ".join(f"car_{i} {v:.1f}" for i, v in enumerate(per_agent))
+        + f" (std over races {spread:.1f})"
+    )
+    random_row = {
+        "env_steps": "random",
+        "updates": "",
+        **{f"car_{i}": round(float(v), 2) for i, v in enumerate(per_agent)},
+    }
     for row in evaluations:
-        print(f"{args.run}: after {row['env_steps']} env steps, {row['updates']} updates: "
-              + ", ".join(f"{key} {value:.1f}" for key, value in row.items() if key.startswith("car_")))
+        print(
+            f"{args.run}: after {row['env_steps']} env steps, {row['updates']} updates: "
+            + ", ".join(f"{key} {value:.1f}" for key, value in row.items() if key.startswith("car_"))
+        )
     if args.csv:
         with open(args.csv, "w", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=list(random_row))
