@@ -566,6 +566,7 @@ class MultiCarRacing(ParallelEnv):
         # tiles touched here are paid out with the first step's reward.
         self._physics_step()
         self._record_poses()
+        self._last_views = {}
         observations = self._observe(self.agents)
         infos = {a: self._info(self._index[a]) for a in self.agents}
         self._reset_done = True
@@ -978,7 +979,7 @@ class MultiCarRacing(ParallelEnv):
                 layers.append((WHEEL_COLOR, outlines[j][:16], WHEEL_POLYGONS))
                 layers.append((self._car_color(j, viewer=i), outlines[j][16:], HULL_POLYGONS))
             obs[agent] = self.renderer.view(self._pose(i), layers, self._dashboard(i))
-        self._last_views = obs
+        self._last_views.update(obs)  # a car out of the race keeps its last view in render()
         return obs
 
     def _car_color(self, j: int, viewer: int) -> tuple[int, int, int]:
@@ -1006,8 +1007,11 @@ class MultiCarRacing(ParallelEnv):
             for i, car in enumerate(self.cars)
             if car is not None
         ]
-        names = list(self._last_views)
-        return self.renderer.overview(cars, self._ghost_poses(), [self._last_views[a] for a in names], names)
+        # Every car's panel in every frame (a finished or eliminated car's last view, labelled
+        # "out"), so the frame size stays constant through a race and videos can be encoded.
+        views = [self._last_views[a] for a in self.possible_agents]
+        names = [a if a in self.agents else f"{a} (out)" for a in self.possible_agents]
+        return self.renderer.overview(cars, self._ghost_poses(), views, names)
 
 
 class SingleCarRacing(gymnasium.Env):

@@ -187,3 +187,26 @@ def test_rgb_array_frame_shows_track_and_views():
     frame = env.render()
     assert frame.dtype == np.uint8 and frame.shape == (400, 600, 3)
     assert frame.std() > 10
+
+
+def test_rgb_array_frame_keeps_its_size_when_a_car_leaves_the_race():
+    """Videos need one frame size: with three cars (two panel columns) an eliminated car keeps
+    its last view in its panel instead of the layout shrinking to one column."""
+    env = MultiCarRacing(num_agents=3, render_mode="rgb_array")
+    env.reset(seed=3)
+    shapes = {env.render().shape}
+    car_2_panel = np.s_[:200, 600:800]  # third view: first row, second column of panels
+    for _ in range(300):
+        _, _, terms, _, infos = env.step(
+            {a: np.array([1.0, 1.0]) if a == "car_2" else np.zeros(2) for a in env.agents}
+        )
+        frame = env.render()
+        shapes.add(frame.shape)
+        if terms.get("car_2"):
+            break
+    assert infos["car_2"]["eliminated"] == "off_road" and env.agents == ["car_0", "car_1"]
+    env.step({a: np.zeros(2) for a in env.agents})
+    after = env.render()
+    assert shapes | {after.shape} == {(400, 800, 3)}
+    assert np.array_equal(after[car_2_panel][20:], frame[car_2_panel][20:])  # frozen view (label row aside)
+    assert after[car_2_panel].std() > 10
