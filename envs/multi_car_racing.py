@@ -33,7 +33,6 @@ from gymnasium import spaces
 from gymnasium.envs.box2d import car_dynamics
 from gymnasium.envs.box2d.car_dynamics import Car
 from gymnasium.envs.box2d.car_racing import (
-    BORDER,
     FPS,
     GRASS_DIM,
     PLAYFIELD,

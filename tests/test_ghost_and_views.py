@@ -197,9 +197,7 @@ def test_rgb_array_frame_keeps_its_size_when_a_car_leaves_the_race():
     shapes = {env.render().shape}
     car_2_panel = np.s_[:200, 600:800]  # third view: first row, second column of panels
     for _ in range(300):
-        _, _, terms, _, infos = env.step(
-            {a: np.array([1.0, 1.0]) if a == "car_2" else np.zeros(2) for a in env.agents}
-        )
+        _, _, terms, _, infos = env.step({a: np.array([1.0, 1.0]) if a == "car_2" else np.zeros(2) for a in env.agents})
         frame = env.render()
         shapes.add(frame.shape)
         if terms.get("car_2"):
