@@ -3,6 +3,7 @@
     python benchmarks/learning.py --variant lstm --hours 2 --seed 1
     python benchmarks/learning.py --variant lstm --hours 2 --seed 1 --resume   # continue it later
     python benchmarks/learning.py --report                                      # curves + table only
+    python benchmarks/learning.py --evaluate runs/learning/<run>/checkpoints/best.pt --first-track 10100 --tracks 20
 
 Trains `dreamer_<variant>.py` on the single-car race (stage ``single``) at the CPU size below
 for ``--hours`` of wall time (resumable: one run may span several sittings), evaluating every
@@ -226,6 +227,39 @@ def summary_table(curves: dict[str, list[dict]], base: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def evaluate_checkpoint(path: str, first_track: int = 10_000, tracks: int = 10) -> dict:
+    """A saved agent (any variant, any stage) driving alone, deterministic actions, on tracks
+    ``first_track .. first_track + tracks - 1`` with the env settings it was trained with (final dead zone):
+    mean return and progress, and the per-track values. The training runs' own evaluation
+    is this on 10000..10009; another block of tracks measures a best.pt without its selection bias."""
+    if tracks < 1:
+        raise ValueError(f"tracks must be >= 1, got {tracks}")
+    from race import read_checkpoint  # one reader of checkpoints: clear one-line errors naming the file
+    from utils import make_vec_env
+
+    checkpoint = read_checkpoint(path)
+    variant = checkpoint["variant"]
+    script = importlib.import_module(f"dreamer_{variant}")
+    args = script.args_from_checkpoint(checkpoint, path, num_agents=1, eval_seed=first_track, eval_episodes=tracks)
+    agent = script.Agent(args)
+    script.load_agent_state(agent, checkpoint["agents"][0], path, 0)
+    envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
+    try:
+        returns, progress = script.evaluate([agent], args, envs)
+    finally:
+        envs.close()
+    returns, progress = returns[:, 0], progress[:, 0]
+    return {
+        "checkpoint": path,
+        "variant": variant,
+        "tracks": f"{first_track}..{first_track + tracks - 1}",
+        "eval_return": float(returns.mean()),
+        "eval_progress": float(progress.mean()),
+        "returns": [round(float(r), 2) for r in returns],
+        "progress": [round(float(p), 4) for p in progress],
+    }
+
+
 def report(runs_dir: str = RUNS, results_dir: str = RESULTS) -> None:
     """CSV per run, one PNG of every curve with the baselines and the bar, and a markdown table."""
     import matplotlib
@@ -276,9 +310,21 @@ def main():
         "--norm", choices=["batch", "layer"], default=None,
         help="an ablation: this normalisation instead of BatchNorm (DESIGN 4.1; run named ..._norm<choice>)",
     )
+    parser.add_argument("--evaluate", metavar="CHECKPOINT", help="only evaluate this saved agent alone (no training)")
+    parser.add_argument("--first-track", type=int, default=10_000, help="--evaluate: seed of the first track")
+    parser.add_argument("--tracks", type=int, default=10, help="--evaluate: number of tracks")
     args = parser.parse_args()
     if args.hours <= 0:
         parser.error(f"--hours must be > 0, got {args.hours}")
+    if args.evaluate:
+        if args.tracks < 1:
+            parser.error(f"--tracks must be >= 1, got {args.tracks}")
+        try:
+            result = evaluate_checkpoint(args.evaluate, args.first_track, args.tracks)
+        except ValueError as e:  # race.CheckpointError is a ValueError naming the file
+            parser.error(str(e))
+        print(json.dumps(result, indent=1))
+        return
     if not args.report:
         ablation = {name: getattr(args, name) for name in ABLATION_TAGS}
         script, script_args = run_args(args.variant, args.seed, args.hours, args.resume, **ablation)

@@ -109,3 +109,32 @@ def test_an_ablation_reaches_the_script_and_a_refused_value_names_its_flag(tmp_p
     script, args = learning.run_args("lstm", 1, 1.0, False, decoder_min_log_sigma=3.0)
     with pytest.raises(script.UsageError, match=r"^--decoder-min-log-sigma must lie in \[-5, 2\], got 3.0$"):
         script.validate_args(args)
+
+
+@pytest.mark.parametrize("variant", ["lstm", "gru"])
+def test_evaluate_checkpoint_reproduces_the_runs_own_evaluation(tmp_path, variant):
+    """--evaluate on the run's held-out tracks gives exactly the return and progress the run logged for
+    the agent it saved as best.pt (deterministic actions, the run's env settings)."""
+    script = importlib.import_module(f"dreamer_{variant}")
+    tiny = dict(
+        cnn_depth=4, deter_size=16, hidden_size=16, mlp_size=16, latent_size=4, image_size=64, batch_size=2, seq_len=8,
+        imagination_horizon=3, max_steps=40, train_steps_per_episode=1, prefill_episodes=1, replay_capacity=500,
+        total_episodes=2, eval_every=2, eval_episodes=2, eval_seed=10_000, video_every=0, action_repeat=2,
+    )  # fmt: skip
+    run_dir = script.main(script.Args(stage="single", runs_dir=str(tmp_path), **tiny))
+    (logged,) = learning.eval_curve(run_dir)
+    result = learning.evaluate_checkpoint(os.path.join(run_dir, "checkpoints", "best.pt"), 10_000, 2)
+    assert result["variant"] == variant and result["tracks"] == "10000..10001"
+    assert result["eval_return"] == pytest.approx(logged["eval_return"], abs=0.01)  # the CSV keeps 2 decimals
+    assert result["eval_progress"] == pytest.approx(logged["eval_progress"], abs=1e-4)
+    assert len(result["returns"]) == len(result["progress"]) == 2
+
+
+def test_evaluate_checkpoint_refuses_bad_input_naming_it(tmp_path):
+    with pytest.raises(ValueError, match=r"^tracks must be >= 1, got 0$"):
+        learning.evaluate_checkpoint(str(tmp_path / "best.pt"), 10_000, 0)
+    with pytest.raises(ValueError, match=r"best\.pt: no such checkpoint file$"):
+        learning.evaluate_checkpoint(str(tmp_path / "best.pt"))
+    (tmp_path / "notes.pt").write_text("not a checkpoint")
+    with pytest.raises(ValueError, match=r"notes\.pt: not a readable checkpoint"):
+        learning.evaluate_checkpoint(str(tmp_path / "notes.pt"))
