@@ -1324,29 +1324,35 @@ class CarEpisode:
         return np.stack(self.obs), np.stack(self.action), reward, terminated
 
 
-def evaluate(agents: list[Agent], args: Args, eval_envs) -> tuple[np.ndarray, np.ndarray]:
-    """Deterministic races on the held-out tracks eval_seed + i; per race and car the return and the
-    final progress (fraction of tiles), each (E, N)."""
+def evaluate(agents: list[Agent], args: Args, eval_envs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Deterministic races on the held-out tracks eval_seed + i; per race and car the return, the final
+    progress (fraction of tiles) and the mean |steer| of the car's decisions while racing, each (E, N).
+    (A mean |steer| near 1 is bang-bang steering: a careful driver stays below ~0.1 on these tracks.)"""
     n = args.num_agents
     returns, progress = np.zeros((args.eval_episodes, n)), np.zeros((args.eval_episodes, n))
+    abs_steer, decisions = np.zeros((args.eval_episodes, n)), np.zeros((args.eval_episodes, n))
     for e in range(args.eval_episodes):
         eval_envs.seed(args.eval_seed + e)
         obs, states, is_first = eval_envs.reset(), [None] * n, np.ones(n, dtype=bool)
+        racing = np.ones(n, dtype=bool)
         while True:
             frames = preprocess_frames(obs, args.image_size)
             actions = np.zeros((n, 2), dtype=np.float32)
             for i, agent in enumerate(agents):
                 car = slice(i, i + 1)
                 actions[car], states[i] = agent.act(frames[car], states[i], is_first[car], deterministic=True)
-            obs, rewards, _, infos, _ = step_with_repeat(eval_envs, actions, args.action_repeat)
+            abs_steer[e] += np.abs(actions[:, 0]) * racing
+            decisions[e] += racing
+            obs, rewards, dones, infos, _ = step_with_repeat(eval_envs, actions, args.action_repeat)
             returns[e] += rewards  # cars that are out get reward 0
             for i, info in enumerate(infos):
+                racing[i] = info["alive"] and not dones[i]  # a car that went out this step decides no more
                 if info["alive"]:
                     progress[e, i] = info.get("progress", 0.0)
             if infos[0]["is_first"]:
                 break
             is_first[:] = False
-    return returns, progress
+    return returns, progress, abs_steer / np.maximum(decisions, 1)
 
 
 def train_agent(agent: Agent, replay: Replay, args: Args, update_times: list[float]) -> tuple[dict, float]:
@@ -1626,10 +1632,11 @@ def main(args: Args) -> str:
             if args.eval_every and episode % args.eval_every == 0:
                 if eval_envs is None:
                     eval_envs = make_vec_env(args.env_id, 1, None, **env_kwargs(args, args.dead_zone_end))
-                eval_returns, eval_progress = evaluate(agents, args, eval_envs)
+                eval_returns, eval_progress, eval_abs_steer = evaluate(agents, args, eval_envs)
                 for j in range(n):
                     logger.record(f"car_{j}/eval/episodic_return", float(eval_returns[:, j].mean()))
                     logger.record(f"car_{j}/eval/progress", float(eval_progress[:, j].mean()))
+                    logger.record(f"car_{j}/eval/mean_abs_steer", float(eval_abs_steer[:, j].mean()))
                 if eval_returns.mean() > counters["best_eval_return"]:
                     counters["best_eval_return"] = float(eval_returns.mean())
                     best = os.path.join(checkpoint_dir, "best.pt")

@@ -230,7 +230,8 @@ def summary_table(curves: dict[str, list[dict]], base: dict) -> str:
 def evaluate_checkpoint(path: str, first_track: int = 10_000, tracks: int = 10) -> dict:
     """A saved agent (any variant, any stage) driving alone, deterministic actions, on tracks
     ``first_track .. first_track + tracks - 1`` with the env settings it was trained with (final dead zone):
-    mean return and progress, and the per-track values. The training runs' own evaluation
+    mean return, progress and |steer| (near 1: bang-bang steering), and the
+    per-track values. The training runs' own evaluation
     is this on 10000..10009; another block of tracks measures a best.pt without its selection bias."""
     if tracks < 1:
         raise ValueError(f"tracks must be >= 1, got {tracks}")
@@ -245,16 +246,17 @@ def evaluate_checkpoint(path: str, first_track: int = 10_000, tracks: int = 10) 
     script.load_agent_state(agent, checkpoint["agents"][0], path, 0)
     envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
     try:
-        returns, progress = script.evaluate([agent], args, envs)
+        returns, progress, abs_steer = script.evaluate([agent], args, envs)
     finally:
         envs.close()
-    returns, progress = returns[:, 0], progress[:, 0]
+    returns, progress, abs_steer = returns[:, 0], progress[:, 0], abs_steer[:, 0]
     return {
         "checkpoint": path,
         "variant": variant,
         "tracks": f"{first_track}..{first_track + tracks - 1}",
         "eval_return": float(returns.mean()),
         "eval_progress": float(progress.mean()),
+        "mean_abs_steer": float(abs_steer.mean()),
         "returns": [round(float(r), 2) for r in returns],
         "progress": [round(float(p), 4) for p in progress],
     }

@@ -593,8 +593,9 @@ def test_single_stage_writes_scalars_video_and_checkpoints(single_run):
     import plot
 
     assert plot.run_identity(run_dir)[:2] == (script.VARIANT, "single")  # config.json groups the run
-    assert {"car_0/eval/episodic_return", "car_0/eval/progress"} <= set(scalars)
+    assert {"car_0/eval/episodic_return", "car_0/eval/progress", "car_0/eval/mean_abs_steer"} <= set(scalars)
     assert all(0.0 <= value <= 1.0 for _, value in scalars["car_0/eval/progress"])
+    assert all(0.0 <= value <= 1.0 for _, value in scalars["car_0/eval/mean_abs_steer"])
     for name in ("latest.pt", "best.pt"):
         checkpoint = torch.load(os.path.join(run_dir, "checkpoints", name), weights_only=True)
         assert checkpoint["variant"] == script.VARIANT and len(checkpoint["agents"]) == 1
@@ -660,3 +661,31 @@ def test_time_limit_stops_with_a_checkpoint(tmp_path, script):
     run_dir = script.main(script.Args(stage="single", runs_dir=str(tmp_path), time_limit_hours=1e-9, **E2E))
     latest = torch.load(os.path.join(run_dir, "checkpoints", "latest.pt"), weights_only=True)
     assert latest["counters"]["episode"] == 0 < E2E["total_episodes"]
+
+
+class _ScriptedSteer:
+    """Stands in for an Agent in evaluate(): steers `steer` with full gas while it sees a camera
+    image, and steers 0 on the blank observation of a car that is already out."""
+
+    def __init__(self, steer: float):
+        self.steer, self.blank_calls = steer, 0
+
+    def act(self, frames, state, is_first, deterministic):
+        sees_track = float(frames.std()) > 0
+        self.blank_calls += not sees_track
+        return np.array([[self.steer if sees_track else 0.0, 1.0]], dtype=np.float32), state
+
+
+def test_evaluate_averages_steer_over_the_decisions_of_cars_still_racing(script):
+    """car_0 steers hard at full gas and leaves the road early; car_1 races on. car_0's mean |steer| is
+    exactly 1: the decisions after it went out (blank observations, steer 0) are not counted."""
+    from utils import make_vec_env
+
+    args = tiny_args(script, num_agents=2, eval_episodes=1, eval_seed=3, max_steps=400, action_repeat=2)
+    envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
+    drivers = [_ScriptedSteer(1.0), _ScriptedSteer(-0.25)]
+    returns, progress, abs_steer = script.evaluate(drivers, args, envs)
+    envs.close()
+    assert returns.shape == progress.shape == abs_steer.shape == (1, 2)
+    assert drivers[0].blank_calls > 0  # car_0 was asked to act after it went out ...
+    assert abs_steer[0].tolist() == pytest.approx([1.0, 0.25])  # ... and those decisions do not count
