@@ -228,11 +228,11 @@ def summary_table(curves: dict[str, list[dict]], base: dict) -> str:
 
 
 def evaluate_checkpoint(path: str, first_track: int = 10_000, tracks: int = 10) -> dict:
-    """A saved agent (any variant, any stage) driving alone, deterministic actions, on tracks
-    ``first_track .. first_track + tracks - 1`` with the env settings it was trained with (final dead zone):
-    mean return, progress and |steer| (near 1: bang-bang steering), and the
-    per-track values. The training runs' own evaluation
-    is this on 10000..10009; another block of tracks measures a best.pt without its selection bias."""
+    """A saved agent (any variant, any stage; agent 0 of a multi-agent checkpoint) driving alone with
+    deterministic actions on tracks ``first_track .. first_track + tracks - 1``, with the env settings it
+    was trained with (final dead zone): mean return, progress and |steer| (near 1: bang-bang steering),
+    and the per-track values. The training runs' own evaluation is this on 10000..10009; another block
+    of tracks measures a best.pt without the bias of having been picked there."""
     if tracks < 1:
         raise ValueError(f"tracks must be >= 1, got {tracks}")
     from race import read_checkpoint  # one reader of checkpoints: clear one-line errors naming the file
