@@ -1327,8 +1327,8 @@ class CarEpisode:
 
 def evaluate(agents: list[Agent], args: Args, eval_envs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Deterministic races on the held-out tracks eval_seed + i; per race and car the return, the final
-    progress (fraction of tiles) and the mean |steer| of the car's decisions while racing, each (E, N).
-    (A mean |steer| near 1 is bang-bang steering: a careful driver stays below ~0.1 on these tracks.)"""
+    progress (fraction of tiles) and the mean |action[0]| of the car's decisions while racing, each (E, N).
+    On the racing env action 0 is the steer: near 1 is bang-bang steering (the pursuit driver: ~0.06)."""
     n = args.num_agents
     returns, progress = np.zeros((args.eval_episodes, n)), np.zeros((args.eval_episodes, n))
     abs_steer, decisions = np.zeros((args.eval_episodes, n)), np.zeros((args.eval_episodes, n))
@@ -1637,7 +1637,8 @@ def main(args: Args) -> str:
                 for j in range(n):
                     logger.record(f"car_{j}/eval/episodic_return", float(eval_returns[:, j].mean()))
                     logger.record(f"car_{j}/eval/progress", float(eval_progress[:, j].mean()))
-                    logger.record(f"car_{j}/eval/mean_abs_steer", float(eval_abs_steer[:, j].mean()))
+                    if racing:  # highway-env's action 0 is the acceleration
+                        logger.record(f"car_{j}/eval/mean_abs_steer", float(eval_abs_steer[:, j].mean()))
                 if eval_returns.mean() > counters["best_eval_return"]:
                     counters["best_eval_return"] = float(eval_returns.mean())
                     best = os.path.join(checkpoint_dir, "best.pt")

@@ -250,16 +250,18 @@ def evaluate_checkpoint(path: str, first_track: int = 10_000, tracks: int = 10) 
     finally:
         envs.close()
     returns, progress, abs_steer = returns[:, 0], progress[:, 0], abs_steer[:, 0]
-    return {
+    result = {
         "checkpoint": path,
         "variant": variant,
         "tracks": f"{first_track}..{first_track + tracks - 1}",
         "eval_return": float(returns.mean()),
         "eval_progress": float(progress.mean()),
-        "mean_abs_steer": float(abs_steer.mean()),
         "returns": [round(float(r), 2) for r in returns],
         "progress": [round(float(p), 4) for p in progress],
     }
+    if args.env_id == "multi_car_racing":  # action 0 is the steer there (highway-env: the acceleration)
+        result["mean_abs_steer"] = float(abs_steer.mean())
+    return result
 
 
 def report(runs_dir: str = RUNS, results_dir: str = RESULTS) -> None:

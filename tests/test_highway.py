@@ -188,3 +188,27 @@ def test_highway_random_reads_a_runs_evaluations_per_car_over_sittings(tmp_path)
     writer.close()
     with pytest.raises(ValueError, match="logged no evaluation .*--eval-every"):
         agent_evaluations(no_eval)
+
+
+def test_dreamer_on_highway_logs_evaluations_but_no_steer_statistic(tmp_path):
+    """The racing env's action 0 is the steer, highway-env's the acceleration: a highway run logs its
+    evaluation returns and no car_i/eval/mean_abs_steer."""
+    import dreamer_lstm
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    tiny = dict(
+        cnn_depth=4, deter_size=16, hidden_size=16, mlp_size=16, latent_size=4, image_size=64, batch_size=2, seq_len=8,
+        imagination_horizon=3, train_steps_per_episode=1, prefill_episodes=1, replay_capacity=500, total_episodes=1,
+        eval_every=1, eval_episodes=1, video_every=0,
+    )  # fmt: skip
+    run_dir = dreamer_lstm.main(
+        dreamer_lstm.Args(env_id="highway-intersection", num_agents=2, runs_dir=str(tmp_path), **tiny)
+    )
+    tags = set()
+    for path in os.listdir(run_dir):
+        if path.startswith("events.out.tfevents."):
+            acc = EventAccumulator(os.path.join(run_dir, path))
+            acc.Reload()
+            tags |= set(acc.Tags()["scalars"])
+    assert {"car_0/eval/episodic_return", "car_1/eval/episodic_return"} <= tags
+    assert not any(tag.endswith("mean_abs_steer") for tag in tags)
