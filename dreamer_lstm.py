@@ -54,6 +54,9 @@ VARIANT = "lstm"  # written into every checkpoint, so race.py knows which script
 @dataclasses.dataclass
 class Args:
     # --- experiment
+    preset: Literal["paper", "cpu"] = "paper"
+    """paper: the paper's sizes and schedule; cpu: a configuration that learns on a 2-core CPU in hours (explicit
+    flags override the preset's values; the README lists what it changes)"""
     exp_name: str = os.path.basename(__file__)[: -len(".py")]
     """the name of this experiment (part of the run name)"""
     seed: int = 1
@@ -112,6 +115,8 @@ class Args:
     # --- training loop (Algorithm 1)
     total_episodes: int = 1000
     """races to run (counting prefill races)"""
+    total_updates: int = 0
+    """stop after the first race at which every agent has made this many updates (0: no limit)"""
     time_limit_hours: float = 0.0
     """stop after the first race that ends past this many hours of this process, with checkpoints (0: no limit)"""
     prefill_episodes: int = 5
@@ -121,9 +126,13 @@ class Args:
     replay_capacity: int = 100_000
     """replay buffer capacity per agent, in steps"""
     eval_every: int = 20
-    """evaluate every this many races (deterministic actions, held-out tracks); best.pt keeps the best"""
+    """evaluate every this many races (--eval-policy on held-out tracks); best.pt keeps the best"""
     eval_episodes: int = 10
     """races per evaluation"""
+    eval_policy: Literal["deterministic", "mean-action", "stochastic"] = "deterministic"
+    """evaluation's policy: posterior mean z and mean action / sampled z, mean action / sampled z and action"""
+    eval_checkpoints: bool = False
+    """also keep checkpoints/eval_<race>.pt at every evaluation (the policy as evaluated, for later analysis)"""
     eval_seed: int = 10_000
     """held-out evaluation tracks use seeds eval_seed + i"""
     ghost_tracks: int = 5
@@ -157,8 +166,12 @@ class Args:
     """Adam learning rate of the critic"""
     actor_lr: float = 1e-4
     """Adam learning rate of the actor"""
-    entropy_coef: float = 6e-4
-    """alpha: weight of -log pi in the lambda-return (the paper's entropy regulariser)"""
+    entropy_coef: float = 1.0
+    """alpha: weight of -log pi in the lambda-return (the paper's entropy regulariser; 1.0 in the paper authors'
+    configurations. Algorithm 1's "alpha = 0.0006" is the model's and critic's learning rate, not this)"""
+    return_norm: bool = False
+    """DreamerV3's return normalisation: scale the task part of the lambda-return by 1 / max(1, S), S an EMA of
+    its 95th - 5th percentile range; the entropy part stays unscaled (DreamerV3 pairs it with --entropy-coef 3e-4)"""
     lambda_: Annotated[float, tyro.conf.arg(name="lambda")] = 0.95
     """lambda of the lambda-return"""
     gamma: float = 0.99
@@ -195,16 +208,49 @@ class Args:
     """normalisation of the networks (the critic always uses LayerNorm, as in the appendix)"""
 
 
-# Arguments a resumed run may change; everything else comes from the checkpoint.
-RESUME_OVERRIDES = (
-    "resume", "total_episodes", "time_limit_hours", "cuda", "torch_threads", "use_subprocess", "compile", "amp",
-)  # fmt: skip
-# Arguments that fix the networks' shapes: a --checkpoint brings its own.
+# --preset cpu: a configuration that learns on a 2-core CPU in hours (docs/learning.md); explicit flags override it.
+# Smaller networks and 64 px frames; 2 env steps per decision; 20 random prefill races (they end off the road
+# after ~50 steps); 100 updates per race; the dead-zone schedule within the first 30 races; evaluation every 5;
+# a unit-variance pixel likelihood (log sigma floored at 0: with a learned sigma kl_dyn grew without bound on CPU runs).
+# It keeps the paper's LSTM-vs-GRU trade: the same imagined steps per update (B * L * H with all starts), the
+# LSTM with a small batch and a long horizon (paper: B=15, H=50), the GRU with a larger batch and a short one
+# (paper: B=50, H=15).
+PRESETS: dict[str, dict] = {
+    "paper": {},
+    "cpu": {
+        "cnn_depth": 16, "deter_size": 256, "hidden_size": 256, "mlp_size": 256, "image_size": 64, "seq_len": 32,
+        "imagination_starts": 0, "action_repeat": 2, "prefill_episodes": 20, "train_steps_per_episode": 100,
+        "dead_zone_episodes": 30, "eval_every": 5, "video_every": 25, "decoder_min_log_sigma": 0.0,
+        "batch_size": 5, "imagination_horizon": 48,  # 5 * 32 * 48 = 7,680 imagined steps per update
+    },
+}  # fmt: skip
+# Arguments that fix the networks' shapes (a --checkpoint brings its own; a resumed run cannot change them),
+# and what a run is (a resumed run cannot change those either).
 ARCHITECTURE = ("image_size", "cnn_depth", "deter_size", "hidden_size", "mlp_size", "latent_size", "norm")
-CPU_COMMAND = (  # the README's CPU-sized configuration (~0.5 s per update on 2 cores; paper size ~11 s)
-    f"python {os.path.basename(__file__)} --seed 1 --cnn-depth 16 --deter-size 256 --hidden-size 256 --mlp-size 256 "
-    "--image-size 64 --batch-size 16 --seq-len 32 --imagination-horizon 15 --imagination-starts 256"
-)
+IDENTITY = ("env_id", "num_agents", "num_races", "stage", "seed", "exp_name", "runs_dir", "checkpoint", "preset")
+
+
+def preset_args(preset: str = "paper", **overrides) -> Args:
+    """Args of a preset with `overrides` on top (the Python form of `--preset NAME --flag value ...`)."""
+    if preset not in PRESETS:
+        raise UsageError(f"--preset must be one of {sorted(PRESETS)}, got {preset!r}")
+    return dataclasses.replace(Args(preset=preset), **{**PRESETS[preset], **overrides})
+
+
+def explicit_fields(argv: list[str]) -> set[str]:
+    """Names of the Args fields that a command line sets explicitly (`--flag v`, `--flag=v`, `--[no-]flag`)."""
+    fields = {field.name: field for field in dataclasses.fields(Args)}
+    names = {_flag(name)[2:]: name for name in fields}
+    found = set()
+    for token in argv:
+        if not token.startswith("--"):
+            continue
+        flag = token[2:].split("=", 1)[0].replace("_", "-")
+        if flag in names:
+            found.add(names[flag])
+        elif flag.startswith("no-") and flag[3:] in names and fields[names[flag[3:]]].type in (bool, "bool"):
+            found.add(names[flag[3:]])
+    return found
 
 
 class UsageError(ValueError):
@@ -397,8 +443,9 @@ def step_with_repeat(envs, actions: np.ndarray, repeat: int):
 LATENT_MIN_STD = 0.1  # sigma of posterior and prior: softplus(.) + this minimum
 LOG_SIGMA_RANGE = (-5.0, 2.0)  # bounds of the decoder's log sigma (--decoder-min-log-sigma raises the floor)
 HEAD_MIN_STD = 0.1  # sigma of the reward and critic Gaussians
-ACTOR_MIN_STD = 0.05  # sigma of the actor's pre-tanh Gaussian
-ACTOR_MEAN_SCALE = 5.0  # actor mean = 5 tanh(mean / 5), so tanh(u) does not saturate early (Dreamer v1)
+ACTOR_STD_BOUNDS = (0.1, 1.0)  # soft bounds of the actor's sigma in action space (the paper authors' code)
+RETURN_NORM_RATE = 0.01  # --return-norm: EMA rate of the return scale (DreamerV3)
+EVAL_POLICIES = ("deterministic", "mean-action", "stochastic")  # Agent.act's policies (--eval-policy)
 
 
 def norm_1d(kind: str, size: int) -> nn.Module:
@@ -643,8 +690,20 @@ class WorldModel(nn.Module):
         return out
 
 
+def soft_bounded(x: torch.Tensor, low: float, high: float) -> torch.Tensor:
+    """low + softplus(high - softplus(high - x) - low): smooth, increasing, ~x in between, above low, and
+    saturating near high + log 2 (the actor's sigma: ~0.1 .. 1.3 for the bounds (0.1, 1))."""
+    return low + F.softplus(high - F.softplus(high - x) - low)
+
+
 class Actor(nn.Module):
-    """MLP 572->512->512->512->512->4: Gaussian mu(2), sigma(2) of u; the action is a = tanh(u)."""
+    """MLP 572->512->512->512->512->4 giving mu(2), sigma(2); the action is a ~ N(tanh(mu), sigma), clipped to
+    [-1, 1] (the paper authors' form).
+
+    The noise lives in action space with sigma softly bounded below by 0.1, so the policy keeps exploring
+    even where its mean saturates; a tanh-squashed Gaussian has no such floor (the std of tanh(N(2, 0.05))
+    is 0.004), and it collapsed to bang-bang steering in our runs (docs/learning_history.md).
+    """
 
     def __init__(self, feature_size: int, mlp_size: int, action_dim: int, norm: str):
         super().__init__()
@@ -652,17 +711,24 @@ class Actor(nn.Module):
 
     def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         mean, raw_std = self.net(features).float().chunk(2, dim=-1)
-        return ACTOR_MEAN_SCALE * torch.tanh(mean / ACTOR_MEAN_SCALE), F.softplus(raw_std) + ACTOR_MIN_STD
+        return torch.tanh(mean), soft_bounded(raw_std, *ACTOR_STD_BOUNDS)
 
     def sample(self, features: torch.Tensor, deterministic: bool = False):
-        """a = tanh(u), u ~ N(mu, sigma) by rsample; log pi summed over action dims with the tanh correction."""
+        """a = tanh(mu) + sigma eps by rsample, and log pi(a) = sum_d [log N(a_d; tanh mu_d, sigma_d)
+        - log(1 - tanh(a_d)^2 + 1e-6)] (paper 3.9: the second term penalises extreme actions). Returns the
+        action clipped to [-1, 1] (what the env and the world model receive) and log pi (None if deterministic:
+        the mean action)."""
         mean, std = self(features)
         if deterministic:
-            return torch.tanh(mean), None
-        u = mean + std * torch.randn_like(std)
-        action = torch.tanh(u)
-        log_pi = (-gaussian_nll(u, mean, std) - torch.log(1 - action.pow(2) + 1e-6)).sum(-1)
-        return action, log_pi
+            return mean, None
+        action = mean + std * torch.randn_like(std)
+        return action.clamp(-1.0, 1.0), policy_log_prob(action, mean, std)
+
+
+def policy_log_prob(action: torch.Tensor, mean: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
+    """log pi(a) = sum_d [log N(a_d; mean_d, sigma_d) - log(1 - tanh(a_d)^2 + 1e-6)] of the unclipped sample a
+    (paper 3.9): the Gaussian's log density plus a penalty that grows with |a|."""
+    return (-gaussian_nll(action, mean, std) - torch.log(1 - torch.tanh(action).pow(2) + 1e-6)).sum(-1)
 
 
 class Critic(nn.Module):
@@ -709,7 +775,9 @@ def lambda_returns(rewards, continues, values, log_pi, gamma: float, lam: float,
     rewards[t] = r_{t+1}, continues[t] = c_{t+1}, values[t] = V(s_{t+1}), log_pi[t] = log pi(a_t | s_t).
     R_H = V(s_H);  R_t = r_{t+1} - alpha * log pi_t + gamma * c_{t+1} * [(1 - lambda) V(s_{t+1}) + lambda R_{t+1}].
     (The paper prints lambda and 1 - lambda swapped and leaves gamma implicit; this is the recursion.)
-    Returns R_0 .. R_{H-1}, shape (H, N).
+    Returns R_0 .. R_{H-1}, shape (H, N). R is linear in (rewards, values, log_pi) for fixed continues, so
+    lambda_returns(r, c, V, log_pi) = lambda_returns(r, c, V, 0) + lambda_returns(0, c, 0, log_pi): the task
+    part and the entropy part, which --return-norm scales apart.
     """
     next_return = values[-1]
     returns = []
@@ -720,10 +788,19 @@ def lambda_returns(rewards, continues, values, log_pi, gamma: float, lam: float,
     return torch.stack(returns[::-1])
 
 
-def discount_weights(continues: torch.Tensor, gamma: float) -> torch.Tensor:
-    """w_0 = 1, w_{t+1} = w_t * gamma * c_{t+1} (stop-gradient): how much imagined step t counts."""
-    first = torch.ones_like(continues[:1])
+def discount_weights(continues: torch.Tensor, gamma: float, start: torch.Tensor | None = None) -> torch.Tensor:
+    """w_0 = start (default 1), w_{t+1} = w_t * gamma * c_{t+1} (stop-gradient): how much imagined step t counts.
+
+    `start` is the continue flag of the imagination start (1 - terminated, as DreamerV3): a rollout from a
+    terminal state imagines a future that does not exist, and gets weight 0."""
+    first = torch.ones_like(continues[:1]) if start is None else start.to(continues.dtype)[None]
     return torch.cumprod(torch.cat([first, gamma * continues[:-1]], 0), 0).detach()
+
+
+def return_range(returns: torch.Tensor) -> torch.Tensor:
+    """95th minus 5th percentile of a batch of returns (DreamerV3's return scale, before its EMA)."""
+    flat = returns.detach().float().flatten()
+    return torch.quantile(flat, 0.95) - torch.quantile(flat, 0.05)
 
 
 @torch.no_grad()
@@ -754,17 +831,21 @@ def frozen(*modules: nn.Module):
 def imagine_rollout(world_model: WorldModel, actor: Actor, state: tuple, h, z, horizon: int):
     """Roll the prior forward `horizon` steps from detached start states, acting with the actor.
 
-    Returns features s_0..s_H (H+1, N, F), log pi_0..log pi_{H-1} (H, N) and actions (H, N, A).
-    Everything is reparameterised, so the actor loss backpropagates through the learned dynamics.
+    Returns features s_0..s_H (H+1, N, F), log pi_0..log pi_{H-1} (H, N), actions (H, N, A) and the actor's
+    sigma at every step (H, N, A). Everything is reparameterised, so the actor loss backpropagates through
+    the learned dynamics.
     """
-    features, log_pis, actions = [torch.cat([z, h], -1)], [], []
+    features, log_pis, actions, stds = [torch.cat([z, h], -1)], [], [], []
     for _ in range(horizon):
-        action, log_pi = actor.sample(features[-1])
+        mean, std = actor(features[-1])
+        action = mean + std * torch.randn_like(std)  # Actor.sample, keeping sigma for the diagnostics
+        log_pis.append(policy_log_prob(action, mean, std))
+        action = action.clamp(-1.0, 1.0)
         state, h, z = world_model.imagine_step(state, z, action)
         features.append(torch.cat([z, h], -1))
-        log_pis.append(log_pi)
         actions.append(action)
-    return torch.stack(features), torch.stack(log_pis), torch.stack(actions)
+        stds.append(std)
+    return torch.stack(features), torch.stack(log_pis), torch.stack(actions), torch.stack(stds)
 
 
 # =====================================================================================
@@ -959,6 +1040,7 @@ class Agent:
                 module.compile()
         # --amp: bfloat16 autocast of the update (not of acting); needs no loss scaling, unlike float16
         self.amp = args.amp == "on" or (args.amp == "auto" and self.device.type == "cuda")
+        self.return_scale = torch.zeros((), device=self.device)  # --return-norm: EMA of the returns' 5-95% range
         self.num_updates = 0
         self.nonfinite_updates = 0  # updates in which an optimiser step was skipped (non-finite loss or gradient)
         self.nonfinite_in_a_row = 0  # ... of the latest updates, in a row
@@ -1020,35 +1102,65 @@ class Agent:
         return loss, metrics, post
 
     # --- behaviour (DESIGN 4.3) -----------------------------------------------------------
-    def imagination_starts(self, post: dict):
-        """Detached posterior states (state tuple, h, z) of all B*L steps, or a random subset of them."""
+    def imagination_starts(self, post: dict, terminated: torch.Tensor):
+        """Detached posterior states (state tuple, h, z) of all B*L steps, or a random subset of them, and each
+        start's continue flag 1 - terminated."""
         state = tuple(s.flatten(0, 1).detach() for s in post["states"])
         h, z = post["h"].flatten(0, 1).detach(), post["z"].flatten(0, 1).detach()
+        cont = 1.0 - terminated.flatten(0, 1)
         num = self.args.imagination_starts
         if 0 < num < h.shape[0]:
             idx = torch.randperm(h.shape[0], device=h.device)[:num]
-            state, h, z = tuple(s[idx] for s in state), h[idx], z[idx]
-        return state, h, z
+            state, h, z, cont = tuple(s[idx] for s in state), h[idx], z[idx], cont[idx]
+        return state, h, z, cont
 
-    def behaviour_losses(self, post: dict):
-        """Actor loss (backprop through the frozen dynamics) and critic loss on imagined rollouts."""
+    def behaviour_losses(self, post: dict, terminated: torch.Tensor):
+        """Actor loss (backprop through the frozen dynamics) and critic loss on imagined rollouts.
+
+        BatchNorm sees imagined states only through its running statistics: the world model's come from the
+        real posterior states of its own loss, the actor's from a no-grad train-mode pass over the same real
+        states here. Imagined states are never what the car sees (a 50-step imagination drifts away from the
+        real state distribution), and acting uses the same running statistics as the policy optimised here.
+        """
         args, wm = self.args, self.world_model
-        state, h, z = self.imagination_starts(post)
+        with torch.no_grad():  # the actor's BatchNorm statistics: real posterior states of the batch
+            self.actor.train()
+            self.actor(torch.cat([post["z"], post["h"]], -1).detach())
+        state, h, z, start_cont = self.imagination_starts(post, terminated)
         bootstrap = self.targets["critic"] if args.target_critic else self.critic
-        wm.eval()  # imagined states must not change the BatchNorm statistics of the world model
+        wm.eval()
+        self.actor.eval()
         with frozen(wm, self.critic):  # only the actor's parameters take gradient from the actor loss
-            features, log_pi, _ = imagine_rollout(wm, self.actor, state, h, z, args.imagination_horizon)
+            features, log_pi, _, stds = imagine_rollout(wm, self.actor, state, h, z, args.imagination_horizon)
             rewards = gaussian_params(wm.reward(features[1:]), HEAD_MIN_STD)[0].squeeze(-1)  # r_1..r_H
             continues = torch.sigmoid(wm.cont(features[1:]).float().squeeze(-1))  # c_1..c_H
             values = bootstrap(features[1:])[0]  # V(s_1..s_H)
-            returns = lambda_returns(rewards, continues, values, log_pi, args.gamma, args.lambda_, args.entropy_coef)
-            weights = discount_weights(continues, args.gamma)
-            actor_loss = -(weights * returns).mean()
+            weights = discount_weights(continues, args.gamma, start_cont)
+            if args.return_norm:  # scale the task part only (lambda_returns is linear in r, V and log pi)
+                task = lambda_returns(rewards, continues, values, torch.zeros_like(log_pi), args.gamma, args.lambda_, 0.0)
+                zero = torch.zeros_like(rewards)
+                entropy = lambda_returns(zero, continues, zero, log_pi, args.gamma, args.lambda_, args.entropy_coef)
+                with torch.no_grad():  # (a non-finite batch leaves the scale alone)
+                    spread = return_range(task)
+                    self.return_scale.copy_(
+                        torch.where(spread.isfinite(), self.return_scale.lerp(spread, RETURN_NORM_RATE), self.return_scale)
+                    )
+                returns = task + entropy  # what the critic learns
+                objective = task / self.return_scale.clamp(min=1.0) + entropy
+            else:
+                returns = lambda_returns(rewards, continues, values, log_pi, args.gamma, args.lambda_, args.entropy_coef)
+                objective = returns
+            actor_loss = -(weights * objective).mean()
         wm.train()
+        self.actor.train()
         value_mean, value_std = self.critic(features[:-1].detach())  # V(s_0..s_{H-1}) on detached states
         critic_loss = (weights * gaussian_nll(returns.detach(), value_mean, value_std)).mean()
-        metrics = {"actor": actor_loss, "critic": critic_loss, "entropy": -log_pi.mean()}
-        metrics["imagined_return"] = returns.mean()
+        metrics = {
+            "actor": actor_loss, "critic": critic_loss, "entropy": -log_pi.mean(), "actor_std": stds.mean(),
+            "imagined_return": returns.mean(),
+        }  # fmt: skip
+        if args.return_norm:
+            metrics["return_scale"] = self.return_scale.clone()
         return actor_loss, critic_loss, metrics
 
     def _step(self, optimizer: torch.optim.Optimizer, loss: torch.Tensor, params) -> bool:
@@ -1084,7 +1196,7 @@ class Agent:
             self._update_targets()
 
         with self.autocast():
-            actor_loss, critic_loss, behaviour_metrics = self.behaviour_losses(post)
+            actor_loss, critic_loss, behaviour_metrics = self.behaviour_losses(post, terminated)
         actor_ok = self._step(self.actor_optimizer, actor_loss, self.actor.parameters())
         critic_ok = self._step(self.critic_optimizer, critic_loss, self.critic.parameters())
         if self.args.target_critic and critic_ok:
@@ -1112,13 +1224,16 @@ class Agent:
         return cell, z, torch.zeros(n, self.action_dim, device=self.device)
 
     @torch.no_grad()
-    def act(self, obs: np.ndarray, state=None, is_first=None, deterministic: bool = False):
+    def act(self, obs: np.ndarray, state=None, is_first=None, policy: str = "stochastic"):
         """Actions for the n cars this agent drives: obs (n, H, W, 3) uint8, is_first (n,) bool.
 
         Returns actions (n, A) numpy in [-1, 1] and the new recurrent state. state=None starts every car
-        fresh; is_first restarts the marked cars (a new race) and defaults to none.
-        Deterministic: posterior mean and tanh(actor mean) (evaluation).
+        fresh; is_first restarts the marked cars (a new race) and defaults to none. `policy` (EVAL_POLICIES):
+        "stochastic" samples z from the posterior and the action from the actor (training); "mean-action"
+        samples z and takes the actor's mean; "deterministic" takes the posterior mean and the actor's mean.
         """
+        if policy not in EVAL_POLICIES:
+            raise ValueError(f"policy must be one of {EVAL_POLICIES}, got {policy!r}")
         n = len(obs)
         if state is None:  # a fresh start for every car
             state, is_first = self.initial_state(n), np.ones(n, dtype=bool)
@@ -1128,8 +1243,9 @@ class Agent:
         cell, z, prev_action = state
         embed_part = self.world_model.representation.embed_part(self.world_model.encoder(frames))
         first = torch.as_tensor(is_first, device=self.device)
-        cell, h, z, _, _ = self.world_model.observe_step(cell, z, prev_action, embed_part, first, not deterministic)
-        action, _ = self.actor.sample(torch.cat([z, h], -1), deterministic)
+        sample_z = policy != "deterministic"
+        cell, h, z, _, _ = self.world_model.observe_step(cell, z, prev_action, embed_part, first, sample_z)
+        action, _ = self.actor.sample(torch.cat([z, h], -1), deterministic=policy != "stochastic")
         return action.cpu().numpy(), (cell, z, action)
 
     @torch.no_grad()
@@ -1163,6 +1279,7 @@ class Agent:
             "model_optimizer": self.model_optimizer.state_dict(),
             "actor_optimizer": self.actor_optimizer.state_dict(),
             "critic_optimizer": self.critic_optimizer.state_dict(),
+            "return_scale": self.return_scale.clone(),
             "num_updates": self.num_updates,
             "nonfinite_updates": self.nonfinite_updates,
             "nonfinite_in_a_row": self.nonfinite_in_a_row,
@@ -1176,6 +1293,8 @@ class Agent:
         self.model_optimizer.load_state_dict(state["model_optimizer"])
         self.actor_optimizer.load_state_dict(state["actor_optimizer"])
         self.critic_optimizer.load_state_dict(state["critic_optimizer"])
+        if "return_scale" in state:
+            self.return_scale.copy_(state["return_scale"])
         self.num_updates = int(state["num_updates"])
         self.nonfinite_updates = int(state.get("nonfinite_updates", 0))
         self.nonfinite_in_a_row = int(state.get("nonfinite_in_a_row", 0))
@@ -1325,15 +1444,17 @@ class CarEpisode:
         return np.stack(self.obs), np.stack(self.action), reward, terminated
 
 
-def evaluate(agents: list[Agent], args: Args, eval_envs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Deterministic races on the held-out tracks eval_seed + i; per race and car the return, the final
-    progress (fraction of tiles) and the mean |action[0]| of the car's decisions while racing, each (E, N).
-    On the racing env action 0 is the steer: near 1 is bang-bang steering (the pursuit driver: ~0.06)."""
-    n = args.num_agents
-    returns, progress = np.zeros((args.eval_episodes, n)), np.zeros((args.eval_episodes, n))
-    abs_steer, decisions = np.zeros((args.eval_episodes, n)), np.zeros((args.eval_episodes, n))
-    for e in range(args.eval_episodes):
-        eval_envs.seed(args.eval_seed + e)
+def evaluate(agents: list[Agent], args: Args, eval_envs, policy: str | None = None, seeds=None) -> tuple[np.ndarray, ...]:
+    """Races with `policy` (default --eval-policy) on the tracks `seeds` (default: the held-out eval_seed + i, i <
+    eval_episodes); per race and car the return, the final progress (fraction of tiles) and the mean |action[0]|
+    of the car's decisions while racing, each (E, N). On the racing env action 0 is the steer: near 1 is bang-bang
+    steering (the pursuit driver: ~0.06)."""
+    n, policy = args.num_agents, policy or args.eval_policy
+    seeds = [args.eval_seed + e for e in range(args.eval_episodes)] if seeds is None else list(seeds)
+    returns, progress = np.zeros((len(seeds), n)), np.zeros((len(seeds), n))
+    abs_steer, decisions = np.zeros((len(seeds), n)), np.zeros((len(seeds), n))
+    for e, seed in enumerate(seeds):
+        eval_envs.seed(seed)
         obs, states, is_first = eval_envs.reset(), [None] * n, np.ones(n, dtype=bool)
         racing = np.ones(n, dtype=bool)
         while True:
@@ -1341,7 +1462,7 @@ def evaluate(agents: list[Agent], args: Args, eval_envs) -> tuple[np.ndarray, np
             actions = np.zeros((n, 2), dtype=np.float32)
             for i, agent in enumerate(agents):
                 car = slice(i, i + 1)
-                actions[car], states[i] = agent.act(frames[car], states[i], is_first[car], deterministic=True)
+                actions[car], states[i] = agent.act(frames[car], states[i], is_first[car], policy)
             abs_steer[e] += np.abs(actions[:, 0]) * racing
             decisions[e] += racing
             obs, rewards, dones, infos, _ = step_with_repeat(eval_envs, actions, args.action_repeat)
@@ -1401,8 +1522,23 @@ def restore_replay(replay: Replay, directory: str, manifest: dict | None, races:
     return replay.manifest()
 
 
-def main(args: Args) -> str:
-    """Train with `args`; returns the run directory.
+def resumed_args(checkpoint: dict, path: str, args: Args, overrides) -> Args:
+    """The Args of a resumed run: every setting it was started with, except the fields named in `overrides` (those
+    the resuming command line set explicitly), which come from `args`; prints each change (old -> new)."""
+    saved = args_from_checkpoint(checkpoint, path)
+    changes = {name: getattr(args, name) for name in overrides if name != "resume"}
+    fixed = sorted(name for name in changes if name in ARCHITECTURE + IDENTITY and changes[name] != getattr(saved, name))
+    if fixed:
+        raise UsageError(f"--resume: {', '.join(_flag(n) for n in fixed)} cannot change in a resumed run")
+    for name, value in changes.items():
+        if value != getattr(saved, name):
+            print(f"resume: {_flag(name)} {getattr(saved, name)!r} -> {value!r}")
+    return dataclasses.replace(saved, resume=args.resume, **changes)
+
+
+def main(args: Args, overrides=()) -> str:
+    """Train with `args`; returns the run directory. With args.resume, the run continues with the settings it was
+    started with, except the fields named in `overrides`, which come from `args`.
 
     Bad input (an impossible argument, an unreadable checkpoint, a replay that cannot fit in memory) raises
     UsageError before anything is written. --max-nonfinite-updates faulty updates in a row end the run with a
@@ -1419,7 +1555,7 @@ def main(args: Args) -> str:
     if args.resume:
         checkpoint_path = resolve_checkpoint(args.resume)
         resumed = load_checkpoint(checkpoint_path)
-        args = args_from_checkpoint(resumed, checkpoint_path, **{k: getattr(args, k) for k in RESUME_OVERRIDES})
+        args = resumed_args(resumed, checkpoint_path, args, overrides)
         validate_args(args)
         run_dir = os.path.dirname(os.path.dirname(os.path.abspath(checkpoint_path)))
     else:
@@ -1485,7 +1621,7 @@ def main(args: Args) -> str:
         print(f"resumed from {checkpoint_path} at episode {counters['episode']}, step {counters['global_step']}")
     elif args.checkpoint:
         print(f"agents start from {args.checkpoint}")
-    from_trained = resumed is not None or args.checkpoint is not None
+    from_trained = args.checkpoint is not None  # (a resumed run still in its prefill races keeps acting randomly)
     # Updates start after the random prefill races; a ghost-stage run first races every ghost track
     # once with the starting policy (those runs are the first ghosts and fill the replay).
     learning_starts = args.ghost_tracks if args.stage == "ghost" else args.prefill_episodes
@@ -1533,10 +1669,16 @@ def main(args: Args) -> str:
         set_rng_state(resumed["rng"])
     started = time.time()
 
-    def out_of_time() -> bool:
-        return args.time_limit_hours > 0 and time.time() - started > 3600 * args.time_limit_hours
+    def finished() -> bool:
+        """The run's end: --total-episodes races, --total-updates updates, the time limit, or a numerical fault."""
+        return (
+            counters["episode"] >= args.total_episodes
+            or (args.total_updates > 0 and min(agent.num_updates for agent in agents) >= args.total_updates)
+            or (args.time_limit_hours > 0 and time.time() - started > 3600 * args.time_limit_hours)
+            or fault is not None
+        )
 
-    while counters["episode"] < args.total_episodes and not out_of_time() and fault is None:
+    while not finished():
         t0 = time.time()
         for slot in np.flatnonzero(is_first):
             episodes[slot] = CarEpisode(frames[slot])
@@ -1614,7 +1756,7 @@ def main(args: Args) -> str:
                     print(
                         f"\nOn this CPU one update takes {per_update:.2f} s: {args.train_steps_per_episode} updates"
                         f" x {n} agent(s) = {minutes:.1f} min of training per race. For a CPU-sized run see"
-                        f" README.md, e.g.\n  {CPU_COMMAND}"
+                        f" README.md: python {os.path.basename(__file__)} --preset cpu --seed 1"
                     )
                     reported_update_time = True
             if fault is not None:  # the run ends here, with the checkpoint written after the loop
@@ -1639,6 +1781,9 @@ def main(args: Args) -> str:
                     logger.record(f"car_{j}/eval/progress", float(eval_progress[:, j].mean()))
                     if racing:  # highway-env's action 0 is the acceleration
                         logger.record(f"car_{j}/eval/mean_abs_steer", float(eval_abs_steer[:, j].mean()))
+                if args.eval_checkpoints:
+                    path = os.path.join(checkpoint_dir, f"eval_{episode:06d}.pt")
+                    save_checkpoint(path, args, agents, counters, _extra(ghosts, manifests, wins))
                 if eval_returns.mean() > counters["best_eval_return"]:
                     counters["best_eval_return"] = float(eval_returns.mean())
                     best = os.path.join(checkpoint_dir, "best.pt")
@@ -1654,10 +1799,10 @@ def main(args: Args) -> str:
             logger.dump(step)
             pbar.update(1)
             pbar.set_postfix(episode=episode, ret=f"{np.mean([c.ret for c in cars]):.1f}", sps=f"{env_sps:.0f}")
-            if counters["episode"] >= args.total_episodes or out_of_time():
+            if finished():
                 break
 
-        if k_races == 1 and is_first.any() and counters["episode"] < args.total_episodes and fault is None:
+        if k_races == 1 and is_first.any() and not finished():
             obs, track_seed = start_race()  # the next race's own track (the ghost stage: with its ghost)
             frames = preprocess_frames(obs, args.image_size)
             is_first[:] = True
@@ -1683,11 +1828,21 @@ def _extra(ghosts: dict, replays: list, wins: list) -> dict:
     }
 
 
+def parse_args(argv: list[str] | None = None) -> tuple[Args, set[str]]:
+    """Args of a command line, with its --preset applied under the flags it sets, and the fields it sets."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = tyro.cli(Args, args=argv)
+    explicit = explicit_fields(argv)
+    if not args.resume:
+        args = dataclasses.replace(args, **{k: v for k, v in PRESETS[args.preset].items() if k not in explicit})
+    return args, explicit
+
+
 def cli(argv: list[str] | None = None) -> str:
     """The command line: bad input and a run stopped by numerical faults end with a one-line error, no traceback."""
-    args = tyro.cli(Args, args=argv)
+    args, explicit = parse_args(argv)
     try:
-        return main(args)
+        return main(args, explicit)
     except (UsageError, NumericalFault) as e:
         message = " ".join(str(e).split())
         raise SystemExit(f"{os.path.basename(__file__)}: error: {message}") from None

@@ -33,68 +33,69 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from train_throughput import CPU_SIZE  # noqa: E402  (one definition of the CPU size)
 
 RESULTS = os.path.join(ROOT, "benchmarks", "results")
 RUNS = os.path.join(ROOT, "runs", "learning")
-EVAL_EVERY = 5
-BAR_RETURN, BAR_PROGRESS = 300.0, 0.40  # issue 6: mean evaluation return and progress on the 10 tracks
-# Deviations from the paper's defaults for CPU learning (listed in the README):
+# The bar of the final protocol, per variant over its seeds: final-policy mean return and progress (the figure draws
+# them), every seed's return, the mean |steer|; and each run holds: its last three evaluations average within
+# BAR_HOLD of its best.
+BAR_RETURN, BAR_PROGRESS, BAR_SEED_RETURN, BAR_STEER, BAR_HOLD = 600.0, 0.65, 350.0, 0.3, 150.0
+FINAL_UPDATES = 8000  # the final protocol: every run trains for this many updates
+FRESH_TRACKS = (10_100, 20)  # first seed and count of the fresh tracks the final policy is measured on
+# What the benchmark adds to the scripts' CPU preset (--preset cpu): one car; decisions evaluated on the 10 held-out
+# tracks every 5 races, each evaluated policy kept; the run ends at --updates; one thread, two runs on two cores.
 LEARNING_CONFIG = {
-    **CPU_SIZE,
     "stage": "single",
     "num_agents": 1,
-    "action_repeat": 2,  # decisions at 25 Hz: half the recurrent steps per lap
-    "dead_zone_episodes": 30,  # the schedule ends within the run (paper: 200 races)
-    # Random prefill races end off the road after ~50 steps: 20 of them give the world model
-    # ~1000 steps to start from (paper: 5); 100 updates per race instead of 200 keeps the
-    # replay ratio sane while races are short and doubles the races per hour.
-    "prefill_episodes": 20,
-    "train_steps_per_episode": 100,
-    "eval_every": EVAL_EVERY,
     "eval_episodes": 10,
-    "video_every": 25,
-    "total_episodes": 1_000_000,  # the time limit ends the run
-    "torch_threads": 1,  # two runs side by side on two cores
+    "eval_checkpoints": True,
+    "total_episodes": 1_000_000,  # --updates (or the time limit) ends the run
+    "torch_threads": 1,
 }
 
 
-# Ablations: a flag of the dreamer scripts changed from LEARNING_CONFIG, and its tag in the run's name.
-ABLATION_TAGS = {"entropy_coef": "alpha", "decoder_min_log_sigma": "logsigmamin", "norm": "norm"}
+# Ablations: a flag of the dreamer scripts changed from the preset, and its tag in the run's name.
+ABLATION_TAGS = {
+    "entropy_coef": "alpha", "decoder_min_log_sigma": "logsigmamin", "norm": "norm", "return_norm": "retnorm",
+}  # fmt: skip
 
 
-def experiment_name(variant: str, **ablation: float | str | None) -> str:
+def experiment_name(variant: str, **ablation: float | str | bool | None) -> str:
     """``learning_<variant>``, plus ``_<tag><value>`` per ablated flag (e.g. ``learning_lstm_alpha0.03``)."""
     unknown = set(ablation) - set(ABLATION_TAGS)
     if unknown:
         raise ValueError(f"not an ablation flag: {', '.join(sorted(unknown))} (known: {', '.join(ABLATION_TAGS)})")
     tags = [
-        f"_{tag}{value:g}" if isinstance(value, float) else f"_{tag}{value}"
+        f"_{tag}" if value is True else f"_{tag}{value:g}" if isinstance(value, float) else f"_{tag}{value}"
         for name, tag in ABLATION_TAGS.items()
         if (value := ablation.get(name)) is not None
     ]
     return f"learning_{variant}" + "".join(tags)
 
 
-def find_run(exp_name: str, seed: int) -> str | None:
-    runs = sorted(glob.glob(os.path.join(RUNS, f"*__{exp_name}__{seed}__*")))
+def find_run(exp_name: str, seed: int, runs_dir: str = RUNS) -> str | None:
+    runs = sorted(glob.glob(os.path.join(runs_dir, f"*__{exp_name}__{seed}__*")))
     return runs[-1] if runs else None
 
 
-def run_args(variant: str, seed: int, hours: float, resume: bool, **ablation: float | str | None):
-    """The dreamer script of ``variant`` and the Args of this sitting: a new run at LEARNING_CONFIG with the
-    ablated flags changed, or (``resume``) the latest run of the same name and seed, continued."""
+def run_args(variant: str, seed: int, hours: float, resume: bool, updates: int = FINAL_UPDATES, **ablation):
+    """The dreamer script of ``variant``, the Args of this sitting and the fields they override: a new run at the
+    CPU preset plus LEARNING_CONFIG with the ablated flags changed, or (``resume``) the latest run of the same name
+    and seed, continued with its own settings (only the time limit and the update target are this sitting's)."""
     script = importlib.import_module(f"dreamer_{variant}")
     exp_name = experiment_name(variant, **ablation)
     existing = find_run(exp_name, seed)
     if resume and existing:
-        args = script.Args(resume=existing, time_limit_hours=hours, total_episodes=LEARNING_CONFIG["total_episodes"], torch_threads=1)
-    else:
-        if existing and not resume:
-            print(f"note: {existing} exists; starting a new run (use --resume to continue it)")
-        config = {**LEARNING_CONFIG, **{name: value for name, value in ablation.items() if value is not None}}
-        args = script.Args(seed=seed, exp_name=exp_name, runs_dir=RUNS, time_limit_hours=hours, **config)
-    return script, args
+        args = script.Args(resume=existing, time_limit_hours=hours, total_updates=updates)
+        return script, args, {"time_limit_hours", "total_updates"}
+    if existing and not resume:
+        print(f"note: {existing} exists; starting a new run (use --resume to continue it)")
+    ablated = {name: value for name, value in ablation.items() if value is not None}
+    args = script.preset_args(
+        "cpu", seed=seed, exp_name=exp_name, runs_dir=RUNS, time_limit_hours=hours, total_updates=updates,
+        **LEARNING_CONFIG, **ablated,
+    )  # fmt: skip
+    return script, args, set()
 
 
 def eval_curve(run_dir: str) -> list[dict]:
@@ -227,12 +228,14 @@ def summary_table(curves: dict[str, list[dict]], base: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def evaluate_checkpoint(path: str, first_track: int = 10_000, tracks: int = 10) -> dict:
-    """A saved agent (any variant, any stage; agent 0 of a multi-agent checkpoint) driving alone with
-    deterministic actions on tracks ``first_track .. first_track + tracks - 1``, with the env settings it
-    was trained with (final dead zone): mean return, progress and |steer| (near 1: bang-bang steering),
-    and the per-track values. The training runs' own evaluation is this on 10000..10009; another block
-    of tracks measures a best.pt without the bias of having been picked there."""
+def evaluate_checkpoint(
+    path: str, first_track: int = 10_000, tracks: int = 10, policy: str = "deterministic", train_tracks: int = 0
+) -> dict:
+    """A saved agent (any variant, any stage; agent 0 of a multi-agent checkpoint) driving alone with `policy` on
+    tracks ``first_track .. first_track + tracks - 1``, or (``train_tracks`` > 0) on the last ``train_tracks``
+    tracks it trained on, with the env settings it was trained with (final dead zone): mean return, progress and
+    |steer| (near 1: bang-bang steering), and the per-track values. The training runs' own evaluation is this on
+    10000..10009; another block of tracks measures a best.pt without the bias of having been picked there."""
     if tracks < 1:
         raise ValueError(f"tracks must be >= 1, got {tracks}")
     from race import read_checkpoint  # one reader of checkpoints: clear one-line errors naming the file
@@ -241,19 +244,31 @@ def evaluate_checkpoint(path: str, first_track: int = 10_000, tracks: int = 10) 
     checkpoint = read_checkpoint(path)
     variant = checkpoint["variant"]
     script = importlib.import_module(f"dreamer_{variant}")
-    args = script.args_from_checkpoint(checkpoint, path, num_agents=1, eval_seed=first_track, eval_episodes=tracks)
+    if policy not in script.EVAL_POLICIES:
+        raise ValueError(f"policy must be one of {', '.join(script.EVAL_POLICIES)}, got {policy!r}")
+    args = script.args_from_checkpoint(checkpoint, path, num_agents=1)
     agent = script.Agent(args)
     script.load_agent_state(agent, checkpoint["agents"][0], path, 0)
+    if train_tracks > 0:
+        if args.stage != "single" or args.num_races != 1:
+            raise ValueError(f"{path}: --train-tracks needs a single-stage run of one race at a time")
+        races = int(checkpoint["counters"]["episode"])
+        seeds = [script.race_seed(args.seed, e) for e in range(max(0, races - train_tracks), races)]
+        tracks_name = f"training races {max(0, races - train_tracks)}..{races - 1}"
+    else:
+        seeds, tracks_name = list(range(first_track, first_track + tracks)), f"{first_track}..{first_track + tracks - 1}"
     envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
     try:
-        returns, progress, abs_steer = script.evaluate([agent], args, envs)
+        returns, progress, abs_steer = script.evaluate([agent], args, envs, policy, seeds)
     finally:
         envs.close()
     returns, progress, abs_steer = returns[:, 0], progress[:, 0], abs_steer[:, 0]
     result = {
         "checkpoint": path,
         "variant": variant,
-        "tracks": f"{first_track}..{first_track + tracks - 1}",
+        "updates": int(checkpoint["agents"][0]["num_updates"]),
+        "policy": policy,
+        "tracks": tracks_name,
         "eval_return": float(returns.mean()),
         "eval_progress": float(progress.mean()),
         "returns": [round(float(r), 2) for r in returns],
@@ -262,6 +277,69 @@ def evaluate_checkpoint(path: str, first_track: int = 10_000, tracks: int = 10) 
     if args.env_id == "multi_car_racing":  # action 0 is the steer there (highway-env: the acceleration)
         result["mean_abs_steer"] = float(abs_steer.mean())
     return result
+
+
+FINAL_COLUMNS = (
+    "variant", "seed", "updates", "env_steps", "hours", "final_return", "final_progress", "final_mean_abs_steer",
+    "best_return", "best_progress",
+)  # fmt: skip
+
+
+def final_row(variant: str, seed: int, exp_name: str | None = None, policy: str = "deterministic") -> dict:
+    """The final protocol's row of one run: its last policy (latest.pt) and its best evaluation (best.pt), both
+    measured on the fresh tracks FRESH_TRACKS, with the run's updates, env steps and training hours."""
+    run = find_run(exp_name or experiment_name(variant), seed)
+    if run is None:
+        raise ValueError(f"no run of {exp_name or experiment_name(variant)} seed {seed} in {RUNS}")
+    curve = eval_curve(run)
+    final = evaluate_checkpoint(os.path.join(run, "checkpoints", "latest.pt"), *FRESH_TRACKS, policy)
+    best = evaluate_checkpoint(os.path.join(run, "checkpoints", "best.pt"), *FRESH_TRACKS, policy)
+    return {
+        "variant": variant, "seed": seed, "updates": final["updates"],
+        "env_steps": curve[-1]["env_steps"] if curve else 0, "hours": curve[-1]["wall_hours"] if curve else 0.0,
+        "final_return": round(final["eval_return"], 2), "final_progress": round(final["eval_progress"], 4),
+        "final_mean_abs_steer": round(final["mean_abs_steer"], 4),
+        "best_return": round(best["eval_return"], 2), "best_progress": round(best["eval_progress"], 4),
+    }  # fmt: skip
+
+
+def write_final_row(row: dict, path: str = os.path.join(RESULTS, "learning_final.csv")) -> None:
+    """Add `row` to learning_final.csv, replacing an earlier row of the same variant and seed."""
+    rows = []
+    if os.path.exists(path):
+        with open(path, newline="") as f:
+            rows = [r for r in csv.DictReader(f) if (r["variant"], int(r["seed"])) != (row["variant"], row["seed"])]
+    rows.append(row)
+    rows.sort(key=lambda r: (r["variant"], int(r["seed"])))
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=FINAL_COLUMNS)
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def final_summary(path: str = os.path.join(RESULTS, "learning_final.csv"), reps: int = 2000) -> str:
+    """Markdown: per variant the IQM and mean of the final return with stratified-bootstrap 95% intervals (rliable),
+    and the bar's parts (mean return >= 600, every seed >= 350, progress >= 0.65, |steer| <= 0.3)."""
+    from stats import interval_estimates
+
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    lines = [
+        "| variant | seeds | IQM final return [95% CI] | mean final return [95% CI] | min seed | mean progress "
+        "| mean \\|steer\\| |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for variant in sorted({r["variant"] for r in rows}):
+        mine = [r for r in rows if r["variant"] == variant]
+        returns = np.array([float(r["final_return"]) for r in mine])
+        est = interval_estimates({variant: returns[:, None]}, reps=reps)[variant]
+        lines.append(
+            f"| {variant} | {len(mine)} | {est['iqm']:.1f} [{est['iqm_ci'][0]:.1f}, {est['iqm_ci'][1]:.1f}] "
+            f"| {est['mean']:.1f} [{est['mean_ci'][0]:.1f}, {est['mean_ci'][1]:.1f}] | {returns.min():.1f} "
+            f"| {np.mean([float(r['final_progress']) for r in mine]):.2f} "
+            f"| {np.mean([float(r['final_mean_abs_steer']) for r in mine]):.2f} |"
+        )
+    return "\n".join(lines) + "\n"
 
 
 def report(runs_dir: str = RUNS, results_dir: str = RESULTS) -> None:
@@ -281,7 +359,7 @@ def report(runs_dir: str = RUNS, results_dir: str = RESULTS) -> None:
             ax.plot([r["env_steps"] for r in rows], [r[key] for r in rows], marker="o", label=name.removeprefix("learning_"))
         for (bname, b), style in zip(base.items(), (":", "--")):
             ax.axhline(b[key], color="gray", linestyle=style, label=bname)
-        ax.axhline(bar, color="red", linestyle="-.", alpha=0.6, label="bar (issue 6)")
+        ax.axhline(bar, color="red", linestyle="-.", alpha=0.6, label="bar (final policy, mean over seeds)")
         ax.set_xlabel("env steps")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
@@ -299,44 +377,73 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--variant", choices=["lstm", "gru"], default="lstm")
     parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--hours", type=float, default=2.0, help="wall-clock budget of this sitting")
+    parser.add_argument("--hours", type=float, default=3.0, help="wall-clock budget of this sitting")
+    parser.add_argument("--updates", type=int, default=FINAL_UPDATES, help="the run ends after this many updates")
     parser.add_argument("--resume", action="store_true", help="continue the latest run of this variant and seed")
     parser.add_argument("--report", action="store_true", help="only write the curves and the table")
     parser.add_argument(
+        "--final", action="store_true",
+        help="only evaluate the run's final and best policies on the fresh tracks; its row in learning_final.csv",
+    )  # fmt: skip
+    parser.add_argument(
         "--entropy-coef", type=float, default=None,
-        help="an ablation: this alpha instead of the paper's 6e-4 (the run is named learning_<variant>_alpha<coef>)",
+        help="an ablation: this alpha instead of the preset's (the run is named learning_<variant>_alpha<coef>)",
     )
     parser.add_argument(
         "--decoder-min-log-sigma", type=float, default=None,
-        help="an ablation: floor the decoder's learned log sigma (0: unit variance; run named ..._logsigmamin<value>)",
+        help="an ablation: floor of the decoder's learned log sigma (run named ..._logsigmamin<value>)",
     )
     parser.add_argument(
         "--norm", choices=["batch", "layer"], default=None,
-        help="an ablation: this normalisation instead of BatchNorm (DESIGN 4.1; run named ..._norm<choice>)",
+        help="an ablation: this normalisation instead of BatchNorm (run named ..._norm<choice>)",
+    )
+    parser.add_argument(
+        "--return-norm", action="store_const", const=True, default=None,
+        help="an ablation: DreamerV3's return normalisation (run named ..._retnorm)",
     )
     parser.add_argument("--evaluate", metavar="CHECKPOINT", help="only evaluate this saved agent alone (no training)")
     parser.add_argument("--first-track", type=int, default=10_000, help="--evaluate: seed of the first track")
     parser.add_argument("--tracks", type=int, default=10, help="--evaluate: number of tracks")
+    parser.add_argument(
+        "--train-tracks", type=int, default=0, help="--evaluate: the last N tracks the run trained on instead",
+    )  # fmt: skip
+    parser.add_argument(
+        "--policy", choices=["deterministic", "mean-action", "stochastic"], default="deterministic",
+        help="--evaluate, --final: posterior mean z and mean action / sampled z, mean action / both sampled",
+    )  # fmt: skip
     args = parser.parse_args()
     if args.hours <= 0:
         parser.error(f"--hours must be > 0, got {args.hours}")
+    if args.updates < 1:
+        parser.error(f"--updates must be >= 1, got {args.updates}")
+    ablation = {name: getattr(args, name) for name in ABLATION_TAGS}
     if args.evaluate:
-        if args.tracks < 1:
-            parser.error(f"--tracks must be >= 1, got {args.tracks}")
+        if args.tracks < 1 or args.train_tracks < 0:
+            parser.error(f"--tracks must be >= 1 and --train-tracks >= 0, got {args.tracks} and {args.train_tracks}")
         try:
-            result = evaluate_checkpoint(args.evaluate, args.first_track, args.tracks)
+            result = evaluate_checkpoint(args.evaluate, args.first_track, args.tracks, args.policy, args.train_tracks)
         except ValueError as e:  # race.CheckpointError is a ValueError naming the file
             parser.error(str(e))
         print(json.dumps(result, indent=1))
         return
+    if args.final:
+        try:
+            row = final_row(args.variant, args.seed, experiment_name(args.variant, **ablation), args.policy)
+        except ValueError as e:
+            parser.error(str(e))
+        write_final_row(row)
+        print(json.dumps(row, indent=1))
+        print(final_summary())
+        return
     if not args.report:
-        ablation = {name: getattr(args, name) for name in ABLATION_TAGS}
-        script, script_args = run_args(args.variant, args.seed, args.hours, args.resume, **ablation)
+        script, script_args, overrides = run_args(
+            args.variant, args.seed, args.hours, args.resume, args.updates, **ablation
+        )
         try:  # an ablated value the script refuses ends here, before any work, naming the flag
             script.validate_args(script_args)
         except script.UsageError as e:
             parser.error(str(e))
-        script.main(script_args)
+        script.main(script_args, overrides)
     report()
 
 

@@ -1,0 +1,42 @@
+"""Statistics of RL results over seeds, with rliable (Agarwal et al., 2021).
+
+* ``interval_estimates``: IQM and mean of each method's scores with stratified-bootstrap 95% intervals;
+* ``probability_of_improvement``: P(X > Y) across runs, with its stratified-bootstrap interval.
+
+Scores are arrays of shape (runs, tasks), rliable's layout; one task is a column of one.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def interval_estimates(scores: dict[str, np.ndarray], reps: int = 2000, seed: int = 0) -> dict[str, dict]:
+    """Per method: ``iqm`` and ``mean`` with ``iqm_ci`` and ``mean_ci`` (stratified bootstrap, 95%)."""
+    from rliable import library as rly
+    from rliable import metrics
+
+    def aggregate(x: np.ndarray) -> np.ndarray:
+        return np.array([metrics.aggregate_iqm(x), metrics.aggregate_mean(x)])
+
+    np.random.seed(seed)  # rliable draws its bootstrap samples from numpy's global stream
+    points, intervals = rly.get_interval_estimates({k: np.asarray(v, float) for k, v in scores.items()}, aggregate, reps=reps)
+    return {
+        name: {
+            "iqm": float(points[name][0]), "mean": float(points[name][1]),
+            "iqm_ci": (float(intervals[name][0, 0]), float(intervals[name][1, 0])),
+            "mean_ci": (float(intervals[name][0, 1]), float(intervals[name][1, 1])),
+        }  # fmt: skip
+        for name in scores
+    }
+
+
+def probability_of_improvement(x: np.ndarray, y: np.ndarray, reps: int = 2000, seed: int = 0) -> dict:
+    """P(X > Y) of runs x (runs_x, tasks) against runs y (runs_y, tasks) (ties count one half), with its 95% interval."""
+    from rliable import library as rly
+    from rliable import metrics
+
+    np.random.seed(seed)
+    pair = {"x,y": (np.asarray(x, float), np.asarray(y, float))}
+    points, intervals = rly.get_interval_estimates(pair, metrics.probability_of_improvement, reps=reps)
+    return {"p": float(points["x,y"]), "ci": (float(intervals["x,y"][0]), float(intervals["x,y"][1]))}
