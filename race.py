@@ -84,7 +84,7 @@ def read_checkpoint(path: str, device="cpu") -> dict:
 class DreamerRacer:
     """A saved Dreamer agent driving one car; built by its own script's ``Agent`` and ``Args``."""
 
-    def __init__(self, spec: str, device="cpu", deterministic: bool = True):
+    def __init__(self, spec: str, device="cpu", policy: str = "deterministic"):
         path, _, index = spec.rpartition(":") if spec.rpartition(":")[2].isdigit() else (spec, "", "0")
         checkpoint = read_checkpoint(path, device)
         self.path, self.index = path, int(index)
@@ -99,7 +99,7 @@ class DreamerRacer:
         except (ValueError, RuntimeError, TypeError) as e:  # the script's CheckpointError, or impossible sizes
             text = (str(e).strip().splitlines() or [type(e).__name__])[0]
             raise CheckpointError(text if text.startswith(path) else f"{path}: does not build an agent: {text}") from None
-        self.deterministic = deterministic
+        self.policy = policy
         self.name = f"{self.variant}:{os.path.basename(os.path.dirname(os.path.dirname(os.path.abspath(path))))}/{os.path.basename(path)}:{self.index}"
         self.state, self.learns = None, True
         self.action_repeat = int(self.args.action_repeat)  # as in training: one decision per this many env steps
@@ -111,7 +111,7 @@ class DreamerRacer:
     def act(self, obs: np.ndarray, is_first: bool) -> np.ndarray:
         """A new action every --action-repeat env steps of this racer (the rate it was trained at), else the held one."""
         if self.held is None or self.held_steps == self.action_repeat:
-            action, self.state = self.agent.act(obs[None], self.state, np.array([is_first]), deterministic=self.deterministic)
+            action, self.state = self.agent.act(obs[None], self.state, np.array([is_first]), self.policy)
             self.held, self.held_steps = action[0], 0
         self.held_steps += 1
         return self.held
@@ -315,7 +315,8 @@ def parse_args(argv=None):
 
 
 def build_racers(args, device) -> list:
-    racers = [DreamerRacer(spec, device, deterministic=not (args.stochastic or args.train)) for spec in args.checkpoints]
+    policy = "stochastic" if args.stochastic or args.train else "deterministic"
+    racers = [DreamerRacer(spec, device, policy) for spec in args.checkpoints]
     racers += [PursuitRacer(speed) for speed in args.opponent_speeds]
     return racers
 

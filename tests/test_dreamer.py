@@ -22,19 +22,21 @@ from torch import nn
 
 SCRIPTS = ["dreamer_lstm", "dreamer_gru"]
 
-# DESIGN 4.4: the defaults table (one column per variant).
+# The defaults: the paper's hyperparameters (Algorithm 1, appendix) and the paper authors' configurations, one column
+# per variant (docs/agent.md lists them with their sources).
 DEFAULTS = {
     "lstm": {
         "batch_size": 15, "seq_len": 50, "imagination_horizon": 50, "train_steps_per_episode": 200,
-        "model_lr": 6e-4, "critic_lr": 6e-4, "actor_lr": 1e-4, "entropy_coef": 6e-4, "lambda_": 0.95, "gamma": 0.99,
+        "model_lr": 6e-4, "critic_lr": 6e-4, "actor_lr": 1e-4, "entropy_coef": 1.0, "lambda_": 0.95, "gamma": 0.99,
         "tau": 0.005, "free_bits": 1.0, "kl_dyn_scale": 1.0, "kl_rep_scale": 1.0, "grad_clip": 100.0,
         "imagination_starts": 0, "action_repeat": 1, "image_size": 96, "prefill_episodes": 5, "replay_capacity": 100_000,
         "eval_episodes": 10, "dead_zone_start": -1.0, "dead_zone_end": -0.5, "dead_zone_episodes": 200,
         "brake_speed_threshold": 50.0, "max_steps": 1000, "stall_steps": 150,
         "collision_penalty": 0.05, "offroad_penalty": 100.0, "speed_reward_coef": 0.0,
-        # widths of DESIGN 4.1 and the issue's other flags
+        # the appendix's widths and the scripts' other flags
         "cnn_depth": 32, "deter_size": 512, "hidden_size": 1024, "mlp_size": 512, "latent_size": 60, "norm": "batch",
-        "num_agents": 2, "stage": "race", "env_id": "multi_car_racing", "seed": 1, "cuda": True,
+        "num_agents": 2, "stage": "race", "env_id": "multi_car_racing", "seed": 1, "cuda": True, "preset": "paper",
+        "return_norm": False, "eval_policy": "deterministic",
     },
 }  # fmt: skip
 DEFAULTS["gru"] = {**DEFAULTS["lstm"], "batch_size": 50, "imagination_horizon": 15}
@@ -149,10 +151,10 @@ def test_shapes_through_every_network(script, image_size, norm):
     mean, std = agent.critic(features)
     assert mean.shape == std.shape == (B, L)
     # imagination from every posterior state
-    state, h, z = agent.imagination_starts(post)
-    feats, log_pis, actions = script.imagine_rollout(wm, agent.actor, state, h, z, horizon=4)
-    assert feats.shape == (5, B * L, args.latent_size + args.deter_size)
-    assert log_pis.shape == (4, B * L) and actions.shape == (4, B * L, 2)
+    state, h, z, cont = agent.imagination_starts(post, torch.zeros(B, L))
+    feats, log_pis, actions, stds = script.imagine_rollout(wm, agent.actor, state, h, z, horizon=4)
+    assert feats.shape == (5, B * L, args.latent_size + args.deter_size) and cont.shape == (B * L,)
+    assert log_pis.shape == (4, B * L) and actions.shape == stds.shape == (4, B * L, 2)
 
 
 @pytest.mark.parametrize("c_in, c_out, kernel, stride, size", [(4, 3, 12, 4, 14), (8, 4, 4, 2, 6), (8, 8, 3, 1, 4)])
@@ -211,8 +213,12 @@ def test_amp_runs_the_networks_in_bfloat16_and_keeps_the_losses_of_float32(scrip
 def test_imagination_starts_subset(script):
     agent = script.Agent(tiny_args(script, imagination_starts=7))
     post = agent.world_model.observe(torch.zeros(3, 5, 16), torch.zeros(3, 5, 2), torch.zeros(3, 5, dtype=torch.bool))
-    state, h, z = agent.imagination_starts(post)
-    assert h.shape[0] == z.shape[0] == 7 and all(s.shape[0] == 7 for s in state)
+    terminated = torch.zeros(3, 5)
+    terminated[1, 2] = 1.0
+    state, h, z, cont = agent.imagination_starts(post, terminated)
+    assert h.shape[0] == z.shape[0] == cont.shape[0] == 7 and all(s.shape[0] == 7 for s in state)
+    _, _, _, all_cont = script.Agent(tiny_args(script)).imagination_starts(post, terminated)
+    torch.testing.assert_close(all_cont, 1.0 - terminated.flatten())  # each start's continue flag, in order
     assert not h.requires_grad and not z.requires_grad  # starts are detached
 
 
@@ -255,9 +261,9 @@ def test_act_carries_state_and_resets_on_is_first(script):
     torch.manual_seed(0)
     agent = script.Agent(tiny_args(script))
     obs = np.random.default_rng(0).integers(0, 256, (2, 96, 96, 3), dtype=np.uint8)  # raw camera size
-    a1, s1 = agent.act(obs, None, deterministic=True)
+    a1, s1 = agent.act(obs, None, policy="deterministic")
     assert a1.shape == (2, 2) and np.all(np.abs(a1) <= 1)
-    a2, _s2 = agent.act(obs, s1, np.array([False, True]), deterministic=True)
+    a2, _s2 = agent.act(obs, s1, np.array([False, True]), policy="deterministic")
     np.testing.assert_allclose(a2[1], a1[1], atol=1e-6)  # car 1 restarted: same as a fresh start
     assert not np.allclose(a2[0], a1[0])  # car 0 continued with its memory
     a3, _ = agent.act(obs, s1)  # sampled actions differ from the mean
@@ -271,7 +277,7 @@ def test_lambda_returns_hand_computed(script):
     r = torch.tensor([1.0, 2.0, 3.0])  # r_1..r_3
     c = torch.tensor([1.0, 1.0, 0.0])  # c_1..c_3
     v = torch.tensor([10.0, 20.0, 30.0])  # V(s_1)..V(s_3)
-    R = script.lambda_returns(r, c, v, torch.zeros(3), gamma=0.5, lam=0.5, alpha=6e-4)
+    R = script.lambda_returns(r, c, v, torch.zeros(3), gamma=0.5, lam=0.5, alpha=1.0)
     torch.testing.assert_close(R, torch.tensor([5.4375, 7.75, 3.0]))
     # with the entropy term: log pi = (0.5, -1, 2), alpha = 0.1
     #   R_2 = 3 - 0.2 = 2.8; R_1 = 2 + 0.1 + 0.5 (10 + 1.4) = 7.8; R_0 = 1 - 0.05 + 0.5 (5 + 3.9) = 5.4
@@ -293,6 +299,71 @@ def test_actor_weights(script):
     assert not w.requires_grad
     c2 = torch.tensor([0.5, 0.0, 1.0])
     torch.testing.assert_close(script.discount_weights(c2, gamma=0.9), torch.tensor([1.0, 0.45, 0.0]))
+    # batched, with the starts' own continue flags: a terminal start (0) weighs nothing at any step
+    c3 = torch.tensor([[1.0, 1.0], [0.5, 1.0]])  # (H=2, N=2)
+    w3 = script.discount_weights(c3, gamma=0.5, start=torch.tensor([1.0, 0.0]))
+    torch.testing.assert_close(w3, torch.tensor([[1.0, 0.0], [0.5, 0.0]]))
+
+
+def test_lambda_returns_split_into_task_and_entropy_parts(script):
+    """--return-norm scales the task part alone: the two parts must add up to the whole lambda-return."""
+    g = torch.Generator().manual_seed(0)
+    r, v, log_pi = torch.randn(6, 5, generator=g), torch.randn(6, 5, generator=g), torch.randn(6, 5, generator=g)
+    c = torch.rand(6, 5, generator=g)
+    whole = script.lambda_returns(r, c, v, log_pi, 0.9, 0.8, 0.3)
+    task = script.lambda_returns(r, c, v, torch.zeros_like(log_pi), 0.9, 0.8, 0.0)
+    entropy = script.lambda_returns(torch.zeros_like(r), c, torch.zeros_like(v), log_pi, 0.9, 0.8, 0.3)
+    torch.testing.assert_close(task + entropy, whole)
+    x = torch.arange(101.0)
+    torch.testing.assert_close(script.return_range(x), torch.tensor(90.0))  # 95th - 5th percentile of 0..100
+
+
+def test_return_norm_scales_the_task_part_of_the_actor_objective(script):
+    """With a return scale S > 1 the actor loss equals -mean(w (task / S + entropy)), recomputed by hand from the
+    same imagined rollout; the scale is an EMA (rate 0.01) of the task returns' 5-95% range, saved with the agent."""
+    torch.manual_seed(0)
+    args = tiny_args(script, return_norm=True, entropy_coef=0.2)
+    agent = script.Agent(args)
+    batch = random_batch()
+    terminated = torch.zeros(3, 8)
+    with torch.no_grad():
+        _, _, post = agent.world_model_loss(
+            torch.as_tensor(batch["obs"]), torch.as_tensor(batch["action"]), torch.as_tensor(batch["reward"]),
+            torch.as_tensor(batch["is_first"]), terminated,
+        )  # fmt: skip
+    agent.return_scale.fill_(5.0)
+    actor_state = {k: v.clone() for k, v in agent.actor.state_dict().items()}  # BatchNorm statistics included
+    torch.manual_seed(1)
+    actor_loss, _, metrics = agent.behaviour_losses(post, terminated)
+    scale_after = agent.return_scale.clone()
+    # the same rollout again (same seed, same statistics), by hand
+    agent.return_scale.fill_(5.0)
+    agent.actor.load_state_dict(actor_state)
+    torch.manual_seed(1)
+    wm, actor = agent.world_model, agent.actor
+    with torch.no_grad():
+        actor.train()
+        actor(torch.cat([post["z"], post["h"]], -1))
+    state, h, z, cont = agent.imagination_starts(post, terminated)
+    wm.eval(), actor.eval()
+    features, log_pi, _, _ = script.imagine_rollout(wm, actor, state, h, z, args.imagination_horizon)
+    rewards = script.gaussian_params(wm.reward(features[1:]), script.HEAD_MIN_STD)[0].squeeze(-1)
+    continues = torch.sigmoid(wm.cont(features[1:]).squeeze(-1))
+    values = agent.targets["critic"](features[1:])[0]
+    task = script.lambda_returns(rewards, continues, values, torch.zeros_like(log_pi), args.gamma, args.lambda_, 0.0)
+    zero = torch.zeros_like(rewards)
+    entropy = script.lambda_returns(zero, continues, zero, log_pi, args.gamma, args.lambda_, 0.2)
+    scale = 5.0 + 0.01 * (script.return_range(task) - 5.0)
+    weights = script.discount_weights(continues, args.gamma, cont)
+    expected = -(weights * (task / scale.clamp(min=1.0) + entropy)).mean()
+    torch.testing.assert_close(actor_loss, expected, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(scale_after, scale)
+    torch.testing.assert_close(metrics["return_scale"], scale)
+    agent.return_scale.copy_(scale_after)
+    saved = agent.state_dict()
+    other = script.Agent(args)
+    other.load_state_dict(saved)
+    torch.testing.assert_close(other.return_scale, scale)
 
 
 def test_gaussian_kl_matches_torch(script):
@@ -321,20 +392,62 @@ def test_kl_free_bits(script):
     torch.testing.assert_close(kl.grad, torch.tensor([0.0, 0.0, 1.0, 1.0]))
 
 
-def test_actor_log_prob_includes_tanh_correction(script):
+def test_actor_samples_around_tanh_mean_with_bounded_sigma_and_the_paper_log_prob(script):
+    """a = tanh(mu) + sigma eps, clipped to [-1, 1]; sigma in (0.1, 1 + log 2 + 0.1); log pi of the unclipped sample
+    is torch's Normal log-density minus log(1 - tanh(a)^2) (paper 3.9); the deterministic action is tanh(mu)."""
     torch.manual_seed(0)
     actor = script.Actor(8, 16, 2, "layer")
-    features = torch.randn(1000, 8)
+    with torch.no_grad():  # spread the raw outputs so both soft bounds are reached
+        actor.net.net[-1].weight.mul_(30.0)
+    features = torch.randn(2000, 8)
     torch.manual_seed(1)
     action, log_pi = actor.sample(features)
-    mean, std = actor(features)
+    raw_mean, raw_std = actor.net(features).chunk(2, -1)
+    mean = torch.tanh(raw_mean)
+    std = 0.1 + torch.nn.functional.softplus(1.0 - torch.nn.functional.softplus(1.0 - raw_std) - 0.1)
     torch.manual_seed(1)
-    u = mean + std * torch.randn_like(std)
+    sample = mean + std * torch.randn_like(std)
+    torch.testing.assert_close(actor(features)[1], std)
+    assert std.min() > 0.1 - 1e-6 and std.min() < 0.11  # the floor is reached, never crossed
+    assert std.max() < 1.1 + math.log(2) and std.max() > 1.2  # the soft upper bound
+    torch.testing.assert_close(action, sample.clamp(-1, 1))
+    assert (sample.abs() > 1).any()  # clipping happened: the env and the world model get [-1, 1]
     D = torch.distributions
-    expected = D.TransformedDistribution(D.Normal(mean, std), [D.TanhTransform()]).log_prob(torch.tanh(u)).sum(-1)
-    torch.testing.assert_close(action, torch.tanh(u))
-    ok = action.abs().max(-1).values < 0.999  # away from the 1e-6 guard
-    torch.testing.assert_close(log_pi[ok], expected[ok], atol=1e-3, rtol=1e-3)
+    expected = (D.Normal(mean, std).log_prob(sample) - torch.log(1 - torch.tanh(sample) ** 2 + 1e-6)).sum(-1)
+    torch.testing.assert_close(log_pi, expected, atol=1e-4, rtol=1e-4)
+    deterministic, none = actor.sample(features, deterministic=True)
+    torch.testing.assert_close(deterministic, mean)
+    assert none is None
+
+
+def test_batchnorm_statistics_never_move_on_imagined_states(script):
+    """Every BatchNorm of the agent: a forward pass in train mode moves its running statistics, so none may run in
+    train mode on imagined states. The imagination-start count (5) differs from B (3) and B*L (24), and every
+    imagined batch is a multiple of it (5 or 5 * H = 10), so the hook can tell imagined inputs apart."""
+    torch.manual_seed(0)
+    args = tiny_args(script, imagination_starts=5, imagination_horizon=2)
+    agent = script.Agent(args)
+    imagined_sizes = {5, 10}
+    moved_on_imagined, seen = [], []
+
+    def hook(module, inputs, output):
+        rows = inputs[0].shape[0]
+        seen.append((type(module).__name__, rows, module.training))
+        if rows in imagined_sizes and module.training:
+            moved_on_imagined.append((type(module).__name__, rows))
+
+    bns = [m for net in (agent.world_model, agent.actor, agent.critic) for m in net.modules()
+           if isinstance(m, nn.modules.batchnorm._BatchNorm)]  # fmt: skip
+    assert bns, "the default --norm batch has BatchNorm layers"
+    for bn in bns:
+        bn.register_forward_hook(hook)
+    actor_bns = [m for m in agent.actor.modules() if isinstance(m, nn.modules.batchnorm._BatchNorm)]
+    before = [m.running_mean.clone() for m in actor_bns]
+    agent.update(random_batch())
+    assert not moved_on_imagined, f"BatchNorm ran in train mode on imagined states: {moved_on_imagined}"
+    assert any(rows == 24 and training for _, rows, training in seen)  # real posterior states of the batch do
+    assert any(rows in imagined_sizes and not training for _, rows, training in seen)  # imagined: running stats
+    assert all(not torch.equal(b, m.running_mean) for b, m in zip(before, actor_bns))  # ... from the real states
 
 
 def test_soft_update_moves_targets_by_tau(script):
@@ -373,7 +486,7 @@ def test_actor_loss_leaves_world_model_and_critic_alone(script):
     args = [torch.as_tensor(batch[k]) for k in ("action", "reward")]
     is_first, terminated = torch.as_tensor(batch["is_first"]), torch.as_tensor(batch["terminated"]).float()
     _, _, post = agent.world_model_loss(obs, *args, is_first, terminated)
-    actor_loss, _, _ = agent.behaviour_losses(post)
+    actor_loss, _, _ = agent.behaviour_losses(post, terminated)
     actor_params = list(agent.actor.parameters())
     for p in list(agent.world_model.parameters()) + list(agent.critic.parameters()):
         p.grad = None
@@ -610,7 +723,7 @@ def test_resume_continues_from_saved_counters(single_run):
     before = torch.load(os.path.join(run_dir, "checkpoints", "latest.pt"), weights_only=True)
     replay = script.Replay(E2E["replay_capacity"], TINY["image_size"])
     replay.load(os.path.join(run_dir, "checkpoints", "replay_car_0"))
-    script.main(script.Args(resume=run_dir, total_episodes=3))
+    script.main(script.Args(resume=run_dir, total_episodes=3), {"total_episodes"})  # extends the run (saved: 2)
     after = torch.load(os.path.join(run_dir, "checkpoints", "latest.pt"), weights_only=True)
     assert after["counters"]["episode"] == 3
     assert after["counters"]["global_step"] > before["counters"]["global_step"]
@@ -670,7 +783,7 @@ class _ScriptedSteer:
     def __init__(self, steer: float):
         self.steer, self.blank_calls = steer, 0
 
-    def act(self, frames, state, is_first, deterministic):
+    def act(self, frames, state, is_first, policy):
         sees_track = float(frames.std()) > 0
         self.blank_calls += not sees_track
         return np.array([[self.steer if sees_track else 0.0, 1.0]], dtype=np.float32), state

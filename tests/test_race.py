@@ -116,13 +116,13 @@ def test_dreamer_racer_decides_every_action_repeat_steps_and_records_summed_rewa
     """A racer acts at its training rate: one decision per action_repeat env steps, one transition per decision."""
     from envs import MultiCarRacing
 
-    racer = race.DreamerRacer(tiny_checkpoints["lstm"], "cpu", deterministic=True)
+    racer = race.DreamerRacer(tiny_checkpoints["lstm"], "cpu", "deterministic")
     racer.action_repeat = 3
     decisions, act = [], racer.agent.act
 
-    def counting_act(obs, state, is_first, deterministic=False):
+    def counting_act(obs, state, is_first, policy="stochastic"):
         decisions.append(bool(is_first[0]))
-        return act(obs, state, is_first, deterministic=deterministic)
+        return act(obs, state, is_first, policy)
 
     racer.agent.act = counting_act
     env = MultiCarRacing(num_agents=2, max_steps=31)
