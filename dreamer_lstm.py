@@ -446,6 +446,7 @@ HEAD_MIN_STD = 0.1  # sigma of the reward and critic Gaussians
 ACTOR_STD_BOUNDS = (0.1, 1.0)  # soft bounds of the actor's sigma in action space (the paper authors' code)
 RETURN_NORM_RATE = 0.01  # --return-norm: EMA rate of the return scale (DreamerV3)
 EVAL_POLICIES = ("deterministic", "mean-action", "stochastic")  # Agent.act's policies (--eval-policy)
+ACTING_PARTS = ("encoder.", "recurrent_input.", "cell.", "representation.")  # the world model's share of acting
 
 
 def norm_1d(kind: str, size: int) -> nn.Module:
@@ -1040,6 +1041,7 @@ class Agent:
                 module.compile()
         # --amp: bfloat16 autocast of the update (not of acting); needs no loss scaling, unlike float16
         self.amp = args.amp == "on" or (args.amp == "auto" and self.device.type == "cuda")
+        self.acting_only = False  # True once an acting-only export is loaded
         self.return_scale = torch.zeros((), device=self.device)  # --return-norm: EMA of the returns' 5-95% range
         self.num_updates = 0
         self.nonfinite_updates = 0  # updates in which an optimiser step was skipped (non-finite loss or gradient)
@@ -1180,6 +1182,8 @@ class Agent:
 
         Each optimiser step whose loss or gradient is not finite is skipped: its network, its BatchNorm
         statistics and its targets stay unchanged, and the update counts in nonfinite_updates."""
+        if self.acting_only:
+            raise RuntimeError("an acting-only export has no decoder, critic or optimiser state: it cannot learn")
         dev = self.device
         obs = torch.as_tensor(batch["obs"], device=dev)
         actions = torch.as_tensor(batch["action"], device=dev, dtype=torch.float32)
@@ -1285,7 +1289,21 @@ class Agent:
             "nonfinite_in_a_row": self.nonfinite_in_a_row,
         }
 
+    def acting_state_dict(self) -> dict:
+        """What acting needs and nothing else: encoder, posterior, recurrent core (with its input layer), actor.
+        No decoder, reward, continue, prior or critic, no targets, optimisers or replay (an exported policy)."""
+        world_model = {k: v for k, v in self.world_model.state_dict().items() if k.startswith(ACTING_PARTS)}
+        return {"world_model": world_model, "actor": self.actor.state_dict(), "num_updates": self.num_updates}
+
     def load_state_dict(self, state: dict) -> None:
+        if "critic" not in state:  # an acting-only export: it drives, it cannot learn
+            missing, unexpected = self.world_model.load_state_dict(state["world_model"], strict=False)
+            missing = [k for k in missing if k.startswith(ACTING_PARTS)]
+            if missing or unexpected:
+                raise KeyError(f"acting-only state: missing {missing[:3]}, unexpected {unexpected[:3]}")
+            self.actor.load_state_dict(state["actor"])
+            self.num_updates, self.acting_only = int(state["num_updates"]), True
+            return
         self.world_model.load_state_dict(state["world_model"])
         self.actor.load_state_dict(state["actor"])
         self.critic.load_state_dict(state["critic"])
@@ -1354,7 +1372,20 @@ def save_checkpoint(path: str, args: Args, agents: list[Agent], counters: dict, 
     _atomic_torch_save(checkpoint, path)
 
 
-CHECKPOINT_KEYS = ("variant", "args", "counters", "agents", "rng")
+def export_policy(checkpoint_path: str, out: str, index: int = 0) -> int:
+    """Write agent `index` of a checkpoint as an acting-only export (Agent.acting_state_dict, with its args and
+    counters): what race.py and `learning.py --evaluate` need to drive, small enough for git. Returns its size."""
+    checkpoint = load_checkpoint(checkpoint_path)
+    agent = agent_from_checkpoint(checkpoint_path, index)
+    export = {
+        "variant": VARIANT, "kind": "policy", "args": checkpoint["args"], "counters": checkpoint["counters"],
+        "agents": [agent.acting_state_dict()],
+    }  # fmt: skip
+    _atomic_torch_save(export, out)
+    return os.path.getsize(out)
+
+
+CHECKPOINT_KEYS = ("variant", "args", "counters", "agents")  # and "rng", except in an acting-only export
 
 
 def _first_line(error: BaseException) -> str:
@@ -1362,9 +1393,10 @@ def _first_line(error: BaseException) -> str:
     return text.splitlines()[0] if text else type(error).__name__
 
 
-def load_checkpoint(path: str, map_location="cpu") -> dict:
-    """Load a checkpoint of this script with weights_only=True; a missing, truncated or foreign file (or one of
-    the other variant) raises CheckpointError, whose one-line message names the file."""
+def load_checkpoint(path: str, map_location="cpu", training: bool = False) -> dict:
+    """Load a checkpoint (or an acting-only export) of this script with weights_only=True; a missing, truncated or
+    foreign file (or one of the other variant, or an export when `training`) raises CheckpointError, whose
+    one-line message names the file."""
     if not os.path.isfile(path):
         raise CheckpointError(f"{path}: no such checkpoint file")
     try:
@@ -1372,12 +1404,15 @@ def load_checkpoint(path: str, map_location="cpu") -> dict:
     except Exception as e:  # truncated zip, not a torch file, a pickle weights_only refuses, ...
         reason = _first_line(e)
         raise CheckpointError(f"{path}: not a readable checkpoint (truncated or not a torch file): {reason}") from None
-    if not isinstance(checkpoint, dict) or not all(key in checkpoint for key in CHECKPOINT_KEYS):
-        raise CheckpointError(f"{path}: not a checkpoint of these scripts (needs entries {', '.join(CHECKPOINT_KEYS)})")
+    keys = CHECKPOINT_KEYS if isinstance(checkpoint, dict) and checkpoint.get("kind") == "policy" else (*CHECKPOINT_KEYS, "rng")
+    if not isinstance(checkpoint, dict) or not all(key in checkpoint for key in keys):
+        raise CheckpointError(f"{path}: not a checkpoint of these scripts (needs entries {', '.join(keys)})")
     if checkpoint["variant"] != VARIANT:
         raise CheckpointError(f"{path}: holds a {checkpoint['variant']!r} agent, this script builds {VARIANT!r}")
     if not isinstance(checkpoint["agents"], list) or not checkpoint["agents"]:
         raise CheckpointError(f"{path}: holds no agents")
+    if training and checkpoint.get("kind") == "policy":
+        raise CheckpointError(f"{path}: is an acting-only export (no critic, optimisers or replay): it cannot train")
     return checkpoint
 
 
@@ -1554,7 +1589,7 @@ def main(args: Args, overrides=()) -> str:
     resumed = None
     if args.resume:
         checkpoint_path = resolve_checkpoint(args.resume)
-        resumed = load_checkpoint(checkpoint_path)
+        resumed = load_checkpoint(checkpoint_path, training=True)
         args = resumed_args(resumed, checkpoint_path, args, overrides)
         validate_args(args)
         run_dir = os.path.dirname(os.path.dirname(os.path.abspath(checkpoint_path)))
@@ -1566,7 +1601,7 @@ def main(args: Args, overrides=()) -> str:
             print(f"stage 'ghost' races one track at a time: --num-races {args.num_races} -> 1")
             args = dataclasses.replace(args, num_races=1)
         if args.checkpoint:  # the networks must have the sizes they were trained with
-            start = load_checkpoint(args.checkpoint)
+            start = load_checkpoint(args.checkpoint, training=True)
             sizes = args_from_checkpoint(start, args.checkpoint)
             changed = {key: getattr(sizes, key) for key in ARCHITECTURE if getattr(sizes, key) != getattr(args, key)}
             if changed:

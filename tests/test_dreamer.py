@@ -620,6 +620,39 @@ def test_replay_save_load_round_trip(script, tmp_path):
 # ------------------------------------------------------------------------------------------
 # Checkpoints, memory setting
 # ------------------------------------------------------------------------------------------
+def test_acting_only_export_acts_exactly_like_its_checkpoint(script, tmp_path):
+    """An export keeps encoder, posterior, recurrent core and actor (nothing to learn with), loads with
+    weights_only=True, and drives exactly like the full checkpoint under every policy (same random streams)."""
+    torch.manual_seed(0)
+    args = tiny_args(script)
+    agent = script.Agent(args)
+    agent.update(random_batch())  # weights and BatchNorm statistics away from their initial values
+    full_path, export_path = str(tmp_path / "latest.pt"), str(tmp_path / "policy.pt")
+    script.save_checkpoint(full_path, args, [agent], {"episode": 1, "global_step": 10})
+    size = script.export_policy(full_path, export_path)
+    assert size == os.path.getsize(export_path) < os.path.getsize(full_path) / 3
+    export = torch.load(export_path, weights_only=True)
+    assert set(export["agents"][0]) == {"world_model", "actor", "num_updates"}
+    prefixes = {key.split(".")[0] for key in export["agents"][0]["world_model"]}
+    assert prefixes == {"encoder", "recurrent_input", "cell", "representation"}
+    full, policy = script.agent_from_checkpoint(full_path), script.agent_from_checkpoint(export_path)
+    frames = np.random.default_rng(0).integers(0, 256, (6, 2, 64, 64, 3), dtype=np.uint8)
+    for mode in script.EVAL_POLICIES:
+        actions = []
+        for driver in (full, policy):
+            torch.manual_seed(3)
+            state, taken = None, []
+            for t, obs in enumerate(frames):
+                action, state = driver.act(obs, state, np.array([t == 0, False]), mode)
+                taken.append(action)
+            actions.append(np.stack(taken))
+        np.testing.assert_array_equal(actions[0], actions[1])
+    with pytest.raises(RuntimeError, match="cannot learn"):
+        policy.update(random_batch())
+    with pytest.raises(script.CheckpointError, match="acting-only export"):
+        script.load_checkpoint(export_path, training=True)
+
+
 def test_checkpoint_round_trip_with_weights_only(script, tmp_path):
     args = tiny_args(script)
     agents = [script.Agent(args) for _ in range(2)]
