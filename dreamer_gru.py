@@ -1,19 +1,19 @@
 # GRU-Dreamer (the Dreamer-v3 baseline) for decentralized multi-car racing, in one file (CleanRL style).
 # Method: "Deep Latent Competition V1: Decentralized multi-car racing with LSTM-Dreamer-V3" (DLC-v1).
-# Specification: DESIGN.md section 4. Usage: `python dreamer_gru.py --seed 1`, then `tensorboard --logdir runs`.
+# Usage: `python dreamer_gru.py --seed 1` (or `--preset cpu`), then `tensorboard --logdir runs`. Details: docs/agent.md.
 """GRU-Dreamer: a world model learned from pixels, an actor and a critic trained in its imagination.
 
 Read top to bottom:
 
-1. Args ............ every hyperparameter, with the defaults of DESIGN 4.4
+1. Args ............ every hyperparameter (the paper's defaults) and the CPU preset
 2. Environment ..... the vectorized race (one slot per car), frame preprocessing, dead-zone schedule
 3. Networks ........ encoder, recurrent core (GRU with a learned initial h), posterior/prior,
-                     decoder, reward, continue, actor, critic (DESIGN 4.1)
-4. Losses .......... Gaussian likelihoods and KL, free bits, lambda-returns (DESIGN 4.2, 4.3)
+                     decoder, reward, continue, actor, critic (paper appendix)
+4. Losses .......... Gaussian likelihoods and KL, free bits, lambda-returns (paper 3.8-3.9)
 5. Replay .......... per-agent ring buffer of uint8 frames, uniform sequence sampling
 6. Agent ........... world-model update, imagination, actor and critic updates, acting
-7. Checkpoints ..... one format, loadable with torch.load(weights_only=True)
-8. Training loop ... Algorithm 1: decentralized agents, stages single / ghost / race
+7. Training loop ... Algorithm 1: decentralized agents act, store, train; stages single / ghost / race
+8. Infrastructure .. validation, memory, set-up and resume, atomic checkpoints, command line
 
 Everything that depends on the recurrent cell is inside `RecurrentCell` (its state is a tuple of
 tensors; the model state fed to every head is z||h). The LSTM script (dreamer_lstm.py) is this file
@@ -49,7 +49,7 @@ VARIANT = "gru"  # written into every checkpoint, so race.py knows which script 
 
 
 # =====================================================================================
-# 1. Arguments (defaults: DESIGN 4.4, GRU column)
+# 1. Arguments (defaults: the paper and its authors' code, GRU column; docs/agent.md)
 # =====================================================================================
 @dataclasses.dataclass
 class Args:
@@ -148,6 +148,8 @@ class Args:
     replay_save_every: int = 1
     """save the replay buffers beside the checkpoints every this many races (0: never); a resume restores the
     replay as of its last save, so 1 makes a resume exact (only the chunks a race changed are written)"""
+    print_table: bool = False
+    """also print the logger's table of every race on stdout (TensorBoard and progress.csv always have it)"""
     max_nonfinite_updates: int = 20
     """stop the run (with a checkpoint) after this many updates in a row with a non-finite loss or gradient"""
 
@@ -224,163 +226,12 @@ PRESETS: dict[str, dict] = {
         "batch_size": 16, "imagination_horizon": 15,  # 16 * 32 * 15 = 7,680 imagined steps per update
     },
 }  # fmt: skip
-# Arguments that fix the networks' shapes (a --checkpoint brings its own; a resumed run cannot change them),
-# and what a run is (a resumed run cannot change those either).
-ARCHITECTURE = ("image_size", "cnn_depth", "deter_size", "hidden_size", "mlp_size", "latent_size", "norm")
-IDENTITY = ("env_id", "num_agents", "num_races", "stage", "seed", "exp_name", "runs_dir", "checkpoint", "preset")
-
-
 def preset_args(preset: str = "paper", **overrides) -> Args:
     """Args of a preset with `overrides` on top (the Python form of `--preset NAME --flag value ...`)."""
     if preset not in PRESETS:
         raise UsageError(f"--preset must be one of {sorted(PRESETS)}, got {preset!r}")
     return dataclasses.replace(Args(preset=preset), **{**PRESETS[preset], **overrides})
 
-
-def explicit_fields(argv: list[str]) -> set[str]:
-    """Names of the Args fields that a command line sets explicitly (`--flag v`, `--flag=v`, `--[no-]flag`)."""
-    fields = {field.name: field for field in dataclasses.fields(Args)}
-    names = {_flag(name)[2:]: name for name in fields}
-    found = set()
-    for token in argv:
-        if not token.startswith("--"):
-            continue
-        flag = token[2:].split("=", 1)[0].replace("_", "-")
-        if flag in names:
-            found.add(names[flag])
-        elif flag.startswith("no-") and flag[3:] in names and fields[names[flag[3:]]].type in (bool, "bool"):
-            found.add(names[flag[3:]])
-    return found
-
-
-class UsageError(ValueError):
-    """Bad input (an argument, a checkpoint file, a memory budget), found before any work starts; one-line message."""
-
-
-class CheckpointError(UsageError):
-    """A missing, truncated or foreign checkpoint (or replay) file; the message names the file."""
-
-
-class NumericalFault(RuntimeError):
-    """--max-nonfinite-updates updates in a row had a non-finite loss or gradient; the run stopped with a checkpoint."""
-
-
-def _flag(name: str) -> str:
-    return "--lambda" if name == "lambda_" else "--" + name.replace("_", "-")
-
-
-def validate_args(args: Args) -> None:
-    """Refuse impossible arguments before any work starts: raises UsageError (a ValueError) naming the flag."""
-
-    def require(ok: bool, name: str, requirement: str) -> None:
-        if not ok:
-            raise UsageError(f"{_flag(name)} {requirement}, got {getattr(args, name)!r}")
-
-    for field in dataclasses.fields(args):
-        value = getattr(args, field.name)
-        if isinstance(value, float):
-            require(math.isfinite(value), field.name, "must be a finite number")
-    for minimum, names in {
-        1: ("num_agents", "num_races", "max_steps", "action_repeat", "total_episodes", "replay_capacity", "batch_size",
-            "imagination_horizon", "eval_episodes", "ghost_tracks", "video_length", "max_nonfinite_updates",
-            "cnn_depth", "deter_size", "hidden_size", "mlp_size", "latent_size"),
-        2: ("seq_len",),  # a sequence model learns from transitions: at least two steps
-        0: ("torch_threads", "stall_steps", "dead_zone_episodes", "prefill_episodes", "train_steps_per_episode",
-            "eval_every", "video_every", "checkpoint_every", "replay_save_every", "imagination_starts",
-            "time_limit_hours", "entropy_coef", "free_bits", "kl_dyn_scale", "kl_rep_scale", "brake_speed_threshold",
-            "collision_penalty", "offroad_penalty", "eval_seed", "ghost_seed"),
-    }.items():  # fmt: skip
-        for name in names:
-            require(getattr(args, name) >= minimum, name, f"must be >= {minimum}")
-    for name in ("model_lr", "critic_lr", "actor_lr", "grad_clip"):
-        require(getattr(args, name) > 0, name, "must be > 0")
-    require(0 < args.gamma <= 1, "gamma", "must lie in (0, 1]")
-    require(0 <= args.lambda_ <= 1, "lambda_", "must lie in [0, 1]")
-    require(0 < args.tau <= 1, "tau", "must lie in (0, 1]")
-    low, high = LOG_SIGMA_RANGE
-    require(low <= args.decoder_min_log_sigma <= high, "decoder_min_log_sigma", f"must lie in [{low:g}, {high:g}]")
-    for name in ("dead_zone_start", "dead_zone_end"):
-        require(-1 <= getattr(args, name) <= 0, name, "must lie in [-1, 0]")
-    require(0 <= args.seed < 2**32, "seed", "must lie in [0, 2**32)")
-    starts = args.batch_size * args.seq_len
-    require(args.imagination_starts <= starts, "imagination_starts", f"must be <= batch-size * seq-len = {starts}")
-    require(args.replay_capacity >= args.seq_len, "replay_capacity", f"must be >= --seq-len ({args.seq_len})")
-    from utils.vec_env import ENV_IDS
-
-    require(args.env_id in ENV_IDS, "env_id", f"must be one of {sorted(ENV_IDS)}")
-    if args.stage == "ghost":
-        require(args.env_id == "multi_car_racing", "env_id", "must be multi_car_racing for --stage ghost")
-        if not args.checkpoint and not args.resume:
-            raise UsageError("--stage ghost needs --checkpoint (e.g. runs/<run>/checkpoints/best.pt)")
-    if args.resume is not None:
-        require(os.path.isfile(resolve_checkpoint(args.resume)), "resume", "must be a run directory with "
-                "checkpoints/latest.pt or a checkpoint file")  # fmt: skip
-    elif args.checkpoint is not None:  # (a resumed run has its networks already)
-        require(os.path.isfile(args.checkpoint), "checkpoint", "must be a checkpoint file")
-
-
-def available_memory() -> tuple[int | None, str]:
-    """Bytes of memory a new allocation can use, and where the number comes from: MemAvailable of /proc/meminfo
-    (capped by a cgroup memory limit), else free physical pages (sysconf), else (None, "unknown")."""
-    available, source = None, "unknown"
-    with contextlib.suppress(OSError, ValueError):
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    available, source = int(line.split()[1]) * 1024, "MemAvailable in /proc/meminfo"
-    if available is None:
-        with contextlib.suppress(OSError, ValueError, AttributeError):
-            available, source = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"), "free pages (sysconf)"
-    cgroup_files = [("memory.max", "memory.current"), ("memory/memory.limit_in_bytes", "memory/memory.usage_in_bytes")]
-    for limit_file, usage_file in cgroup_files:
-        with contextlib.suppress(OSError, ValueError):  # a container's limit ("max": none)
-            with open(f"/sys/fs/cgroup/{limit_file}") as f, open(f"/sys/fs/cgroup/{usage_file}") as g:
-                room = int(f.read()) - int(g.read())
-            if available is None or room < available:
-                available, source = room, f"cgroup limit /sys/fs/cgroup/{limit_file}"
-    return available, source
-
-
-def _size(num_bytes: float) -> str:
-    return f"{num_bytes / 1e9:,.2f} GB" if num_bytes >= 1e9 else f"{num_bytes / 1e6:,.1f} MB"
-
-
-def check_replay_memory(args: Args) -> int:
-    """Print the replay buffers' size (all agents) and refuse a capacity that cannot fit in available memory.
-
-    The buffers are allocated lazily (pages are touched as they fill), so a run that does not fit would only
-    fail hours later; returns their size in bytes."""
-    step_bytes = Replay.bytes_per_step(args.image_size)
-    per_agent = args.replay_capacity * step_bytes
-    total = args.num_agents * per_agent
-    available, source = available_memory()
-    room = "unknown" if available is None else _size(available)
-    print(f"replay buffers: {args.num_agents} x {args.replay_capacity:,} steps x {step_bytes:,} B = {_size(total)}"
-          f" (memory available: {room}, {source})")  # fmt: skip
-    if available is not None and total > available:
-        raise UsageError(
-            f"--replay-capacity {args.replay_capacity}: the replay buffers need {args.num_agents} x {_size(per_agent)}"
-            f" = {_size(total)} but only {_size(available)} of memory is available ({source}); lower --replay-capacity"
-        )
-    return total
-
-
-def keep_freed_memory() -> bool:
-    """Stop glibc from returning freed memory to the OS (DESIGN 6).
-
-    Every update allocates and frees the same large blocks; by default glibc unmaps them and the
-    kernel page-faults them in again on the next update (~45% of wall time measured here).
-    mallopt(M_TRIM_THRESHOLD, 2**31-1) and mallopt(M_MMAP_MAX, 0) keep them in the process.
-    Linux/glibc only; returns whether both settings took effect.
-    """
-    if not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc":
-        return False
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-    except OSError:
-        return False
-    M_TRIM_THRESHOLD, M_MMAP_MAX = -1, -4  # from glibc's malloc.h
-    return libc.mallopt(M_TRIM_THRESHOLD, 2**31 - 1) == 1 and libc.mallopt(M_MMAP_MAX, 0) == 1
 
 
 # =====================================================================================
@@ -981,34 +832,6 @@ class Replay:
                     os.remove(path)
 
 
-def _atomic_write(path: str, write) -> None:
-    """Write a file so that a kill at any moment leaves the old file or the new one, never a part: write(f) into a
-    temporary file beside it, flush and fsync it, rename it over `path` (os.replace), fsync the directory."""
-    directory = os.path.dirname(os.path.abspath(path))
-    os.makedirs(directory, exist_ok=True)
-    tmp = path + ".tmp"
-    try:
-        with open(tmp, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.remove(tmp)
-        raise
-    with contextlib.suppress(OSError):  # the rename itself reaches the disk (not possible on every platform)
-        fd = os.open(directory, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-
-
-def _atomic_npz(path: str, **arrays) -> None:
-    _atomic_write(path, lambda f: np.savez_compressed(f, **arrays))
-
-
 # =====================================================================================
 # 6. Agent: world-model learning, behaviour learning in imagination, acting
 # =====================================================================================
@@ -1324,8 +1147,690 @@ class Agent:
 
 
 # =====================================================================================
-# 7. Checkpoints (DESIGN 4.6): tensors and plain Python types only, written atomically
+# 7. Training loop (Algorithm 1)
 # =====================================================================================
+class CarEpisode:
+    """One car's episode as it is being driven: frames at the encoder's size, the action that led to
+    each frame (zero for the first), the reward that came with it, and whether it is a terminal state."""
+
+    def __init__(self, first_frame: np.ndarray, action_dim: int = 2):
+        self.obs, self.action = [first_frame], [np.zeros(action_dim, dtype=np.float32)]
+        self.reward, self.terminated = [0.0], [False]
+        self.ret, self.final_info = 0.0, None
+
+    def add(self, frame, action, reward, terminated) -> None:
+        self.obs.append(frame)
+        self.action.append(np.asarray(action, dtype=np.float32))
+        self.reward.append(float(reward))
+        self.terminated.append(bool(terminated))
+        self.ret += float(reward)
+
+    def arrays(self) -> tuple[np.ndarray, ...]:
+        reward, terminated = np.asarray(self.reward, np.float32), np.asarray(self.terminated)
+        return np.stack(self.obs), np.stack(self.action), reward, terminated
+
+
+def evaluate(agents: list[Agent], args: Args, eval_envs, policy: str | None = None, seeds=None) -> tuple[np.ndarray, ...]:
+    """Races with `policy` (default --eval-policy) on the tracks `seeds` (default: the held-out eval_seed + i, i <
+    eval_episodes); per race and car the return, the final progress (fraction of tiles) and the mean |action[0]|
+    of the car's decisions while racing, each (E, N). On the racing env action 0 is the steer: near 1 is bang-bang
+    steering (the pursuit driver: ~0.06)."""
+    n, policy = args.num_agents, policy or args.eval_policy
+    seeds = [args.eval_seed + e for e in range(args.eval_episodes)] if seeds is None else list(seeds)
+    returns, progress = np.zeros((len(seeds), n)), np.zeros((len(seeds), n))
+    abs_steer, decisions = np.zeros((len(seeds), n)), np.zeros((len(seeds), n))
+    for e, seed in enumerate(seeds):
+        eval_envs.seed(seed)
+        obs, states, is_first = eval_envs.reset(), [None] * n, np.ones(n, dtype=bool)
+        racing = np.ones(n, dtype=bool)
+        while True:
+            frames = preprocess_frames(obs, args.image_size)
+            actions = np.zeros((n, 2), dtype=np.float32)
+            for i, agent in enumerate(agents):
+                car = slice(i, i + 1)
+                actions[car], states[i] = agent.act(frames[car], states[i], is_first[car], policy)
+            abs_steer[e] += np.abs(actions[:, 0]) * racing
+            decisions[e] += racing
+            obs, rewards, dones, infos, _ = step_with_repeat(eval_envs, actions, args.action_repeat)
+            returns[e] += rewards  # cars that are out get reward 0
+            for i, info in enumerate(infos):
+                racing[i] = info["alive"] and not dones[i]  # a car that went out this step decides no more
+                if info["alive"]:
+                    progress[e, i] = info.get("progress", 0.0)
+            if infos[0]["is_first"]:
+                break
+            is_first[:] = False
+    return returns, progress, abs_steer / np.maximum(decisions, 1)
+
+
+def train_agent(agent: Agent, replay: Replay, args: Args, logger, prefix: str, on_update=None) -> float:
+    """--train-steps-per-episode updates on uniformly sampled sequences; returns updates per second.
+
+    Each update's losses go to the logger as running means (SB3's record_mean; non-finite values are left out).
+    `on_update(done, seconds)` is called after every update (progress display). Stops early once the agent has
+    had --max-nonfinite-updates updates in a row with a non-finite loss or gradient (main then ends the run)."""
+    started = time.time()
+    for done in range(1, args.train_steps_per_episode + 1):
+        t_update = time.time()
+        for key, value in agent.update(replay.sample(args.batch_size, args.seq_len)).items():
+            if math.isfinite(value):
+                logger.record_mean(f"{prefix}losses/{key}", value)
+        if on_update is not None:
+            on_update(done, time.time() - t_update)
+        if agent.nonfinite_in_a_row >= args.max_nonfinite_updates:
+            break
+    return done / max(time.time() - started, 1e-9)
+
+
+@dataclasses.dataclass
+class Run:
+    """What a training run carries from race to race; `setup_run` builds it, `save_latest` writes it."""
+
+    args: Args
+    run_dir: str
+    device: torch.device
+    agents: list[Agent]
+    replays: list[Replay]
+    counters: dict  # episode (races finished), global_step (env steps), best_eval_return
+    logger: object
+    envs: object
+    eval_envs: object = None  # made at the first evaluation
+    ghosts: dict = dataclasses.field(default_factory=dict)  # ghost stage: track seed -> the best run on it so far
+    wins: list = dataclasses.field(default_factory=list)  # per agent, its last 100 race results
+    manifests: list = dataclasses.field(default_factory=list)  # per agent, the replay save that latest.pt names
+    from_checkpoint: bool = False  # the agents started from --checkpoint: no random prefill
+    started: float = dataclasses.field(default_factory=time.time)
+    fault: str | None = None  # set when an agent had --max-nonfinite-updates faulty updates in a row
+    update_seconds: list = dataclasses.field(default_factory=list)  # the first updates' times (CPU report)
+    pbar: object = None
+
+    @property
+    def checkpoint_dir(self) -> str:
+        return os.path.join(self.run_dir, "checkpoints")
+
+    def replay_dir(self, j: int) -> str:
+        return os.path.join(self.checkpoint_dir, f"replay_car_{j}")
+
+    def finished(self) -> bool:
+        """The run's end: --total-episodes races, --total-updates updates, the time limit, or a numerical fault."""
+        args = self.args
+        return (
+            self.counters["episode"] >= args.total_episodes
+            or (args.total_updates > 0 and min(agent.num_updates for agent in self.agents) >= args.total_updates)
+            or (args.time_limit_hours > 0 and time.time() - self.started > 3600 * args.time_limit_hours)
+            or self.fault is not None
+        )
+
+    def acts_randomly(self) -> bool:
+        """Random actions in the prefill races of a new single or race stage (also when resumed during them)."""
+        args = self.args
+        return self.counters["episode"] < args.prefill_episodes and not self.from_checkpoint and args.stage != "ghost"
+
+    def learning_starts(self) -> int:
+        """Updates start after the prefill races; a ghost-stage run first races every ghost track once with the
+        starting policy (those runs are the first ghosts and fill the replay)."""
+        return self.args.ghost_tracks if self.args.stage == "ghost" else self.args.prefill_episodes
+
+
+def start_race(run: Run) -> tuple[np.ndarray, int]:
+    """One race at a time (K = 1): reset on the next race's track, a ghost track with its ghost (if it has one yet)
+    in the ghost stage, else the track race_seed(seed, episode), so a resumed run drives the same tracks."""
+    args, episode = run.args, run.counters["episode"]
+    if args.stage == "ghost":
+        seed = args.ghost_seed + episode % args.ghost_tracks
+        run.envs.set_options({"ghosts": {"car_0": run.ghosts[seed]}} if seed in run.ghosts else {})
+    else:
+        seed = race_seed(args.seed, episode)
+    run.envs.seed(seed)
+    return run.envs.reset(), seed
+
+
+def log_race(run: Run, cars: list[CarEpisode], track_seed: int | None) -> None:
+    """Per car: return, progress, lap time and win rate (race stages; the ghost stage: beating the ghost, whose
+    record is replaced when beaten)."""
+    from envs import race_winners
+
+    args, logger = run.args, run.logger
+    final_infos = [car.final_info or {} for car in cars]
+    racing = args.env_id == "multi_car_racing"
+    won = race_winners(final_infos) if len(cars) > 1 and racing else None  # (highway-env has no ranks)
+    if args.stage == "ghost":  # a win is beating the ghost (races without a ghost yet do not count)
+        won = [bool(final_infos[0]["ghost_beaten"])] if "ghost_beaten" in final_infos[0] else None
+        if track_seed not in run.ghosts or (won and won[0]):  # the first run on the track, or the ghost beaten
+            run.ghosts[track_seed] = final_infos[0]["trajectory"].to_dict()
+        logger.record("ghost/track_seed", track_seed)
+        logger.record("ghost/ghosts_recorded", len(run.ghosts))
+    for j, car in enumerate(cars):
+        logger.record(f"car_{j}/charts/episodic_return", car.ret)
+        logger.record(f"car_{j}/charts/progress", float(final_infos[j].get("progress", 0.0)))
+        if final_infos[j].get("lap_finished"):
+            logger.record(f"car_{j}/charts/lap_time", int(final_infos[j]["finish_step"]))
+        if won is not None:
+            run.wins[j].append(float(won[j]))
+            logger.record(f"car_{j}/charts/win_rate", float(np.mean(run.wins[j])))
+    logger.record("charts/episode", run.counters["episode"])
+    if racing:
+        logger.record("charts/dead_zone", dead_zone_at(run.counters["episode"], args))
+
+
+def train_all(run: Run) -> None:
+    """Every agent trains on its own replay (Algorithm 1, after each race); the burst shows in the progress bar,
+    and on a CPU the time of one update is reported after the first few."""
+    args = run.args
+    for j, (agent, replay) in enumerate(zip(run.agents, run.replays)):
+
+        def on_update(done: int, seconds: float, j=j) -> None:
+            run.update_seconds.append(seconds)
+            if run.pbar is not None:
+                rate = (len(run.update_seconds) - 1) / max(sum(run.update_seconds[1:]), 1e-9)
+                run.pbar.set_postfix_str(f"training car_{j}: {done}/{args.train_steps_per_episode} updates, "
+                                         f"{rate:.2f} updates/s", refresh=True)  # fmt: skip
+            if len(run.update_seconds) == 4 and run.device.type == "cpu":
+                report_update_time(run)
+
+        updates_per_s = train_agent(agent, replay, args, run.logger, f"car_{j}/", on_update)
+        run.logger.record(f"car_{j}/perf/updates_per_s", updates_per_s)
+        run.logger.record(f"car_{j}/perf/updates", agent.num_updates)
+        run.logger.record(f"car_{j}/faults/nonfinite_updates", agent.nonfinite_updates)
+        if agent.nonfinite_in_a_row >= args.max_nonfinite_updates:
+            run.fault = (f"car_{j}: {agent.nonfinite_in_a_row} updates in a row had a non-finite loss or gradient"
+                         f" (--max-nonfinite-updates {args.max_nonfinite_updates})")  # fmt: skip
+            return
+
+
+def report_update_time(run: Run) -> None:
+    """Say how long one update takes on this CPU (the first update warms up) and what that means per race."""
+    args, n = run.args, len(run.agents)
+    per_update = float(np.median(run.update_seconds[1:4]))
+    minutes = per_update * args.train_steps_per_episode * n / 60
+    message = (f"On this CPU one update takes {per_update:.2f} s: {args.train_steps_per_episode} updates x {n}"
+               f" agent(s) = {minutes:.1f} min of training per race.")  # fmt: skip
+    if args.preset == "paper":
+        message += f" For a CPU-sized run: python {os.path.basename(__file__)} --preset cpu --seed 1 (README.md)"
+    _print(run, message)
+
+
+def log_videos(run: Run, cars: list[CarEpisode]) -> None:
+    """Each car's race so far beside the model's reconstruction and an open-loop imagination."""
+    from utils.logger import log_video
+
+    for j, (agent, car) in enumerate(zip(run.agents, cars)):
+        obs, actions, _, _ = car.arrays()
+        length = min(len(obs), run.args.video_length)
+        first = np.zeros(length, dtype=bool)
+        first[0] = True
+        video = agent.video(obs[:length], actions[:length], first)
+        log_video(run.logger, f"car_{j}/videos/real_reconstruction_imagination", video, run.counters["global_step"], 25)
+
+
+def evaluate_and_keep_best(run: Run) -> None:
+    """Evaluate on the held-out tracks, log it, print one line, keep best.pt (and eval_<race>.pt if asked)."""
+    from utils import make_vec_env
+
+    args, counters = run.args, run.counters
+    if run.eval_envs is None:
+        run.eval_envs = make_vec_env(args.env_id, 1, None, **env_kwargs(args, args.dead_zone_end))
+    returns, progress, abs_steer = evaluate(run.agents, args, run.eval_envs)
+    for j in range(len(run.agents)):
+        run.logger.record(f"car_{j}/eval/episodic_return", float(returns[:, j].mean()))
+        run.logger.record(f"car_{j}/eval/progress", float(progress[:, j].mean()))
+        if args.env_id == "multi_car_racing":  # highway-env's action 0 is the acceleration
+            run.logger.record(f"car_{j}/eval/mean_abs_steer", float(abs_steer[:, j].mean()))
+    updates = run.agents[0].num_updates
+    _print(run, f"evaluation after race {counters['episode']} ({updates} updates, {counters['global_step']} env steps):"
+                f" return {returns.mean():.1f}, progress {progress.mean():.2f}, |steer| {abs_steer.mean():.2f}"
+                f" ({args.eval_policy}, {len(returns)} held-out tracks)")  # fmt: skip
+    extra = _extra(run.ghosts, run.manifests, run.wins)
+    if args.eval_checkpoints:
+        save_checkpoint(os.path.join(run.checkpoint_dir, f"eval_{counters['episode']:06d}.pt"), args, run.agents, counters, extra)
+    if returns.mean() > counters["best_eval_return"]:
+        counters["best_eval_return"] = float(returns.mean())
+        save_checkpoint(os.path.join(run.checkpoint_dir, "best.pt"), args, run.agents, counters, extra)
+
+
+def save_latest(run: Run) -> str:
+    """checkpoints/latest.pt, naming each agent's replay save; then the replay files it does not name go."""
+    path = os.path.join(run.checkpoint_dir, "latest.pt")
+    save_checkpoint(path, run.args, run.agents, run.counters, _extra(run.ghosts, run.manifests, run.wins))
+    for j, manifest in enumerate(run.manifests):
+        if manifest is not None:
+            Replay.prune(run.replay_dir(j), manifest)
+    return path
+
+
+def end_race(run: Run, cars: list[CarEpisode], track_seed: int | None, env_sps: float) -> None:
+    """After race `episode` ended: log it, train every agent, then video, evaluation, replay save, checkpoint."""
+    args, counters = run.args, run.counters
+    counters["episode"] += 1
+    episode = counters["episode"]
+    log_race(run, cars, track_seed)
+    for j in range(len(cars)):
+        run.logger.record(f"car_{j}/perf/env_sps", env_sps)
+    if args.env_id == "multi_car_racing":  # the dead-zone schedule, applied at the env's next reset: one race at
+        # a time resets after this (start_race); K races have already auto-reset this slot, so K > 1 sets the value
+        # one race ahead, for the race that starts when the next one ends (main sets it for the first)
+        run.envs.env_method("set_dead_zone", dead_zone_at(episode + (args.num_races > 1), args))
+    if episode >= run.learning_starts() and all(r.can_sample(args.seq_len) for r in run.replays):
+        train_all(run)
+    if run.fault is None:
+        if args.video_every and episode % args.video_every == 0:
+            log_videos(run, cars)
+        if args.eval_every and episode % args.eval_every == 0:
+            evaluate_and_keep_best(run)
+        # The replay first, then latest.pt naming it: a kill between the two leaves the previous pair intact.
+        if args.replay_save_every and episode % args.replay_save_every == 0:
+            run.manifests = [replay.save(run.replay_dir(j)) for j, replay in enumerate(run.replays)]
+        if args.checkpoint_every and episode % args.checkpoint_every == 0:
+            save_latest(run)
+    run.logger.dump(counters["global_step"])
+    if run.pbar is not None:
+        run.pbar.update(1)
+        run.pbar.set_postfix_str(f"race {episode}: return {np.mean([c.ret for c in cars]):.1f}, "
+                                 f"{env_sps:.0f} env steps/s, {run.agents[0].num_updates} updates")  # fmt: skip
+
+
+def main(args: Args, overrides=()) -> str:
+    """Train with `args` (Algorithm 1); returns the run directory. With args.resume the run continues with the
+    settings it was started with, except the fields named in `overrides`, which come from `args`.
+
+    Bad input (an impossible argument, an unreadable checkpoint, a replay that cannot fit in memory) raises
+    UsageError before anything is written. --max-nonfinite-updates faulty updates in a row end the run with a
+    checkpoint and raise NumericalFault."""
+    from tqdm import tqdm
+
+    run = setup_run(args, overrides)
+    args, n, k_races = run.args, run.args.num_agents, run.args.num_races
+    slots = k_races * n  # agent i drives car i of every race: slots i, i + n, ...
+    # One race at a time starts on its own track (start_race); K races side by side auto-reset on the tracks of
+    # each race's seeded stream, with the dead zone set ahead for the race that starts next (end_race).
+    obs, track_seed = start_race(run) if k_races == 1 else (run.envs.reset(), None)
+    if args.env_id == "multi_car_racing" and k_races > 1:
+        run.envs.env_method("set_dead_zone", dead_zone_at(run.counters["episode"] + 1, args))
+    frames, is_first = preprocess_frames(obs, args.image_size), np.ones(slots, dtype=bool)
+    states, episodes = [None] * n, [None] * slots
+    env_time, env_steps, env_sps = 0.0, 0, 0.0
+    run.pbar = tqdm(total=args.total_episodes, initial=run.counters["episode"], desc=f"{VARIANT} {args.stage}")
+    while not run.finished():
+        t0 = time.time()
+        # --- act: every agent drives its own car in every race (random actions during the prefill) -------
+        for slot in np.flatnonzero(is_first):
+            episodes[slot] = CarEpisode(frames[slot], run.agents[0].action_dim)
+        actions = np.zeros((slots, run.agents[0].action_dim), dtype=np.float32)
+        for i, agent in enumerate(run.agents):
+            mine = np.arange(i, slots, n)
+            if run.acts_randomly():
+                actions[mine] = np.random.uniform(-1, 1, size=(len(mine), agent.action_dim))
+            else:
+                actions[mine], states[i] = agent.act(frames[mine], states[i], is_first[mine])
+        obs, rewards, dones, infos, repeats = step_with_repeat(run.envs, actions, args.action_repeat)
+        frames = preprocess_frames(obs, args.image_size)
+        run.counters["global_step"] += k_races * repeats
+        env_steps += k_races * repeats
+        # --- store: each live car's transition goes to its own agent's episode, a finished one to its replay
+        for slot, info in enumerate(infos):
+            if not info["alive"]:
+                continue
+            if dones[slot]:
+                frame = preprocess_frames(info["terminal_observation"][None], args.image_size)[0]
+                episodes[slot].add(frame, actions[slot], rewards[slot], terminated=not info["TimeLimit.truncated"])
+                episodes[slot].final_info = info
+                run.replays[slot % n].add_episode(*episodes[slot].arrays())
+            else:
+                episodes[slot].add(frames[slot], actions[slot], rewards[slot], terminated=False)
+        is_first = np.array([info["is_first"] for info in infos], dtype=bool)
+        env_time += time.time() - t0
+        # --- train: after every race that ended, each agent updates on its own replay --------------------
+        if is_first.any():  # env steps per second while the agents acted, since the last race ended
+            env_sps, env_time, env_steps = env_steps / max(env_time, 1e-9), 0.0, 0
+        for race in np.flatnonzero(is_first[::n]):
+            end_race(run, episodes[race * n : (race + 1) * n], track_seed, env_sps)
+            if run.finished():
+                break
+        if k_races == 1 and is_first.any() and not run.finished():
+            obs, track_seed = start_race(run)  # the next race's own track (the ghost stage: with its ghost)
+            frames, is_first[:] = preprocess_frames(obs, args.image_size), True
+    return finish_run(run)
+
+
+# =====================================================================================
+# 8. Run infrastructure: arguments, memory, set-up and resume, checkpoints, command line
+# =====================================================================================
+# Arguments that fix the networks' shapes (a --checkpoint brings its own; a resumed run cannot change them),
+# and what a run is (a resumed run cannot change those either).
+ARCHITECTURE = ("image_size", "cnn_depth", "deter_size", "hidden_size", "mlp_size", "latent_size", "norm")
+IDENTITY = ("env_id", "num_agents", "num_races", "stage", "seed", "exp_name", "runs_dir", "checkpoint", "preset")
+
+
+def explicit_fields(argv: list[str]) -> set[str]:
+    """Names of the Args fields that a command line sets explicitly (`--flag v`, `--flag=v`, `--[no-]flag`)."""
+    fields = {field.name: field for field in dataclasses.fields(Args)}
+    names = {_flag(name)[2:]: name for name in fields}
+    found = set()
+    for token in argv:
+        if not token.startswith("--"):
+            continue
+        flag = token[2:].split("=", 1)[0].replace("_", "-")
+        if flag in names:
+            found.add(names[flag])
+        elif flag.startswith("no-") and flag[3:] in names and fields[names[flag[3:]]].type in (bool, "bool"):
+            found.add(names[flag[3:]])
+    return found
+
+
+class UsageError(ValueError):
+    """Bad input (an argument, a checkpoint file, a memory budget), found before any work starts; one-line message."""
+
+
+class CheckpointError(UsageError):
+    """A missing, truncated or foreign checkpoint (or replay) file; the message names the file."""
+
+
+class NumericalFault(RuntimeError):
+    """--max-nonfinite-updates updates in a row had a non-finite loss or gradient; the run stopped with a checkpoint."""
+
+
+def _flag(name: str) -> str:
+    return "--lambda" if name == "lambda_" else "--" + name.replace("_", "-")
+
+
+def validate_args(args: Args) -> None:
+    """Refuse impossible arguments before any work starts: raises UsageError (a ValueError) naming the flag."""
+
+    def require(ok: bool, name: str, requirement: str) -> None:
+        if not ok:
+            raise UsageError(f"{_flag(name)} {requirement}, got {getattr(args, name)!r}")
+
+    for field in dataclasses.fields(args):
+        value = getattr(args, field.name)
+        if isinstance(value, float):
+            require(math.isfinite(value), field.name, "must be a finite number")
+    for minimum, names in {
+        1: ("num_agents", "num_races", "max_steps", "action_repeat", "total_episodes", "replay_capacity", "batch_size",
+            "imagination_horizon", "eval_episodes", "ghost_tracks", "video_length", "max_nonfinite_updates",
+            "cnn_depth", "deter_size", "hidden_size", "mlp_size", "latent_size"),
+        2: ("seq_len",),  # a sequence model learns from transitions: at least two steps
+        0: ("torch_threads", "stall_steps", "dead_zone_episodes", "prefill_episodes", "train_steps_per_episode",
+            "eval_every", "video_every", "checkpoint_every", "replay_save_every", "imagination_starts",
+            "time_limit_hours", "entropy_coef", "free_bits", "kl_dyn_scale", "kl_rep_scale", "brake_speed_threshold",
+            "collision_penalty", "offroad_penalty", "eval_seed", "ghost_seed"),
+    }.items():  # fmt: skip
+        for name in names:
+            require(getattr(args, name) >= minimum, name, f"must be >= {minimum}")
+    for name in ("model_lr", "critic_lr", "actor_lr", "grad_clip"):
+        require(getattr(args, name) > 0, name, "must be > 0")
+    require(0 < args.gamma <= 1, "gamma", "must lie in (0, 1]")
+    require(0 <= args.lambda_ <= 1, "lambda_", "must lie in [0, 1]")
+    require(0 < args.tau <= 1, "tau", "must lie in (0, 1]")
+    low, high = LOG_SIGMA_RANGE
+    require(low <= args.decoder_min_log_sigma <= high, "decoder_min_log_sigma", f"must lie in [{low:g}, {high:g}]")
+    for name in ("dead_zone_start", "dead_zone_end"):
+        require(-1 <= getattr(args, name) <= 0, name, "must lie in [-1, 0]")
+    require(0 <= args.seed < 2**32, "seed", "must lie in [0, 2**32)")
+    starts = args.batch_size * args.seq_len
+    require(args.imagination_starts <= starts, "imagination_starts", f"must be <= batch-size * seq-len = {starts}")
+    require(args.replay_capacity >= args.seq_len, "replay_capacity", f"must be >= --seq-len ({args.seq_len})")
+    from utils.vec_env import ENV_IDS
+
+    require(args.env_id in ENV_IDS, "env_id", f"must be one of {sorted(ENV_IDS)}")
+    if args.stage == "ghost":
+        require(args.env_id == "multi_car_racing", "env_id", "must be multi_car_racing for --stage ghost")
+        if not args.checkpoint and not args.resume:
+            raise UsageError("--stage ghost needs --checkpoint (e.g. runs/<run>/checkpoints/best.pt)")
+    if args.resume is not None:
+        require(os.path.isfile(resolve_checkpoint(args.resume)), "resume", "must be a run directory with "
+                "checkpoints/latest.pt or a checkpoint file")  # fmt: skip
+    elif args.checkpoint is not None:  # (a resumed run has its networks already)
+        require(os.path.isfile(args.checkpoint), "checkpoint", "must be a checkpoint file")
+
+
+def available_memory() -> tuple[int | None, str]:
+    """Bytes of memory a new allocation can use, and where the number comes from: MemAvailable of /proc/meminfo
+    (capped by a cgroup memory limit), else free physical pages (sysconf), else (None, "unknown")."""
+    available, source = None, "unknown"
+    with contextlib.suppress(OSError, ValueError):
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    available, source = int(line.split()[1]) * 1024, "MemAvailable in /proc/meminfo"
+    if available is None:
+        with contextlib.suppress(OSError, ValueError, AttributeError):
+            available, source = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"), "free pages (sysconf)"
+    cgroup_files = [("memory.max", "memory.current"), ("memory/memory.limit_in_bytes", "memory/memory.usage_in_bytes")]
+    for limit_file, usage_file in cgroup_files:
+        with contextlib.suppress(OSError, ValueError):  # a container's limit ("max": none)
+            with open(f"/sys/fs/cgroup/{limit_file}") as f, open(f"/sys/fs/cgroup/{usage_file}") as g:
+                room = int(f.read()) - int(g.read())
+            if available is None or room < available:
+                available, source = room, f"cgroup limit /sys/fs/cgroup/{limit_file}"
+    return available, source
+
+
+def _size(num_bytes: float) -> str:
+    return f"{num_bytes / 1e9:,.2f} GB" if num_bytes >= 1e9 else f"{num_bytes / 1e6:,.1f} MB"
+
+
+def check_replay_memory(args: Args) -> int:
+    """Print the replay buffers' size (all agents) and refuse a capacity that cannot fit in available memory.
+
+    The buffers are allocated lazily (pages are touched as they fill), so a run that does not fit would only
+    fail hours later; returns their size in bytes."""
+    step_bytes = Replay.bytes_per_step(args.image_size)
+    per_agent = args.replay_capacity * step_bytes
+    total = args.num_agents * per_agent
+    available, source = available_memory()
+    room = "unknown" if available is None else _size(available)
+    print(f"replay buffers: {args.num_agents} x {args.replay_capacity:,} steps x {step_bytes:,} B = {_size(total)}"
+          f" (memory available: {room}, {source})")  # fmt: skip
+    if available is not None and total > available:
+        raise UsageError(
+            f"--replay-capacity {args.replay_capacity}: the replay buffers need {args.num_agents} x {_size(per_agent)}"
+            f" = {_size(total)} but only {_size(available)} of memory is available ({source}); lower --replay-capacity"
+        )
+    return total
+
+
+def keep_freed_memory() -> bool:
+    """Stop glibc from returning freed memory to the OS (DESIGN 6).
+
+    Every update allocates and frees the same large blocks; by default glibc unmaps them and the
+    kernel page-faults them in again on the next update (~45% of wall time measured here).
+    mallopt(M_TRIM_THRESHOLD, 2**31-1) and mallopt(M_MMAP_MAX, 0) keep them in the process.
+    Linux/glibc only; returns whether both settings took effect.
+    """
+    if not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc":
+        return False
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:
+        return False
+    M_TRIM_THRESHOLD, M_MMAP_MAX = -1, -4  # from glibc's malloc.h
+    return libc.mallopt(M_TRIM_THRESHOLD, 2**31 - 1) == 1 and libc.mallopt(M_MMAP_MAX, 0) == 1
+
+
+def setup_run(args: Args, overrides=()) -> Run:
+    """Check everything, then build the run: a new one, or (args.resume) the saved one exactly as it stopped.
+    Nothing is written before every check has passed."""
+    from utils import make_vec_env
+    from utils.logger import configure_logger, make_run_name
+
+    validate_args(args)
+    resumed = start = None
+    if args.resume:
+        checkpoint_path = resolve_checkpoint(args.resume)
+        resumed = load_checkpoint(checkpoint_path, training=True)
+        args = resumed_args(resumed, checkpoint_path, args, overrides)
+        validate_args(args)
+        run_dir = os.path.dirname(os.path.dirname(os.path.abspath(checkpoint_path)))
+    else:
+        args, start = new_run_args(args)
+        run_dir = os.path.join(args.runs_dir, make_run_name(args.env_id, args.exp_name, args.seed))
+    check_replay_memory(args)
+    if args.malloc_fix:
+        keep_freed_memory()
+    if args.torch_threads > 0:
+        torch.set_num_threads(args.torch_threads)
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    torch.backends.cudnn.deterministic = args.torch_deterministic
+    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+
+    n, episode = args.num_agents, int(resumed["counters"]["episode"]) if resumed else 0
+    kwargs = env_kwargs(args, dead_zone_at(episode, args))
+    envs = make_vec_env(args.env_id, args.num_races, args.seed + episode, args.use_subprocess, **kwargs)
+    action_dim = int(envs.action_space.shape[0])
+    run = Run(
+        args, run_dir, device,
+        agents=[Agent(args, action_dim, device) for _ in range(n)],
+        replays=[Replay(args.replay_capacity, args.image_size, action_dim) for _ in range(n)],
+        counters={"episode": 0, "global_step": 0, "best_eval_return": -math.inf},
+        logger=None, envs=envs, wins=[deque(maxlen=100) for _ in range(n)], manifests=[None] * n,
+        from_checkpoint=args.checkpoint is not None,
+    )  # fmt: skip
+    if resumed is not None:
+        restore_run(run, resumed, checkpoint_path)
+    elif start is not None:
+        for i, agent in enumerate(run.agents):
+            load_agent_state(agent, start["agents"][i % len(start["agents"])], args.checkpoint, i % len(start["agents"]))
+    formats = ("stdout", "csv", "tensorboard") if args.print_table else ("csv", "tensorboard")
+    run.logger = configure_logger(run_dir, dataclasses.asdict(args), formats)
+    with open(os.path.join(run_dir, "config.json"), "w") as f:  # plot.py groups runs by variant and stage
+        json.dump({"variant": VARIANT, **dataclasses.asdict(args)}, f, indent=1)
+    print(f"run directory: {run_dir} (device {device}); tensorboard --logdir {args.runs_dir}")
+    if resumed is not None:
+        print(f"resumed from {checkpoint_path} at race {run.counters['episode']}, step {run.counters['global_step']}")
+        set_rng_state(resumed["rng"])  # last of the set-up: the random streams continue where they stopped
+    elif args.checkpoint:
+        print(f"agents start from {args.checkpoint}")
+    return run
+
+
+def new_run_args(args: Args) -> tuple[Args, dict | None]:
+    """A new run's Args with what its stage implies (one car for single and ghost, one race at a time for ghost)
+    and the network sizes of --checkpoint, and that checkpoint (or None)."""
+    if args.stage in ("single", "ghost") and args.num_agents != 1:
+        print(f"stage {args.stage!r} races one car: --num-agents {args.num_agents} -> 1")
+        args = dataclasses.replace(args, num_agents=1)
+    if args.stage == "ghost" and args.num_races != 1:
+        print(f"stage 'ghost' races one track at a time: --num-races {args.num_races} -> 1")
+        args = dataclasses.replace(args, num_races=1)
+    if not args.checkpoint:
+        return args, None
+    start = load_checkpoint(args.checkpoint, training=True)
+    sizes = args_from_checkpoint(start, args.checkpoint)
+    changed = {key: getattr(sizes, key) for key in ARCHITECTURE if getattr(sizes, key) != getattr(args, key)}
+    if changed:  # the networks must have the sizes they were trained with
+        print(f"network sizes from {args.checkpoint}: {changed}")
+        args = dataclasses.replace(args, **changed)
+    return args, start
+
+
+def restore_run(run: Run, resumed: dict, path: str) -> None:
+    """Put a checkpoint's agents, counters, ghosts, recent wins and replays into `run`."""
+    n = run.args.num_agents
+    if len(resumed["agents"]) != n:
+        raise CheckpointError(f"{path}: holds {len(resumed['agents'])} agent(s), its arguments {n}")
+    for i, (agent, state) in enumerate(zip(run.agents, resumed["agents"])):
+        load_agent_state(agent, state, path, i)
+    run.counters.update(resumed["counters"])
+    extra = resumed.get("extra") or {}
+    run.ghosts = {int(s): ghost_from_tensors(g) for s, g in extra.get("ghosts", {}).items()}
+    for j, history in enumerate(extra.get("wins", [])[:n]):
+        run.wins[j].extend(history)
+    saved = list(extra.get("replays") or []) + [None] * n
+    for j, replay in enumerate(run.replays):
+        run.manifests[j] = restore_replay(replay, run.replay_dir(j), saved[j], run.counters["episode"])
+
+
+def finish_run(run: Run) -> str:
+    """Save the replays and latest.pt, close everything; raise NumericalFault if that is why the run ended."""
+    run.manifests = [replay.save(run.replay_dir(j)) for j, replay in enumerate(run.replays)]
+    latest = save_latest(run)
+    if run.pbar is not None:
+        run.pbar.close()
+    run.envs.close()
+    if run.eval_envs is not None:
+        run.eval_envs.close()
+    run.logger.close()
+    if run.fault is not None:
+        raise NumericalFault(f"{run.fault}; stopped after race {run.counters['episode']} with the checkpoint {latest}")
+    return run.run_dir
+
+
+def _print(run: Run, message: str) -> None:
+    """A line on stdout that does not break the progress bar."""
+    if run.pbar is not None:
+        run.pbar.write(message)
+    else:
+        print(message)
+
+
+def resolve_checkpoint(path: str) -> str:
+    """A run directory means its checkpoints/latest.pt."""
+    return os.path.join(path, "checkpoints", "latest.pt") if os.path.isdir(path) else path
+
+
+def restore_replay(replay: Replay, directory: str, manifest: dict | None, races: int) -> dict | None:
+    """Resume: load an agent's replay as the checkpoint names it (else the newest save in `directory`), say what
+    it lacks, and return the manifest loaded (None: nothing saved, the replay starts empty)."""
+    if manifest is not None and not all(os.path.isfile(os.path.join(directory, f)) for f in manifest["files"]):
+        print(f"note: {directory} no longer holds the replay save the checkpoint names; loading its newest save")
+        manifest = None
+    if manifest is None and not os.path.isfile(os.path.join(directory, "meta.npz")):
+        print(f"note: no replay saved in {directory}: it starts empty")
+        return None
+    try:
+        replay.load(directory, manifest)
+    except Exception as e:  # a chunk file damaged outside this program (the writes themselves are atomic)
+        raise CheckpointError(f"{directory}: replay not readable: {_first_line(e)}") from None
+    if replay.episodes < races:
+        print(f"note: {directory} was saved {races - replay.episodes} race(s) before the checkpoint"
+              " (--replay-save-every): the transitions of those races are not restored")  # fmt: skip
+    return replay.manifest()
+
+
+def resumed_args(checkpoint: dict, path: str, args: Args, overrides) -> Args:
+    """The Args of a resumed run: every setting it was started with, except the fields named in `overrides` (those
+    the resuming command line set explicitly), which come from `args`; prints each change (old -> new)."""
+    saved = args_from_checkpoint(checkpoint, path)
+    changes = {name: getattr(args, name) for name in overrides if name != "resume"}
+    fixed = sorted(name for name in changes if name in ARCHITECTURE + IDENTITY and changes[name] != getattr(saved, name))
+    if fixed:
+        raise UsageError(f"--resume: {', '.join(_flag(n) for n in fixed)} cannot change in a resumed run")
+    for name, value in changes.items():
+        if value != getattr(saved, name):
+            print(f"resume: {_flag(name)} {getattr(saved, name)!r} -> {value!r}")
+    return dataclasses.replace(saved, resume=args.resume, **changes)
+
+
+def _atomic_write(path: str, write) -> None:
+    """Write a file so that a kill at any moment leaves the old file or the new one, never a part: write(f) into a
+    temporary file beside it, flush and fsync it, rename it over `path` (os.replace), fsync the directory."""
+    directory = os.path.dirname(os.path.abspath(path))
+    os.makedirs(directory, exist_ok=True)
+    tmp = path + ".tmp"
+    try:
+        with open(tmp, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.remove(tmp)
+        raise
+    with contextlib.suppress(OSError):  # the rename itself reaches the disk (not possible on every platform)
+        fd = os.open(directory, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def _atomic_npz(path: str, **arrays) -> None:
+    _atomic_write(path, lambda f: np.savez_compressed(f, **arrays))
+
+
 def _atomic_torch_save(obj, path: str) -> None:
     _atomic_write(path, lambda f: torch.save(obj, f))
 
@@ -1441,9 +1946,19 @@ def agent_from_checkpoint(path: str, index: int = 0, device="cpu") -> Agent:
     checkpoint = load_checkpoint(path, map_location=device)
     if not 0 <= index < len(checkpoint["agents"]):
         raise CheckpointError(f"{path}: has {len(checkpoint['agents'])} agent(s), asked for agent {index}")
-    agent = Agent(args_from_checkpoint(checkpoint, path), device=device)
-    load_agent_state(agent, checkpoint["agents"][index], path, index)
+    state = checkpoint["agents"][index]
+    agent = Agent(args_from_checkpoint(checkpoint, path), action_dim_of(state), device=device)
+    load_agent_state(agent, state, path, index)
     return agent
+
+
+def action_dim_of(agent_state: dict) -> int:
+    """The action size a saved agent was built for: its actor's output layer gives a mean and a sigma per action."""
+    try:
+        last = max((k for k in agent_state["actor"] if k.endswith(".bias")), key=lambda k: int(k.split(".")[2]))
+        return int(agent_state["actor"][last].shape[0]) // 2
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError):
+        return 2  # not an agent's state: load_agent_state names the file and what does not fit
 
 
 def ghost_to_tensors(trajectory: dict) -> dict:
@@ -1452,405 +1967,6 @@ def ghost_to_tensors(trajectory: dict) -> dict:
 
 def ghost_from_tensors(trajectory: dict) -> dict:
     return {k: v.numpy() if isinstance(v, torch.Tensor) else v for k, v in trajectory.items()}
-
-
-# =====================================================================================
-# 8. Training loop (Algorithm 1, DESIGN 4.5)
-# =====================================================================================
-class CarEpisode:
-    """One car's episode as it is being driven: frames at the encoder's size, the action that led to
-    each frame (zero for the first), the reward that came with it, and whether it is a terminal state."""
-
-    def __init__(self, first_frame: np.ndarray, action_dim: int = 2):
-        self.obs, self.action = [first_frame], [np.zeros(action_dim, dtype=np.float32)]
-        self.reward, self.terminated = [0.0], [False]
-        self.ret, self.final_info = 0.0, None
-
-    def add(self, frame, action, reward, terminated) -> None:
-        self.obs.append(frame)
-        self.action.append(np.asarray(action, dtype=np.float32))
-        self.reward.append(float(reward))
-        self.terminated.append(bool(terminated))
-        self.ret += float(reward)
-
-    def arrays(self) -> tuple[np.ndarray, ...]:
-        reward, terminated = np.asarray(self.reward, np.float32), np.asarray(self.terminated)
-        return np.stack(self.obs), np.stack(self.action), reward, terminated
-
-
-def evaluate(agents: list[Agent], args: Args, eval_envs, policy: str | None = None, seeds=None) -> tuple[np.ndarray, ...]:
-    """Races with `policy` (default --eval-policy) on the tracks `seeds` (default: the held-out eval_seed + i, i <
-    eval_episodes); per race and car the return, the final progress (fraction of tiles) and the mean |action[0]|
-    of the car's decisions while racing, each (E, N). On the racing env action 0 is the steer: near 1 is bang-bang
-    steering (the pursuit driver: ~0.06)."""
-    n, policy = args.num_agents, policy or args.eval_policy
-    seeds = [args.eval_seed + e for e in range(args.eval_episodes)] if seeds is None else list(seeds)
-    returns, progress = np.zeros((len(seeds), n)), np.zeros((len(seeds), n))
-    abs_steer, decisions = np.zeros((len(seeds), n)), np.zeros((len(seeds), n))
-    for e, seed in enumerate(seeds):
-        eval_envs.seed(seed)
-        obs, states, is_first = eval_envs.reset(), [None] * n, np.ones(n, dtype=bool)
-        racing = np.ones(n, dtype=bool)
-        while True:
-            frames = preprocess_frames(obs, args.image_size)
-            actions = np.zeros((n, 2), dtype=np.float32)
-            for i, agent in enumerate(agents):
-                car = slice(i, i + 1)
-                actions[car], states[i] = agent.act(frames[car], states[i], is_first[car], policy)
-            abs_steer[e] += np.abs(actions[:, 0]) * racing
-            decisions[e] += racing
-            obs, rewards, dones, infos, _ = step_with_repeat(eval_envs, actions, args.action_repeat)
-            returns[e] += rewards  # cars that are out get reward 0
-            for i, info in enumerate(infos):
-                racing[i] = info["alive"] and not dones[i]  # a car that went out this step decides no more
-                if info["alive"]:
-                    progress[e, i] = info.get("progress", 0.0)
-            if infos[0]["is_first"]:
-                break
-            is_first[:] = False
-    return returns, progress, abs_steer / np.maximum(decisions, 1)
-
-
-def train_agent(agent: Agent, replay: Replay, args: Args, update_times: list[float]) -> tuple[dict, float]:
-    """--train-steps-per-episode updates on uniformly sampled sequences; mean losses and updates per second.
-
-    Non-finite losses are left out of the means. Stops early once the agent has had --max-nonfinite-updates
-    updates in a row with a non-finite loss or gradient (main then ends the run)."""
-    t_start, sums, counts, updates = time.time(), {}, {}, 0
-    for _ in range(args.train_steps_per_episode):
-        t_update = time.time()
-        metrics = agent.update(replay.sample(args.batch_size, args.seq_len))
-        updates += 1
-        for key, value in metrics.items():
-            if math.isfinite(value):
-                sums[key], counts[key] = sums.get(key, 0.0) + value, counts.get(key, 0) + 1
-        if len(update_times) < 4:
-            update_times.append(time.time() - t_update)
-        if agent.nonfinite_in_a_row >= args.max_nonfinite_updates:
-            break
-    means = {key: total / counts[key] for key, total in sums.items()}
-    return means, updates / max(time.time() - t_start, 1e-9)
-
-
-def resolve_checkpoint(path: str) -> str:
-    """A run directory means its checkpoints/latest.pt."""
-    return os.path.join(path, "checkpoints", "latest.pt") if os.path.isdir(path) else path
-
-
-def restore_replay(replay: Replay, directory: str, manifest: dict | None, races: int) -> dict | None:
-    """Resume: load an agent's replay as the checkpoint names it (else the newest save in `directory`), say what
-    it lacks, and return the manifest loaded (None: nothing saved, the replay starts empty)."""
-    if manifest is not None and not all(os.path.isfile(os.path.join(directory, f)) for f in manifest["files"]):
-        print(f"note: {directory} no longer holds the replay save the checkpoint names; loading its newest save")
-        manifest = None
-    if manifest is None and not os.path.isfile(os.path.join(directory, "meta.npz")):
-        print(f"note: no replay saved in {directory}: it starts empty")
-        return None
-    try:
-        replay.load(directory, manifest)
-    except Exception as e:  # a chunk file damaged outside this program (the writes themselves are atomic)
-        raise CheckpointError(f"{directory}: replay not readable: {_first_line(e)}") from None
-    if replay.episodes < races:
-        print(f"note: {directory} was saved {races - replay.episodes} race(s) before the checkpoint"
-              " (--replay-save-every): the transitions of those races are not restored")  # fmt: skip
-    return replay.manifest()
-
-
-def resumed_args(checkpoint: dict, path: str, args: Args, overrides) -> Args:
-    """The Args of a resumed run: every setting it was started with, except the fields named in `overrides` (those
-    the resuming command line set explicitly), which come from `args`; prints each change (old -> new)."""
-    saved = args_from_checkpoint(checkpoint, path)
-    changes = {name: getattr(args, name) for name in overrides if name != "resume"}
-    fixed = sorted(name for name in changes if name in ARCHITECTURE + IDENTITY and changes[name] != getattr(saved, name))
-    if fixed:
-        raise UsageError(f"--resume: {', '.join(_flag(n) for n in fixed)} cannot change in a resumed run")
-    for name, value in changes.items():
-        if value != getattr(saved, name):
-            print(f"resume: {_flag(name)} {getattr(saved, name)!r} -> {value!r}")
-    return dataclasses.replace(saved, resume=args.resume, **changes)
-
-
-def main(args: Args, overrides=()) -> str:
-    """Train with `args`; returns the run directory. With args.resume, the run continues with the settings it was
-    started with, except the fields named in `overrides`, which come from `args`.
-
-    Bad input (an impossible argument, an unreadable checkpoint, a replay that cannot fit in memory) raises
-    UsageError before anything is written. --max-nonfinite-updates faulty updates in a row end the run with a
-    checkpoint and raise NumericalFault."""
-    from tqdm import tqdm
-
-    from envs import race_winners
-    from utils import make_vec_env
-    from utils.logger import configure_logger, log_video, make_run_name
-
-    validate_args(args)
-    # --- set-up: resume or new run; everything is checked before the run directory is written -----
-    resumed = None
-    if args.resume:
-        checkpoint_path = resolve_checkpoint(args.resume)
-        resumed = load_checkpoint(checkpoint_path, training=True)
-        args = resumed_args(resumed, checkpoint_path, args, overrides)
-        validate_args(args)
-        run_dir = os.path.dirname(os.path.dirname(os.path.abspath(checkpoint_path)))
-    else:
-        if args.stage in ("single", "ghost") and args.num_agents != 1:
-            print(f"stage {args.stage!r} races one car: --num-agents {args.num_agents} -> 1")
-            args = dataclasses.replace(args, num_agents=1)
-        if args.stage == "ghost" and args.num_races != 1:
-            print(f"stage 'ghost' races one track at a time: --num-races {args.num_races} -> 1")
-            args = dataclasses.replace(args, num_races=1)
-        if args.checkpoint:  # the networks must have the sizes they were trained with
-            start = load_checkpoint(args.checkpoint, training=True)
-            sizes = args_from_checkpoint(start, args.checkpoint)
-            changed = {key: getattr(sizes, key) for key in ARCHITECTURE if getattr(sizes, key) != getattr(args, key)}
-            if changed:
-                print(f"network sizes from {args.checkpoint}: {changed}")
-                args = dataclasses.replace(args, **changed)
-        run_dir = os.path.join(args.runs_dir, make_run_name(args.env_id, args.exp_name, args.seed))
-    check_replay_memory(args)
-    checkpoint_dir = os.path.join(run_dir, "checkpoints")
-    if args.malloc_fix:
-        keep_freed_memory()
-    if args.torch_threads > 0:
-        torch.set_num_threads(args.torch_threads)
-    random.seed(args.seed)
-    np.random.seed(args.seed)
-    torch.manual_seed(args.seed)
-    torch.backends.cudnn.deterministic = args.torch_deterministic
-    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
-
-    n, k_races = args.num_agents, args.num_races
-    agents = [Agent(args, device=device) for _ in range(n)]
-    replays = [Replay(args.replay_capacity, args.image_size) for _ in range(n)]
-    counters = {"episode": 0, "global_step": 0, "best_eval_return": -math.inf}
-    ghosts: dict[int, dict] = {}  # ghost stage: track seed -> the best run on it so far
-    wins = [deque(maxlen=100) for _ in range(n)]
-    manifests: list[dict | None] = [None] * n  # per agent, the replay save that latest.pt names
-
-    def replay_dir(j: int) -> str:
-        return os.path.join(checkpoint_dir, f"replay_car_{j}")
-
-    if resumed is not None:
-        if len(resumed["agents"]) != n:
-            raise CheckpointError(f"{checkpoint_path}: holds {len(resumed['agents'])} agent(s), its arguments {n}")
-        for i, (agent, state) in enumerate(zip(agents, resumed["agents"])):
-            load_agent_state(agent, state, checkpoint_path, i)
-        counters.update(resumed["counters"])
-        extra = resumed.get("extra") or {}
-        ghosts = {int(s): ghost_from_tensors(g) for s, g in extra.get("ghosts", {}).items()}
-        for j, history in enumerate(extra.get("wins", [])[:n]):
-            wins[j].extend(history)
-        saved = list(extra.get("replays") or []) + [None] * n
-        for j, replay in enumerate(replays):
-            manifests[j] = restore_replay(replay, replay_dir(j), saved[j], counters["episode"])
-    elif args.checkpoint:
-        for i, agent in enumerate(agents):
-            source = i % len(start["agents"])
-            load_agent_state(agent, start["agents"][source], args.checkpoint, source)
-    logger = configure_logger(run_dir, dataclasses.asdict(args))
-    with open(os.path.join(run_dir, "config.json"), "w") as f:  # plot.py groups runs by variant and stage
-        json.dump({"variant": VARIANT, **dataclasses.asdict(args)}, f, indent=1)
-    print(f"run directory: {run_dir} (device {device})")
-    if resumed is not None:
-        print(f"resumed from {checkpoint_path} at episode {counters['episode']}, step {counters['global_step']}")
-    elif args.checkpoint:
-        print(f"agents start from {args.checkpoint}")
-    from_trained = args.checkpoint is not None  # (a resumed run still in its prefill races keeps acting randomly)
-    # Updates start after the random prefill races; a ghost-stage run first races every ghost track
-    # once with the starting policy (those runs are the first ghosts and fill the replay).
-    learning_starts = args.ghost_tracks if args.stage == "ghost" else args.prefill_episodes
-    ghost_seeds = [args.ghost_seed + j for j in range(args.ghost_tracks)]
-
-    racing = args.env_id == "multi_car_racing"
-    kwargs = env_kwargs(args, dead_zone_at(counters["episode"], args))
-    envs = make_vec_env(args.env_id, k_races, args.seed + counters["episode"], args.use_subprocess, **kwargs)
-    eval_envs = None
-
-    def start_race():
-        """One race at a time (K = 1): reset on the next race's track, a ghost track with its ghost (if it has one
-        yet) in the ghost stage, else the track race_seed(seed, episode), so a resumed run drives the same tracks."""
-        if args.stage == "ghost":
-            seed = ghost_seeds[counters["episode"] % len(ghost_seeds)]
-            envs.set_options({"ghosts": {"car_0": ghosts[seed]}} if seed in ghosts else {})
-        else:
-            seed = race_seed(args.seed, counters["episode"])
-        envs.seed(seed)
-        return envs.reset(), seed
-
-    def save_latest() -> str:
-        """checkpoints/latest.pt, naming each agent's replay save; then the replay files it does not name go."""
-        path = os.path.join(checkpoint_dir, "latest.pt")
-        save_checkpoint(path, args, agents, counters, _extra(ghosts, manifests, wins))
-        for j, manifest in enumerate(manifests):
-            if manifest is not None:
-                Replay.prune(replay_dir(j), manifest)
-        return path
-
-    # --- the loop: all agents act in K races; every finished race triggers training --------
-    # K races run side by side with auto-resets (tracks from each race's seeded stream); one race at a time is
-    # reset explicitly on a track fixed by the episode number (see start_race).
-    obs, track_seed = start_race() if k_races == 1 else (envs.reset(), None)
-    frames = preprocess_frames(obs, args.image_size)
-    is_first = np.ones(k_races * n, dtype=bool)
-    states: list = [None] * n
-    episodes: list[CarEpisode | None] = [None] * (k_races * n)
-    timer = {"env_time": 0.0, "env_steps": 0}
-    update_times: list[float] = []  # seconds of the first updates, reported once on a CPU
-    reported_update_time = False
-    fault: str | None = None  # set when an agent had --max-nonfinite-updates faulty updates in a row
-    pbar = tqdm(total=args.total_episodes, initial=counters["episode"], desc=f"{VARIANT} {args.stage}")
-    if resumed is not None:  # last of the set-up: the random streams continue exactly where the checkpoint left them
-        set_rng_state(resumed["rng"])
-    started = time.time()
-
-    def finished() -> bool:
-        """The run's end: --total-episodes races, --total-updates updates, the time limit, or a numerical fault."""
-        return (
-            counters["episode"] >= args.total_episodes
-            or (args.total_updates > 0 and min(agent.num_updates for agent in agents) >= args.total_updates)
-            or (args.time_limit_hours > 0 and time.time() - started > 3600 * args.time_limit_hours)
-            or fault is not None
-        )
-
-    while not finished():
-        t0 = time.time()
-        for slot in np.flatnonzero(is_first):
-            episodes[slot] = CarEpisode(frames[slot])
-        actions = np.zeros((k_races * n, 2), dtype=np.float32)
-        for i, agent in enumerate(agents):
-            slots = np.arange(i, k_races * n, n)  # agent i drives car i of every race
-            if counters["episode"] < args.prefill_episodes and not from_trained and args.stage != "ghost":
-                actions[slots] = np.random.uniform(-1, 1, size=(len(slots), 2))
-            else:
-                actions[slots], states[i] = agent.act(frames[slots], states[i], is_first[slots])
-        obs, rewards, dones, infos, repeats = step_with_repeat(envs, actions, args.action_repeat)
-        frames = preprocess_frames(obs, args.image_size)
-        counters["global_step"] += k_races * repeats
-        timer["env_steps"] += k_races * repeats
-        for slot, info in enumerate(infos):  # each live car's transition goes to its own agent's episode
-            if not info["alive"]:
-                continue
-            if dones[slot]:
-                frame = preprocess_frames(info["terminal_observation"][None], args.image_size)[0]
-                episodes[slot].add(frame, actions[slot], rewards[slot], terminated=not info["TimeLimit.truncated"])
-                episodes[slot].final_info = info
-                replays[slot % n].add_episode(*episodes[slot].arrays())
-            else:
-                episodes[slot].add(frames[slot], actions[slot], rewards[slot], terminated=False)
-        is_first = np.array([info["is_first"] for info in infos], dtype=bool)
-        timer["env_time"] += time.time() - t0
-
-        if is_first.any():  # env steps per second while the agents act, since the last finished race
-            env_sps = timer["env_steps"] / max(timer["env_time"], 1e-9)
-            timer = {"env_time": 0.0, "env_steps": 0}
-        for race in range(k_races):
-            if not is_first[race * n]:
-                continue
-            # --- a race has finished: log it, then every agent trains ---------------------
-            counters["episode"] += 1
-            episode, step = counters["episode"], counters["global_step"]
-            cars = [episodes[race * n + j] for j in range(n)]
-            final_infos = [car.final_info or {} for car in cars]
-            race_won = race_winners(final_infos) if n > 1 and racing else None  # (highway-env has no ranks)
-            if args.stage == "ghost":  # a win is beating the ghost (races without a ghost yet do not count)
-                race_won = [bool(final_infos[0]["ghost_beaten"])] if "ghost_beaten" in final_infos[0] else None
-                record = final_infos[0]["trajectory"].to_dict()  # the env hands over the whole run
-                if track_seed not in ghosts or (race_won and race_won[0]):  # first run, or ghost beaten
-                    ghosts[track_seed] = record
-                logger.record("ghost/track_seed", track_seed)
-                logger.record("ghost/ghosts_recorded", len(ghosts))
-            for j, car in enumerate(cars):
-                prefix = f"car_{j}/"
-                logger.record(prefix + "charts/episodic_return", car.ret)
-                logger.record(prefix + "charts/progress", float(final_infos[j].get("progress", 0.0)))
-                if final_infos[j].get("lap_finished"):
-                    logger.record(prefix + "charts/lap_time", int(final_infos[j]["finish_step"]))
-                if race_won is not None:
-                    wins[j].append(float(race_won[j]))
-                    logger.record(prefix + "charts/win_rate", float(np.mean(wins[j])))
-                logger.record(prefix + "perf/env_sps", env_sps)
-            if racing:  # dead-zone schedule, applied between episodes (takes effect at the next reset)
-                envs.env_method("set_dead_zone", dead_zone_at(episode, args))
-
-            if episode >= learning_starts and all(r.can_sample(args.seq_len) for r in replays):
-                for j, (agent, replay) in enumerate(zip(agents, replays)):
-                    means, updates_per_s = train_agent(agent, replay, args, update_times)
-                    for key, value in means.items():
-                        logger.record(f"car_{j}/losses/{key}", value)
-                    logger.record(f"car_{j}/perf/updates_per_s", updates_per_s)
-                    logger.record(f"car_{j}/perf/updates", agent.num_updates)
-                    logger.record(f"car_{j}/faults/nonfinite_updates", agent.nonfinite_updates)
-                    if agent.nonfinite_in_a_row >= args.max_nonfinite_updates:
-                        fault = (f"car_{j}: {agent.nonfinite_in_a_row} updates in a row had a non-finite loss or"
-                                 f" gradient (--max-nonfinite-updates {args.max_nonfinite_updates})")  # fmt: skip
-                        break
-                if device.type == "cpu" and len(update_times) >= 4 and not reported_update_time:
-                    per_update = float(np.median(update_times[1:4]))  # the first update warms up
-                    minutes = per_update * args.train_steps_per_episode * n / 60
-                    print(
-                        f"\nOn this CPU one update takes {per_update:.2f} s: {args.train_steps_per_episode} updates"
-                        f" x {n} agent(s) = {minutes:.1f} min of training per race. For a CPU-sized run see"
-                        f" README.md: python {os.path.basename(__file__)} --preset cpu --seed 1"
-                    )
-                    reported_update_time = True
-            if fault is not None:  # the run ends here, with the checkpoint written after the loop
-                logger.dump(step)
-                break
-
-            if args.video_every and episode % args.video_every == 0:
-                for j, (agent, car) in enumerate(zip(agents, cars)):
-                    ep_obs, ep_action, _, _ = car.arrays()
-                    length = min(len(ep_obs), args.video_length)
-                    first = np.zeros(length, dtype=bool)
-                    first[0] = True
-                    video = agent.video(ep_obs[:length], ep_action[:length], first)
-                    log_video(logger, f"car_{j}/videos/real_reconstruction_imagination", video, step, fps=25)
-
-            if args.eval_every and episode % args.eval_every == 0:
-                if eval_envs is None:
-                    eval_envs = make_vec_env(args.env_id, 1, None, **env_kwargs(args, args.dead_zone_end))
-                eval_returns, eval_progress, eval_abs_steer = evaluate(agents, args, eval_envs)
-                for j in range(n):
-                    logger.record(f"car_{j}/eval/episodic_return", float(eval_returns[:, j].mean()))
-                    logger.record(f"car_{j}/eval/progress", float(eval_progress[:, j].mean()))
-                    if racing:  # highway-env's action 0 is the acceleration
-                        logger.record(f"car_{j}/eval/mean_abs_steer", float(eval_abs_steer[:, j].mean()))
-                if args.eval_checkpoints:
-                    path = os.path.join(checkpoint_dir, f"eval_{episode:06d}.pt")
-                    save_checkpoint(path, args, agents, counters, _extra(ghosts, manifests, wins))
-                if eval_returns.mean() > counters["best_eval_return"]:
-                    counters["best_eval_return"] = float(eval_returns.mean())
-                    best = os.path.join(checkpoint_dir, "best.pt")
-                    save_checkpoint(best, args, agents, counters, _extra(ghosts, manifests, wins))
-            # The replay first, then latest.pt naming it: a kill between the two leaves the previous pair intact.
-            if args.replay_save_every and episode % args.replay_save_every == 0:
-                manifests = [replay.save(replay_dir(j)) for j, replay in enumerate(replays)]
-            if args.checkpoint_every and episode % args.checkpoint_every == 0:
-                save_latest()
-            logger.record("charts/episode", episode)
-            if racing:
-                logger.record("charts/dead_zone", dead_zone_at(episode, args))
-            logger.dump(step)
-            pbar.update(1)
-            pbar.set_postfix(episode=episode, ret=f"{np.mean([c.ret for c in cars]):.1f}", sps=f"{env_sps:.0f}")
-            if finished():
-                break
-
-        if k_races == 1 and is_first.any() and not finished():
-            obs, track_seed = start_race()  # the next race's own track (the ghost stage: with its ghost)
-            frames = preprocess_frames(obs, args.image_size)
-            is_first[:] = True
-
-    manifests = [replay.save(replay_dir(j)) for j, replay in enumerate(replays)]
-    latest = save_latest()
-    pbar.close()
-    envs.close()
-    if eval_envs is not None:
-        eval_envs.close()
-    logger.close()
-    if fault is not None:
-        raise NumericalFault(f"{fault}; stopped after race {counters['episode']} with the checkpoint {latest}")
-    return run_dir
 
 
 def _extra(ghosts: dict, replays: list, wins: list) -> dict:

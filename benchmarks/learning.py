@@ -247,8 +247,7 @@ def evaluate_checkpoint(
     if policy not in script.EVAL_POLICIES:
         raise ValueError(f"policy must be one of {', '.join(script.EVAL_POLICIES)}, got {policy!r}")
     args = script.args_from_checkpoint(checkpoint, path, num_agents=1)
-    agent = script.Agent(args)
-    script.load_agent_state(agent, checkpoint["agents"][0], path, 0)
+    agent = script.agent_from_checkpoint(path, 0)
     if train_tracks > 0:
         if args.stage != "single" or args.num_races != 1:
             raise ValueError(f"{path}: --train-tracks needs a single-stage run of one race at a time")

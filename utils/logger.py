@@ -53,12 +53,18 @@ def check_video_support() -> None:
     """Raise ``ImportError`` unless ``torch.utils.tensorboard`` can encode videos (needs ``moviepy.editor``).
 
     Importing ``moviepy.editor`` runs ``pygame.init()``; ``SDL_AUDIODRIVER`` defaults to ``"dummy"``
-    here so that this does not probe sound cards (the video driver is left alone), and
-    ``SDL_NO_SIGNAL_HANDLERS`` to ``"1"``: SDL would otherwise turn SIGINT and SIGTERM into quit
-    events nobody reads, and a training run would survive Ctrl-C and ``kill``.
+    here so that this does not probe sound cards, and ``SDL_NO_SIGNAL_HANDLERS`` to ``"1"``: SDL would
+    otherwise turn SIGINT and SIGTERM into quit events nobody reads, and a training run would survive
+    Ctrl-C and ``kill``. On a machine with no display (neither ``DISPLAY`` nor ``WAYLAND_DISPLAY``),
+    ``SDL_VIDEODRIVER`` defaults to ``"offscreen"``, the driver SDL falls back to there anyway: probing
+    Wayland first is what printed "error: XDG_RUNTIME_DIR is invalid or not set" on every run.
+    (Not ``"dummy"``: highway-env renders black frames with it.)
     """
     os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
     os.environ.setdefault("SDL_NO_SIGNAL_HANDLERS", "1")
+    os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
+    if not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
+        os.environ.setdefault("SDL_VIDEODRIVER", "offscreen")
     try:
         from moviepy import editor  # noqa: F401
     except ImportError as exc:
