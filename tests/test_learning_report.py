@@ -1,5 +1,5 @@
 """benchmarks/learning.py's bookkeeping: curves from event files over resumed sittings, the saved CSVs
-that stand in for runs not on this machine, and the bar of issue 6."""
+that stand in for runs not on this machine, the bar, the final protocol's table and its rliable summary."""
 
 import csv
 import dataclasses
@@ -51,20 +51,49 @@ def test_eval_curve_adds_up_sittings_not_the_gap_between_them(dirs):
 
 
 def test_first_at_bar_needs_return_and_progress_at_the_same_evaluation():
+    bar, progress = learning.BAR_RETURN, learning.BAR_PROGRESS
     rows = [
-        {"env_steps": 1, "eval_return": 350.0, "eval_progress": 0.30},  # return only
-        {"env_steps": 2, "eval_return": 250.0, "eval_progress": 0.50},  # progress only
-        {"env_steps": 3, "eval_return": 300.0, "eval_progress": 0.40},  # both, at the edges
+        {"env_steps": 1, "eval_return": bar + 50, "eval_progress": progress - 0.1},  # return only
+        {"env_steps": 2, "eval_return": bar - 50, "eval_progress": progress + 0.1},  # progress only
+        {"env_steps": 3, "eval_return": bar, "eval_progress": progress},  # both, at the edges
     ]
     assert learning.first_at_bar(rows)["env_steps"] == 3
     assert learning.first_at_bar(rows[:2]) is None
+
+
+def test_final_table_rows_replace_their_run_and_the_summary_matches_hand_computed_numbers(tmp_path):
+    path = str(tmp_path / "learning_final.csv")
+    base = {"updates": 8000, "env_steps": 40000, "hours": 2.5, "best_return": 0.0, "best_progress": 0.0}
+    for variant, seed, ret, progress, steer in [
+        ("lstm", 11, 100.0, 0.2, 0.1), ("lstm", 12, 200.0, 0.4, 0.2), ("lstm", 13, 600.0, 0.9, 0.3),
+        ("gru", 11, 1.0, 0.1, 0.5), ("gru", 12, 2.0, 0.1, 0.5), ("gru", 13, 3.0, 0.1, 0.5), ("gru", 14, 10.0, 0.1, 0.5),
+        ("lstm", 13, 300.0, 0.6, 0.3),  # the same run measured again: replaces its row
+    ]:  # fmt: skip
+        learning.write_final_row(
+            {"variant": variant, "seed": seed, "final_return": ret, "final_progress": progress,
+             "final_mean_abs_steer": steer, **base}, path,
+        )  # fmt: skip
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert list(rows[0]) == list(learning.FINAL_COLUMNS)
+    assert [(r["variant"], r["seed"]) for r in rows] == [("gru", "11"), ("gru", "12"), ("gru", "13"), ("gru", "14"),
+                                                         ("lstm", "11"), ("lstm", "12"), ("lstm", "13")]  # fmt: skip
+    table = learning.final_summary(path, reps=500).splitlines()
+    # lstm: 100, 200, 300 -> mean 200, IQM of 3 trims nothing (200); gru: 1, 2, 3, 10 -> mean 4, IQM mean(2, 3) = 2.5
+    lstm = next(line for line in table if line.startswith("| lstm |")).split("|")
+    gru = next(line for line in table if line.startswith("| gru |")).split("|")
+    assert lstm[2].strip() == "3" and lstm[3].strip().startswith("200.0 [") and lstm[4].strip().startswith("200.0 [")
+    assert lstm[5].strip() == "100.0" and lstm[6].strip() == "0.40" and lstm[7].strip() == "0.20"
+    assert gru[3].strip().startswith("2.5 [") and gru[4].strip().startswith("4.0 [") and gru[5].strip() == "1.0"
+    low, high = (float(x) for x in gru[4].split("[")[1].rstrip("] ").split(","))
+    assert 1.0 <= low < 4.0 < high <= 10.0  # a bootstrap interval of the mean lies within the scores
 
 
 def test_report_keeps_saved_curves_and_never_shrinks_one(dirs):
     runs, results = dirs
     fields = ["env_steps", "updates", "wall_hours", "eval_return", "eval_progress"]
     saved = {
-        "learning_lstm_seed1": [[500, 0, 0.1, -80.0, 0.02], [4000, 2000, 1.2, 320.0, 0.41]],  # run not here
+        "learning_lstm_seed1": [[500, 0, 0.1, -80.0, 0.02], [4000, 2000, 1.2, 620.0, 0.71]],  # run not here
         "learning_gru_seed2": [[500, 0, 0.1, -80.0, 0.02], [4000, 2000, 1.2, 40.0, 0.15]],  # restarted here
     }
     for name, rows in saved.items():
@@ -82,7 +111,7 @@ def test_report_keeps_saved_curves_and_never_shrinks_one(dirs):
     assert learning.read_curve(os.path.join(results, "learning_gru_seed3.csv"))[-1]["updates"] == 100
     with open(os.path.join(results, "learning.md")) as f:
         table = f.read().splitlines()
-    assert "| lstm_seed1 | 4000 | 2000 | 1.20 | 320.0 | 0.41 | 320.0 (0.41) | 4000 steps, 1.20 h |" in table
+    assert "| lstm_seed1 | 4000 | 2000 | 1.20 | 620.0 | 0.71 | 620.0 (0.71) | 4000 steps, 1.20 h |" in table
     assert "| gru_seed2 | 4000 | 2000 | 1.20 | 40.0 | 0.15 | 40.0 (0.15) | not met |" in table
     assert table[-1] == "| pursuit@70 (baseline) | | | | 909.0 | 1.00 | | |"
     assert os.path.getsize(os.path.join(results, "learning.png")) > 0
@@ -93,6 +122,7 @@ def test_ablation_runs_are_named_by_every_changed_flag():
     assert learning.experiment_name("lstm", entropy_coef=0.03, decoder_min_log_sigma=0.0) == "learning_lstm_alpha0.03_logsigmamin0"
     assert learning.experiment_name("lstm", entropy_coef=None, decoder_min_log_sigma=-1.5) == "learning_lstm_logsigmamin-1.5"
     assert learning.experiment_name("gru", norm="layer") == "learning_gru_normlayer"
+    assert learning.experiment_name("gru", return_norm=True) == "learning_gru_retnorm"
     with pytest.raises(ValueError, match="^not an ablation flag: free_bits"):
         learning.experiment_name("lstm", free_bits=2.0)
     for name in learning.ABLATION_TAGS:  # each ablation is a real flag of both scripts
@@ -102,11 +132,16 @@ def test_ablation_runs_are_named_by_every_changed_flag():
 
 def test_an_ablation_reaches_the_script_and_a_refused_value_names_its_flag(tmp_path, monkeypatch):
     monkeypatch.setattr(learning, "RUNS", str(tmp_path))  # no runs here: every sitting starts a new run
-    script, args = learning.run_args("gru", 2, 1.5, False, decoder_min_log_sigma=0.0, entropy_coef=None, norm="layer")
-    assert script.VARIANT == "gru" and args.exp_name == "learning_gru_logsigmamin0_normlayer"
-    assert (args.decoder_min_log_sigma, args.norm, args.entropy_coef) == (0.0, "layer", 6e-4)  # None: the default
-    assert (args.seed, args.time_limit_hours, args.image_size) == (2, 1.5, learning.LEARNING_CONFIG["image_size"])
-    script, args = learning.run_args("lstm", 1, 1.0, False, decoder_min_log_sigma=3.0)
+    script, args, overrides = learning.run_args(
+        "gru", 2, 1.5, False, decoder_min_log_sigma=-1.0, entropy_coef=None, norm="layer", return_norm=True
+    )
+    assert script.VARIANT == "gru" and args.exp_name == "learning_gru_logsigmamin-1_normlayer_retnorm"
+    assert (args.decoder_min_log_sigma, args.norm, args.entropy_coef, args.return_norm) == (-1.0, "layer", 1.0, True)
+    cpu = script.PRESETS["cpu"]  # None: the preset's value; the rest is the CPU preset with LEARNING_CONFIG on top
+    assert (args.seed, args.time_limit_hours, args.total_updates) == (2, 1.5, learning.FINAL_UPDATES)
+    assert (args.image_size, args.batch_size, args.imagination_horizon) == (64, cpu["batch_size"], 15)
+    assert (args.stage, args.eval_checkpoints, args.preset, overrides) == ("single", True, "cpu", set())
+    script, args, _ = learning.run_args("lstm", 1, 1.0, False, decoder_min_log_sigma=3.0)
     with pytest.raises(script.UsageError, match=r"^--decoder-min-log-sigma must lie in \[-5, 2\], got 3.0$"):
         script.validate_args(args)
 
@@ -128,6 +163,10 @@ def test_evaluate_checkpoint_reproduces_the_runs_own_evaluation(tmp_path, varian
     assert result["eval_return"] == pytest.approx(logged["eval_return"], abs=0.01)  # the CSV keeps 2 decimals
     assert result["eval_progress"] == pytest.approx(logged["eval_progress"], abs=1e-4)
     assert len(result["returns"]) == len(result["progress"]) == 2
+    on_training_tracks = learning.evaluate_checkpoint(os.path.join(run_dir, "checkpoints", "latest.pt"), train_tracks=1)
+    assert on_training_tracks["tracks"] == "training races 1..1" and len(on_training_tracks["returns"]) == 1
+    sampled = learning.evaluate_checkpoint(os.path.join(run_dir, "checkpoints", "best.pt"), 10_000, 2, "stochastic")
+    assert sampled["policy"] == "stochastic" and sampled["returns"] != result["returns"]  # sampled actions differ
 
 
 def test_evaluate_checkpoint_refuses_bad_input_naming_it(tmp_path):
