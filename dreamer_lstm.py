@@ -68,7 +68,7 @@ class Args:
     torch_threads: int = 0
     """number of CPU threads of torch (0: torch's default)"""
     malloc_fix: bool = True
-    """keep freed memory in the process (glibc mallopt, DESIGN 6): halves update time on these VMs"""
+    """keep freed memory in the process (glibc mallopt, docs/agent.md): halves update time on these VMs"""
     compile: bool = False
     """torch.compile the networks (same losses up to float rounding; minutes of compiling at the start)"""
     amp: Literal["auto", "on", "off"] = "auto"
@@ -153,7 +153,7 @@ class Args:
     max_nonfinite_updates: int = 20
     """stop the run (with a checkpoint) after this many updates in a row with a non-finite loss or gradient"""
 
-    # --- world model, actor, critic (DESIGN 4.4)
+    # --- world model, actor, critic (paper Algorithm 1 and appendix; the paper authors' configurations)
     batch_size: int = 15
     """B: sequences per update"""
     seq_len: int = 50
@@ -193,7 +193,7 @@ class Args:
     target_critic: bool = True
     """bootstrap the lambda-returns with a slow target critic (soft-updated with tau) instead of the critic itself"""
 
-    # --- network sizes (DESIGN 4.1; a CPU-sized run uses smaller ones, see README)
+    # --- network sizes (paper appendix; --preset cpu uses smaller ones)
     image_size: Literal[96, 64] = 96
     """what the encoder sees (64 resizes the 96x96 camera)"""
     cnn_depth: int = 32
@@ -289,7 +289,7 @@ def step_with_repeat(envs, actions: np.ndarray, repeat: int):
 
 
 # =====================================================================================
-# 3. Networks (DESIGN 4.1; paper appendix)
+# 3. Networks (paper appendix)
 # =====================================================================================
 LATENT_MIN_STD = 0.1  # sigma of posterior and prior: softplus(.) + this minimum
 LOG_SIGMA_RANGE = (-5.0, 2.0)  # bounds of the decoder's log sigma (--decoder-min-log-sigma raises the floor)
@@ -596,7 +596,7 @@ class Critic(nn.Module):
 
 
 # =====================================================================================
-# 4. Losses and returns (DESIGN 4.2, 4.3)
+# 4. Losses and returns (paper 3.8 world model, 3.9 behaviour)
 # =====================================================================================
 def gaussian_nll(x: torch.Tensor, mean: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
     """-log N(x; mean, std), elementwise."""
@@ -887,11 +887,11 @@ class Agent:
         soft_update(self.targets["representation"], wm.representation, tau)
         soft_update(self.targets["transition"], wm.transition, tau)
 
-    # --- world model (DESIGN 4.2) ---------------------------------------------------------
+    # --- world model (paper 3.8) ------------------------------------------------------------
     def world_model_loss(self, obs, actions, rewards, is_first, terminated):
         """L = mean over batch and time of L_pred + beta_dyn L_dyn + beta_rep L_rep; also returns the posterior.
 
-        (DESIGN 4.2 sums over time; the mean differs by the constant factor L, as in Dreamer's own code,
+        (The paper sums over time; the mean differs by the constant factor L, as in Dreamer's own code,
         and keeps the gradient-clip threshold of 100 meaningful for any sequence length.)
         """
         args, wm = self.args, self.world_model
@@ -926,7 +926,7 @@ class Agent:
         }  # fmt: skip
         return loss, metrics, post
 
-    # --- behaviour (DESIGN 4.3) -----------------------------------------------------------
+    # --- behaviour (paper 3.9) ---------------------------------------------------------------
     def imagination_starts(self, post: dict, terminated: torch.Tensor):
         """Detached posterior states (state tuple, h, z) of all B*L steps, or a random subset of them, and each
         start's continue flag 1 - terminated."""
@@ -1631,7 +1631,7 @@ def check_replay_memory(args: Args) -> int:
 
 
 def keep_freed_memory() -> bool:
-    """Stop glibc from returning freed memory to the OS (DESIGN 6).
+    """Stop glibc from returning freed memory to the OS (docs/agent.md, update time).
 
     Every update allocates and frees the same large blocks; by default glibc unmaps them and the
     kernel page-faults them in again on the next update (~45% of wall time measured here).

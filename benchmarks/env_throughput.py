@@ -3,7 +3,7 @@
     python benchmarks/env_throughput.py [--seconds 10]
 
 Both envs take uniformly random actions and reset when done. Prints steps/s of each and
-the ratio (DESIGN 2.7 target: the two-car race at least 10x CarRacing-v3, i.e. 20x per car).
+the ratio (target: the two-car race at least 10x CarRacing-v3, i.e. 20x per car).
 """
 
 from __future__ import annotations

@@ -1,21 +1,24 @@
-"""Does the agent learn to drive? A CPU-sized single-car training run with held-out evaluation.
+"""Does the agent learn to drive, and does it keep driving? CPU-sized single-car runs, evaluated on held-out tracks.
 
-    python benchmarks/learning.py --variant lstm --hours 2 --seed 1
-    python benchmarks/learning.py --variant lstm --hours 2 --seed 1 --resume   # continue it later
-    python benchmarks/learning.py --report                                      # curves + table only
-    python benchmarks/learning.py --evaluate runs/learning/<run>/checkpoints/best.pt --first-track 10100 --tracks 20
+    python benchmarks/learning.py --variant lstm --seed 11                 # a run of the final protocol (8,000 updates)
+    python benchmarks/learning.py --variant lstm --seed 11 --resume        # continue it in a later sitting
+    python benchmarks/learning.py --variant lstm --seed 11 --final         # its row of learning_final.csv
+    python benchmarks/learning.py --report                                 # curves + table only
+    python benchmarks/learning.py --evaluate runs/learning/<run>/checkpoints/latest.pt --first-track 10100 --tracks 20
 
-Trains `dreamer_<variant>.py` on the single-car race (stage ``single``) at the CPU size below
-for ``--hours`` of wall time (resumable: one run may span several sittings), evaluating every
-``EVAL_EVERY`` races on the 10 held-out tracks (seeds 10000..10009, deterministic actions).
-Then it writes, under ``benchmarks/results/``:
+Trains `dreamer_<variant>.py --preset cpu` on the single-car race (stage ``single``, one torch thread, so two runs
+share two cores) until ``--updates`` updates or ``--hours`` of wall time (resumable: a run may span sittings),
+evaluating every 5 races on the 10 held-out tracks (seeds 10000..10009) and keeping each evaluated policy
+(``checkpoints/eval_<race>.pt``). It writes, under ``benchmarks/results/``:
 
-* ``learning_<variant>_seed<S>.csv``: evaluation return and progress against env steps,
-  updates and wall-clock hours;
+* ``learning_<variant>_seed<S>.csv``: evaluation return and progress against env steps, updates and hours;
 * ``baselines.json``: random actions and the pure-pursuit driver on the same 10 tracks;
-* ``learning.png`` and ``learning.md``: every curve there, with the baselines.
+* ``learning.png`` and ``learning.md``: every curve, with the baselines;
+* with ``--final``: the run's row of ``learning_final.csv`` (its final and best policies on the 20 fresh tracks
+  10100..10119) and the IQM and mean over seeds with stratified-bootstrap intervals (rliable).
 
-The bar (issue 6): mean evaluation return >= +300 and progress >= 40%, both variants, 2 seeds.
+The bar, per variant over 3 seeds: final-policy mean return >= 600 with every seed >= 350, mean progress >= 0.65,
+mean |steer| <= 0.3, and each run's last three evaluations within 150 of its best (docs/learning.md).
 """
 
 from __future__ import annotations

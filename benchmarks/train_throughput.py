@@ -4,7 +4,7 @@ One update = world-model step + imagination + actor step + critic step (`Agent.u
 is printed next to its ratio to the reference measured in the same process with the same thread
 setting: a bare 4-layer conv encoder (3-32-64-128-256, kernel 4, stride 2) forward + backward on
 750 frames of 96x96 (one paper-size batch, B*L = 15*50), so figures compare across machines
-(DESIGN 6: peers spend 4-12x the reference per update; target at paper size with 100 starts <= 3x).
+(peers spend 4-12x the reference per update; docs/agent.md).
 Each configuration also prints its matmul/conv FLOPs per update as a ratio to the reference's: the time
 ratio it would have if it ran at the reference's efficiency (paper size, 100 starts: 3.1x).
 
@@ -60,7 +60,7 @@ class Args:
     threads: int = 0
     """torch threads (0: torch's default)"""
     malloc_fix: bool = True
-    """glibc mallopt setting of the scripts (DESIGN 6), applied once for the reference and the agents alike"""
+    """glibc mallopt setting of the scripts (docs/agent.md), applied once for the reference and the agents alike"""
     compile: bool = False
     """torch.compile the agents' networks (the scripts' --compile)"""
     amp: Literal["auto", "on", "off"] = "auto"

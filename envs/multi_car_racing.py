@@ -1,6 +1,6 @@
 """Multi-car racing: N cars on one CarRacing-v3 track, each seeing its own 96x96 camera.
 
-A PettingZoo ``ParallelEnv`` (DESIGN section 2). Track generation, the car model and the
+A PettingZoo ``ParallelEnv`` (docs/environment.md). Track generation, the car model and the
 50 Hz Box2D world are gymnasium's CarRacing-v3 pieces, reused as they are:
 
 * the track is built by gymnasium's own ``CarRacing._create_track`` on this env's world,
@@ -96,7 +96,7 @@ WHEEL_POLYGONS = ((0, 4), (4, 8), (8, 12), (12, 16))
 
 
 # =======================================================================================
-# Ghosts (DESIGN 2.5)
+# Ghosts (docs/environment.md)
 # =======================================================================================
 @dataclasses.dataclass(eq=False)
 class GhostTrajectory:
@@ -870,7 +870,7 @@ class MultiCarRacing(ParallelEnv):
         self._pending_touches.clear()
 
     def _update_car(self, i: int) -> tuple[bool, float]:
-        """Per-car rewards and termination after a physics step (DESIGN 2.4)."""
+        """Per-car rewards and termination after a physics step (docs/environment.md)."""
         car = self.cars[i]
         x, y = car.hull.position
         self._car_tile[i] = self._locate(x, y, int(self._car_tile[i]))

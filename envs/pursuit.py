@@ -1,4 +1,4 @@
-"""A scripted pure-pursuit driver for ``MultiCarRacing`` (DESIGN 2.6).
+"""A scripted pure-pursuit driver for ``MultiCarRacing`` (docs/environment.md).
 
 It steers towards a point on the track centre line a fixed distance ahead (pure pursuit:
 curvature ``2 * lateral / distance^2``) and holds a target speed, slowing for sharp bends

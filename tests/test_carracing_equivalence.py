@@ -1,5 +1,5 @@
 """``MultiCarRacing(num_agents=1, action_mode="classic", rules="carracing")`` against
-gymnasium's own CarRacing-v3 (DESIGN 2.2): same tiles, same pose every step, same rewards,
+gymnasium's own CarRacing-v3 (docs/environment.md): same tiles, same pose every step, same rewards,
 same termination, and views that look like CarRacing's."""
 
 import gymnasium

@@ -85,7 +85,7 @@ def test_parsed_defaults_equal_design_table(script):
 
 
 def test_parameter_counts_at_default_sizes(script):
-    """Counts from DESIGN 4.1's layer sizes: conv/linear layers followed by a norm have no bias;
+    """Counts from the paper appendix's layer sizes: conv/linear layers followed by a norm have no bias;
     BatchNorm and LayerNorm have a weight and a bias per channel."""
     agent = script.Agent(script.Args(), device="cpu")
     wm = agent.world_model

@@ -1,5 +1,5 @@
 """The racing env against the standards it claims: PettingZoo's parallel API and seed tests,
-gymnasium's and Stable-Baselines3's env checkers, and the bad-input rules of DESIGN 2.8."""
+gymnasium's and Stable-Baselines3's env checkers, and the bad-input rules (docs/environment.md)."""
 
 import gymnasium
 import numpy as np

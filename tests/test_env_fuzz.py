@@ -1,4 +1,4 @@
-"""Seeded fuzzing of MultiCarRacing.step with bad input (DESIGN 2.8, issue 7).
+"""Seeded fuzzing of MultiCarRacing.step with bad input (docs/environment.md, bad input).
 
 Every bad call (NaN, inf, wrong shape, wrong dtype such as strings, bytes, objects, complex numbers or
 booleans, missing or unknown agents, an agent that is out, not a dict) must raise ValueError and leave

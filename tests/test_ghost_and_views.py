@@ -1,4 +1,4 @@
-"""Ghost racing (DESIGN 2.5) and the cameras (DESIGN 2.2, 2.7)."""
+"""Ghost racing and the cameras (docs/environment.md)."""
 
 import dataclasses
 

@@ -1,4 +1,4 @@
-"""Race rules of DESIGN 2.3-2.4, checked with the pure-pursuit driver as the oracle."""
+"""Race rules (docs/environment.md), checked with the pure-pursuit driver as the oracle."""
 
 
 import numpy as np
