@@ -1526,6 +1526,10 @@ class CheckpointError(UsageError):
     """A missing, truncated or foreign checkpoint (or replay) file; the message names the file."""
 
 
+class WrongVariant(CheckpointError):
+    """A checkpoint of the other variant's script (race.py then asks that script)."""
+
+
 class NumericalFault(RuntimeError):
     """--max-nonfinite-updates updates in a row had a non-finite loss or gradient; the run stopped with a checkpoint."""
 
@@ -1913,7 +1917,7 @@ def load_checkpoint(path: str, map_location="cpu", training: bool = False) -> di
     if not isinstance(checkpoint, dict) or not all(key in checkpoint for key in keys):
         raise CheckpointError(f"{path}: not a checkpoint of these scripts (needs entries {', '.join(keys)})")
     if checkpoint["variant"] != VARIANT:
-        raise CheckpointError(f"{path}: holds a {checkpoint['variant']!r} agent, this script builds {VARIANT!r}")
+        raise WrongVariant(f"{path}: holds a {checkpoint['variant']!r} agent, this script builds {VARIANT!r}")
     if not isinstance(checkpoint["agents"], list) or not checkpoint["agents"]:
         raise CheckpointError(f"{path}: holds no agents")
     if training and checkpoint.get("kind") == "policy":

@@ -1,50 +1,85 @@
 """Head-to-head races between saved agents of any variant, and the multi-agent training phase.
 
     python race.py A.pt B.pt [C.pt ...] --races 100 --seed 1
-    python race.py runs/<lstm run>/checkpoints/best.pt --opponent pursuit:70
+    python race.py pretrained/lstm_cpu.pt --opponent pursuit:70
     python race.py A.pt B.pt --train --episodes 200      # both keep learning while they race
 
-Every checkpoint names its variant (``"lstm"`` -> ``dreamer_lstm.py``, ``"gru"`` ->
-``dreamer_gru.py``) and the agent is built from that script's own importable pieces. A
-checkpoint path may end in ``:k`` to pick agent ``k`` of a multi-agent checkpoint (default 0).
+Every checkpoint names its variant (``"lstm"`` -> ``dreamer_lstm.py``, ``"gru"`` -> ``dreamer_gru.py``) and the
+agent is built and loaded by that script's own functions; an acting-only export (``pretrained/*.pt``) races like a
+checkpoint. A path may end in ``:k`` to pick agent ``k`` of a multi-agent checkpoint (default 0).
 
-Races run on seeded tracks: track ``j`` is raced once per car with the start grid rotated, so
-every car starts from every grid slot equally often. Each Dreamer racer decides at the rate it was
-trained at: a new action every ``action_repeat`` env steps of its own, held in between (its
-recorded transitions sum the rewards of the held steps). Actions are deterministic (posterior mean
-and actor mean) unless ``--stochastic``. The table per racer (also as CSV and JSON in
-``--out``): wins, win rate with a Wilson 95% interval, mean finish time of finished races,
-mean progress, eliminations, collision steps; plus an mp4 of the first race (``--video``).
+Races run on seeded tracks: track ``j`` is raced once per car with the start grid rotated, so every car starts from
+every grid slot equally often. Each Dreamer racer decides at the rate it was trained at: a new action every
+``action_repeat`` env steps of its own, held in between (its recorded transitions sum the rewards of the held
+steps), with ``--policy`` (default: posterior mean and actor mean). The table per racer (also as CSV and JSON in
+``--out``): wins, win rate with a Wilson 95% interval, mean finish time of finished races, mean progress,
+eliminations, collision steps; plus an mp4 of the first race (``--video``).
 
-``--train``: the multi-agent phase of the paper. Every Dreamer racer keeps training,
-decentralized (Algorithm 1): its own replay buffer (the one saved beside its checkpoint, in
-``checkpoints/replay_car_k/``, unless ``--fresh-replay``), filled with its own car's transitions, and
-``--train-steps`` updates after every race; TensorBoard logging per racer (return, progress,
-win rate, losses) and a checkpoint per racer in ``runs/<run>/checkpoints/``.
+``--train``: the multi-agent phase of the paper. Every Dreamer racer keeps training, decentralized (Algorithm 1):
+its own replay buffer (the one saved beside its checkpoint unless ``--fresh-replay``), filled with its own car's
+transitions, and ``--train-steps`` updates after every race (the scripts' ``train_agent``); TensorBoard logging per
+racer (return, progress, win rate, losses) and, after every race, a checkpoint per racer with its replay beside it
+(``runs/<run>/checkpoints/racer_<i>.pt`` and ``racer_<i>_replay_car_0/``), so a later sitting continues from both.
 """
 
 from __future__ import annotations
 
-import argparse
 import csv
 import dataclasses
 import importlib
 import json
 import math
 import os
-import pickle
 import sys
 import time
-import zipfile
+from typing import Annotated, Literal
 
 import numpy as np
 import torch
+import tyro
 
 from envs import MultiCarRacing, race_winners
 from envs.pursuit import PursuitDriver, lane_of
 
 VARIANT_SCRIPTS = {"lstm": "dreamer_lstm", "gru": "dreamer_gru"}
 WILSON_Z = 1.959963984540054  # two-sided 95%
+
+
+@dataclasses.dataclass
+class Args:
+    checkpoints: tyro.conf.Positional[tuple[str, ...]] = ()
+    """checkpoint files or acting-only exports (path, or path:agent_index)"""
+    races: int = 100
+    """races to run (evaluation)"""
+    seed: int = 1
+    """track seeds are derived from it"""
+    opponent: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()
+    """a scripted pure-pursuit driver to add: pursuit or pursuit:SPEED (default speed 70); repeatable"""
+    policy: Literal["deterministic", "mean-action", "stochastic"] = "deterministic"
+    """how Dreamer racers act: posterior mean z and mean action / sampled z, mean action / both sampled
+    (--train always samples, as in training)"""
+    out: str | None = None
+    """directory of results.csv/json and race.mp4 (default races/<time>)"""
+    video: bool = True
+    """save an mp4 of the first race"""
+    max_steps: int | None = None
+    """env max_steps (default: the first checkpoint's)"""
+    cuda: bool = True
+    """use CUDA when available"""
+    torch_threads: int = 0
+    """torch CPU threads (0: torch's default)"""
+    train: bool = False
+    """the multi-agent phase: keep training every agent while racing"""
+    episodes: int = 200
+    """--train: races to train for"""
+    train_steps: int | None = None
+    """--train: updates per agent per race (default: each agent's own --train-steps-per-episode)"""
+    fresh_replay: bool = False
+    """--train: start from empty replays (default: each checkpoint's saved replay)"""
+    runs_dir: str = "runs"
+    """--train: where the run directory goes"""
+    exp_name: str = "race"
+    """--train: experiment name of the run"""
 
 
 def wilson_interval(wins: int, n: int, z: float = WILSON_Z) -> tuple[float, float]:
@@ -63,44 +98,47 @@ class CheckpointError(ValueError):
     """A file that is not a readable checkpoint of ours; the message names the file."""
 
 
-def read_checkpoint(path: str, device="cpu") -> dict:
-    """Load one of our checkpoints with ``weights_only=True``, with one-line errors."""
-    if not os.path.isfile(path):
-        raise CheckpointError(f"{path}: no such checkpoint file")
-    try:
-        checkpoint = torch.load(path, map_location=device, weights_only=True)
-    except (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile, ValueError, OSError) as e:
-        first_line = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise CheckpointError(f"{path}: not a readable checkpoint (truncated or not a torch file): {first_line}") from None
-    if not isinstance(checkpoint, dict) or "variant" not in checkpoint or "agents" not in checkpoint:
-        raise CheckpointError(f"{path}: not a DLC checkpoint (no 'variant' and 'agents' entries)")
-    if not isinstance(checkpoint["agents"], list) or not isinstance(checkpoint.get("args"), dict):
-        raise CheckpointError(f"{path}: not a DLC checkpoint (its 'agents' or 'args' entry is malformed)")
-    if not isinstance(checkpoint["variant"], str) or checkpoint["variant"] not in VARIANT_SCRIPTS:
-        raise CheckpointError(f"{path}: unknown variant {checkpoint['variant']!r}; known: {sorted(VARIANT_SCRIPTS)}")
-    return checkpoint
+def read_checkpoint(path: str, device="cpu", training: bool = False) -> tuple:
+    """(script module, checkpoint) of a checkpoint or acting-only export, read by the script of its variant
+    (``load_checkpoint``, with ``weights_only=True``); every failure is a one-line CheckpointError naming the file."""
+    for name in VARIANT_SCRIPTS.values():
+        script = importlib.import_module(name)
+        try:
+            return script, script.load_checkpoint(path, device, training)
+        except script.WrongVariant:
+            continue  # the other script's file
+        except script.CheckpointError as e:
+            raise CheckpointError(str(e)) from None
+    raise CheckpointError(f"{path}: unknown variant; known: {sorted(VARIANT_SCRIPTS)}")
+
+
+def replay_dir_of(path: str, index: int) -> str:
+    """The replay saved beside a checkpoint: ``<stem>_replay_car_<k>`` (race.py --train) or ``replay_car_<k>`` (a
+    training run's ``checkpoints/``)."""
+    stem = os.path.splitext(path)[0]
+    own = f"{stem}_replay_car_{index}"
+    return own if os.path.isdir(own) else os.path.join(os.path.dirname(os.path.abspath(path)), f"replay_car_{index}")
 
 
 class DreamerRacer:
-    """A saved Dreamer agent driving one car; built by its own script's ``Agent`` and ``Args``."""
+    """A saved Dreamer agent driving one car; built and loaded by its own script."""
 
-    def __init__(self, spec: str, device="cpu", policy: str = "deterministic"):
+    def __init__(self, spec: str, device="cpu", policy: str = "deterministic", training: bool = False):
         path, _, index = spec.rpartition(":") if spec.rpartition(":")[2].isdigit() else (spec, "", "0")
-        checkpoint = read_checkpoint(path, device)
-        self.path, self.index = path, int(index)
+        self.module, checkpoint = read_checkpoint(path, device, training)
+        self.path, self.index, self.variant = path, int(index), checkpoint["variant"]
         if not 0 <= self.index < len(checkpoint["agents"]):
             raise CheckpointError(f"{path}: has {len(checkpoint['agents'])} agent(s), asked for agent {self.index}")
-        self.variant = checkpoint["variant"]
-        self.module = importlib.import_module(VARIANT_SCRIPTS[self.variant])
         try:  # the script's own reading of its arguments and networks, with one-line errors naming the file
             self.args = self.module.args_from_checkpoint(checkpoint, path)
-            self.agent = self.module.Agent(self.args, device=device)
-            self.module.load_agent_state(self.agent, checkpoint["agents"][self.index], path, self.index)
+            self.agent = self.module.agent_from_checkpoint(path, self.index, device)
         except (ValueError, RuntimeError, TypeError) as e:  # the script's CheckpointError, or impossible sizes
             text = (str(e).strip().splitlines() or [type(e).__name__])[0]
-            raise CheckpointError(text if text.startswith(path) else f"{path}: does not build an agent: {text}") from None
-        self.policy = policy
-        self.name = f"{self.variant}:{os.path.basename(os.path.dirname(os.path.dirname(os.path.abspath(path))))}/{os.path.basename(path)}:{self.index}"
+            message = text if text.startswith(path) else f"{path}: does not build an agent: {text}"
+            raise CheckpointError(message) from None
+        self.policy, self.counters = policy, dict(checkpoint.get("counters") or {})
+        run = os.path.basename(os.path.dirname(os.path.dirname(os.path.abspath(path))))
+        self.name = f"{self.variant}:{run}/{os.path.basename(path)}:{self.index}"
         self.state, self.learns = None, True
         self.action_repeat = int(self.args.action_repeat)  # as in training: one decision per this many env steps
         self.held, self.held_steps = None, 0
@@ -109,7 +147,7 @@ class DreamerRacer:
         self.state, self.held, self.held_steps = None, None, 0
 
     def act(self, obs: np.ndarray, is_first: bool) -> np.ndarray:
-        """A new action every --action-repeat env steps of this racer (the rate it was trained at), else the held one."""
+        """A new action every action_repeat env steps of this racer (the rate it was trained at), else the held one."""
         if self.held is None or self.held_steps == self.action_repeat:
             action, self.state = self.agent.act(obs[None], self.state, np.array([is_first]), self.policy)
             self.held, self.held_steps = action[0], 0
@@ -164,7 +202,9 @@ class RaceResult:
     episodes: list  # per racer: its EpisodeRecorder when training, else None
 
 
-def run_race(env: MultiCarRacing, racers: list, seed: int, grid: list[int], record_video=False, episodes=None) -> RaceResult:
+def run_race(
+    env: MultiCarRacing, racers: list, seed: int, grid: list[int], record_video=False, episodes=None
+) -> RaceResult:
     """One race; ``episodes[i]`` (optional, a callable obs -> episode recorder) collects racer i's transitions."""
     obs, infos = env.reset(seed=seed, options={"grid": grid})
     agents = env.possible_agents
@@ -229,13 +269,15 @@ class Tally:
 
 
 def format_table(rows: list[dict]) -> str:
-    header = f"{'racer':<44} {'wins':>5} {'win rate [95% CI]':>22} {'finish':>8} {'progress':>9} {'elim':>5} {'coll':>6}"
+    header = (f"{'racer':<44} {'wins':>5} {'win rate [95% CI]':>22} {'finish':>8} {'progress':>9} {'elim':>5}"
+              f" {'coll':>6}")  # fmt: skip
     lines = [header, "-" * len(header)]
     for r in rows:
         finish = "-" if r["mean_finish_step"] is None else f"{r['mean_finish_step']:.0f}"
         ci = f"{r['win_rate']:.2f} [{r['win_rate_ci_low']:.2f}, {r['win_rate_ci_high']:.2f}]"
         lines.append(
-            f"{r['racer'][-44:]:<44} {r['wins']:>5} {ci:>22} {finish:>8} {r['mean_progress']:>9.2f} {r['eliminations']:>5} {r['collision_steps']:>6}"
+            f"{r['racer'][-44:]:<44} {r['wins']:>5} {ci:>22} {finish:>8} {r['mean_progress']:>9.2f}"
+            f" {r['eliminations']:>5} {r['collision_steps']:>6}"
         )
     return "\n".join(lines)
 
@@ -260,46 +302,33 @@ def write_outputs(out: str, rows: list[dict], frames: list[np.ndarray]) -> list[
 
 
 # --- Main -------------------------------------------------------------------------------------
-def parse_args(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("checkpoints", nargs="*", help="checkpoint files (path or path:agent_index)")
-    parser.add_argument("--races", type=int, default=100, help="races to run (evaluation)")
-    parser.add_argument("--seed", type=int, default=1, help="track seeds are derived from it")
-    parser.add_argument(
-        "--opponent", action="append", default=[], metavar="pursuit[:SPEED]", help="add a scripted pure-pursuit driver (repeatable; default speed 70)"
-    )
-    parser.add_argument("--stochastic", action="store_true", help="sample actions instead of taking the means")
-    parser.add_argument("--out", default=None, help="directory of results.csv/json and race.mp4 (default races/<time>)")
-    parser.add_argument("--video", action=argparse.BooleanOptionalAction, default=True, help="save an mp4 of the first race")
-    parser.add_argument("--max-steps", type=int, default=None, help="env max_steps (default: the first checkpoint's)")
-    parser.add_argument("--cuda", action=argparse.BooleanOptionalAction, default=True, help="use CUDA when available")
-    parser.add_argument("--torch-threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
-    parser.add_argument("--train", action="store_true", help="the multi-agent phase: keep training every agent while racing")
-    parser.add_argument("--episodes", type=int, default=200, help="--train: races to train for")
-    parser.add_argument("--train-steps", type=int, default=None, help="--train: updates per agent per race (default: each agent's own)")
-    parser.add_argument(
-        "--fresh-replay", action="store_true", help="--train: start from empty replays (default: each checkpoint's saved replay)"
-    )
-    parser.add_argument("--runs-dir", default="runs", help="--train: where the run directory goes")
-    parser.add_argument("--exp-name", default="race", help="--train: experiment name of the run")
-    args = parser.parse_args(argv)
+def usage_error(message: str) -> None:
+    """Exit as argparse does on bad input: status 2, the message on stderr's last line."""
+    print(f"race.py: error: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
+def parse_args(argv=None) -> Args:
+    """Args of a command line, checked: any impossible value exits with status 2 and one line naming it."""
+    args = tyro.cli(Args, args=argv, description=__doc__)
     racers = len(args.checkpoints) + len(args.opponent)
     if racers < 1 or (racers < 2 and not args.train):
-        parser.error(f"need at least two racers (checkpoints plus --opponent), got {racers}")
-    if args.torch_threads < 0:
-        parser.error(f"--torch-threads must be >= 0, got {args.torch_threads}")
-    if args.races < 1:
-        parser.error(f"--races must be >= 1, got {args.races}")
-    if args.seed < 0:
-        parser.error(f"--seed must be >= 0 (track seeds derive from it), got {args.seed}")
-    if args.max_steps is not None and args.max_steps < 1:
-        parser.error(f"--max-steps must be >= 1, got {args.max_steps}")
+        usage_error(f"need at least two racers (checkpoints plus --opponent), got {racers}")
+    for name, minimum in (("torch_threads", 0), ("races", 1), ("seed", 0), ("episodes", 1), ("train_steps", 0),
+                          ("max_steps", 1)):  # fmt: skip
+        value = getattr(args, name)
+        if value is not None and value < minimum:
+            usage_error(f"--{name.replace('_', '-')} must be >= {minimum}, got {value}")
     for flag, path in (("--out", args.out), ("--runs-dir", args.runs_dir)):
         if path is not None and os.path.exists(path) and not os.path.isdir(path):
-            parser.error(f"{flag} {path!r} exists and is not a directory")
-    if args.episodes < 1:
-        parser.error(f"--episodes must be >= 1, got {args.episodes}")
-    args.opponent_speeds = []
+            usage_error(f"{flag} {path!r} exists and is not a directory")
+    opponent_speeds(args)  # (checks them)
+    return args
+
+
+def opponent_speeds(args: Args) -> list[float]:
+    """The speed of every --opponent (pursuit or pursuit:SPEED, default 70)."""
+    speeds = []
     for spec in args.opponent:
         kind, _, speed = spec.partition(":")
         try:
@@ -307,18 +336,15 @@ def parse_args(argv=None):
         except ValueError:
             value = -1.0
         if kind != "pursuit" or not math.isfinite(value) or value <= 0:
-            parser.error(f"--opponent must be pursuit or pursuit:SPEED with a finite SPEED > 0, got {spec!r}")
-        args.opponent_speeds.append(value)
-    if args.train_steps is not None and args.train_steps < 0:
-        parser.error(f"--train-steps must be >= 0, got {args.train_steps}")
-    return args
+            usage_error(f"--opponent must be pursuit or pursuit:SPEED with a finite SPEED > 0, got {spec!r}")
+        speeds.append(value)
+    return speeds
 
 
-def build_racers(args, device) -> list:
-    policy = "stochastic" if args.stochastic or args.train else "deterministic"
-    racers = [DreamerRacer(spec, device, policy) for spec in args.checkpoints]
-    racers += [PursuitRacer(speed) for speed in args.opponent_speeds]
-    return racers
+def build_racers(args: Args, device) -> list:
+    policy = "stochastic" if args.train else args.policy
+    racers = [DreamerRacer(spec, device, policy, training=args.train) for spec in args.checkpoints]
+    return racers + [PursuitRacer(speed) for speed in opponent_speeds(args)]
 
 
 def make_env(args, racers, render=False) -> MultiCarRacing:
@@ -354,10 +380,11 @@ def evaluate(args, racers) -> list[dict]:
     tallies = [Tally(r.name) for r in racers]
     frames = []
     if args.races % len(racers):
-        print(f"note: {args.races} races is not a multiple of {len(racers)} racers: start slots are not perfectly balanced")
+        print(f"note: {args.races} races is not a multiple of {len(racers)} racers: start slots are not balanced")
     for race in range(args.races):
         seed, grid = schedule(args.seed, race, len(racers))
-        result = run_race(video_env if race == 0 and video_env else env, racers, seed, grid, record_video=race == 0 and args.video)
+        filmed = race == 0 and video_env is not None
+        result = run_race(video_env if filmed else env, racers, seed, grid, record_video=filmed)
         frames = frames or result.frames
         for tally, info, won, ret in zip(tallies, result.final_infos, result.winners, result.returns):
             tally.add(info, won, ret)
@@ -369,34 +396,38 @@ def evaluate(args, racers) -> list[dict]:
     return rows
 
 
-def train(args, racers, device) -> None:
-    """The multi-agent phase: race, store each car's own transitions, update each agent (Algorithm 1)."""
+def train(args: Args, racers: list, device) -> str:
+    """The multi-agent phase: race, store each car's own transitions, update each agent (Algorithm 1); after every
+    race each learning racer's checkpoint and replay are saved side by side. Returns the run directory."""
     from utils.logger import configure_logger, make_run_name
 
     learners = [i for i, r in enumerate(racers) if r.learns]
     if not learners:
         raise SystemExit("race.py: --train needs at least one checkpoint (scripted drivers do not learn)")
     env = make_env(args, racers)
-    run_name = make_run_name("multi_car_racing", args.exp_name, args.seed)
-    run_dir = os.path.join(args.runs_dir, run_name)
+    run_dir = os.path.join(args.runs_dir, make_run_name("multi_car_racing", args.exp_name, args.seed))
+    checkpoint_dir = os.path.join(run_dir, "checkpoints")
     config = {"variant": "+".join(racers[i].variant for i in learners), "stage": "race", "seed": args.seed}
-    logger = configure_logger(run_dir, {**vars(args), "racers": [r.name for r in racers]})
+    hyperparameters = {**dataclasses.asdict(args), "racers": [r.name for r in racers]}
+    logger = configure_logger(run_dir, hyperparameters, ("csv", "tensorboard"))
     with open(os.path.join(run_dir, "config.json"), "w") as f:
         json.dump(config, f)
-    replays = {}
+    replays, train_args = {}, {}
     for i in learners:
         r = racers[i]
-        replays[i] = r.module.Replay(r.args.replay_capacity, r.args.image_size)
-        saved = os.path.join(os.path.dirname(os.path.abspath(r.path)), f"replay_car_{r.index}")
+        replays[i] = r.module.Replay(r.args.replay_capacity, r.args.image_size, r.agent.action_dim)
+        saved = replay_dir_of(r.path, r.index)
         if not args.fresh_replay and os.path.isdir(saved):  # the agent keeps learning from all it has seen
             r.module.restore_replay(replays[i], saved, None, races=0)
             print(f"{r.name}: continues with the replay in {saved} ({len(replays[i]):,} steps)")
-    rng = np.random.RandomState(args.seed)
+        steps = r.args.train_steps_per_episode if args.train_steps is None else args.train_steps
+        train_args[i] = dataclasses.replace(r.args, train_steps_per_episode=steps)
     wins = {i: [] for i in range(len(racers))}
     env_steps = 0
     for episode in range(args.episodes):
         seed, grid = schedule(args.seed, episode, len(racers))
-        recorders = [(lambda obs, r=racers[i]: EpisodeRecorder(r, obs)) if i in learners else None for i in range(len(racers))]
+        recorders = [(lambda obs, r=racers[i]: EpisodeRecorder(r, obs)) if i in learners else None
+                     for i in range(len(racers))]  # fmt: skip
         result = run_race(env, racers, seed, grid, episodes=recorders)
         env_steps += max(int(info["step"]) for info in result.final_infos)
         for i, (info, won, ret) in enumerate(zip(result.final_infos, result.winners, result.returns)):
@@ -408,25 +439,33 @@ def train(args, racers, device) -> None:
             if info["lap_finished"]:
                 logger.record(f"{prefix}/charts/lap_time", info["finish_step"])
         for i in learners:
-            racer, replay = racers[i], replays[i]
+            racer, replay, prefix = racers[i], replays[i], f"racer_{i}_{racers[i].variant}/"
             replay.add_episode(*result.episodes[i].episode.arrays())
-            steps = racer.args.train_steps_per_episode if args.train_steps is None else args.train_steps
-            losses = {}
             if replay.can_sample(racer.args.seq_len):
-                for _ in range(steps):
-                    losses = racer.agent.update(replay.sample(racer.args.batch_size, racer.args.seq_len, rng))
-            for key, value in losses.items():
-                logger.record(f"racer_{i}_{racer.variant}/losses/{key}", value)
-            racer.module.save_checkpoint(
-                os.path.join(run_dir, "checkpoints", f"racer_{i}.pt"),
-                racer.args,
-                [racer.agent],
-                {"episode": episode + 1, "env_steps": env_steps, "updates": racer.agent.num_updates},
-            )
+                updates_per_s = racer.module.train_agent(racer.agent, replay, train_args[i], logger, prefix)
+                logger.record(f"{prefix}perf/updates_per_s", updates_per_s)
+            logger.record(f"{prefix}perf/updates", racer.agent.num_updates)
+            save_racer(racer, replay, os.path.join(checkpoint_dir, f"racer_{i}.pt"), episode + 1, env_steps)
+            if racer.agent.nonfinite_in_a_row >= racer.args.max_nonfinite_updates:
+                logger.dump(env_steps)
+                raise SystemExit(f"race.py: {racer.name}: {racer.agent.nonfinite_in_a_row} updates in a row had a "
+                                 f"non-finite loss or gradient; stopped after race {episode + 1} with its checkpoint")
         logger.dump(env_steps)
-        print(f"episode {episode + 1}/{args.episodes}: " + ", ".join(f"{racers[i].name} win rate {np.mean(wins[i]):.2f}" for i in wins))
+        print(f"race {episode + 1}/{args.episodes}: "
+              + ", ".join(f"{racers[i].name} win rate {np.mean(wins[i]):.2f}" for i in wins))  # fmt: skip
     logger.close()
     print("run directory:", run_dir)
+    return run_dir
+
+
+def save_racer(racer: DreamerRacer, replay, path: str, races: int, env_steps: int) -> None:
+    """The racer's checkpoint and, beside it, its replay (``<stem>_replay_car_0``): the replay first, then the
+    checkpoint naming that save, so a kill between the two leaves the previous pair."""
+    replay_dir = f"{os.path.splitext(path)[0]}_replay_car_0"
+    manifest = replay.save(replay_dir)
+    counters = {**racer.counters, "episode": races, "race_env_steps": env_steps}
+    racer.module.save_checkpoint(path, racer.args, [racer.agent], counters, {"replays": [manifest]})
+    racer.module.Replay.prune(replay_dir, manifest)
 
 
 def main(argv=None):
@@ -439,9 +478,8 @@ def main(argv=None):
     except CheckpointError as e:
         sys.exit(f"race.py: {e}")
     if args.train:
-        train(args, racers, device)
-    else:
-        return evaluate(args, racers)
+        return train(args, racers, device)
+    return evaluate(args, racers)
 
 
 if __name__ == "__main__":

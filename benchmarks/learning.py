@@ -244,9 +244,8 @@ def evaluate_checkpoint(
     from race import read_checkpoint  # one reader of checkpoints: clear one-line errors naming the file
     from utils import make_vec_env
 
-    checkpoint = read_checkpoint(path)
+    script, checkpoint = read_checkpoint(path)
     variant = checkpoint["variant"]
-    script = importlib.import_module(f"dreamer_{variant}")
     if policy not in script.EVAL_POLICIES:
         raise ValueError(f"policy must be one of {', '.join(script.EVAL_POLICIES)}, got {policy!r}")
     args = script.args_from_checkpoint(checkpoint, path, num_agents=1)

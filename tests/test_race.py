@@ -2,6 +2,7 @@
 
 import json
 import math
+import os
 
 import pytest
 
@@ -48,7 +49,7 @@ def test_truncated_and_foreign_checkpoints_get_one_line_errors(tmp_path):
     truncated = tmp_path / "truncated.pt"
     truncated.write_bytes(foreign.read_bytes()[:40])
     for path, message in [
-        (foreign, "not a DLC checkpoint"),
+        (foreign, "not a checkpoint of these scripts"),
         (truncated, "not a readable checkpoint"),
         (tmp_path / "missing.pt", "no such checkpoint file"),
     ]:
@@ -107,9 +108,27 @@ def test_tiny_train_run_logs_per_agent_win_rates(tiny_checkpoints, tmp_path):
         assert f"{racer}/losses/actor" in tags  # it kept learning
         assert len(acc.Scalars(f"{racer}/charts/win_rate")) == 2
         assert 0.0 <= acc.Scalars(f"{racer}/charts/win_rate")[-1].value <= 1.0
-    for i in (0, 1):
-        checkpoint = race.read_checkpoint(str(run_dir / "checkpoints" / f"racer_{i}.pt"))
-        assert checkpoint["counters"]["episode"] == 2
+    for i, variant in enumerate(("lstm", "gru")):
+        path = str(run_dir / "checkpoints" / f"racer_{i}.pt")
+        script, checkpoint = race.read_checkpoint(path)
+        assert checkpoint["counters"]["episode"] == 2 and script.VARIANT == variant
+        # its replay is saved beside it (named by the checkpoint) and a later sitting continues from both
+        manifest = checkpoint["extra"]["replays"][0]
+        assert race.replay_dir_of(path, 0) == str(run_dir / "checkpoints" / f"racer_{i}_replay_car_0")
+        replay = script.Replay(manifest["capacity"], 64)
+        replay.load(race.replay_dir_of(path, 0), manifest)
+        first = script.Replay(500, 64)
+        first.load(os.path.join(os.path.dirname(tiny_checkpoints[variant]), "replay_car_0"))
+        assert replay.episodes == first.episodes + 2 and checkpoint["agents"][0]["num_updates"] == 1 + 2
+    again = tmp_path / "again"
+    race.main(
+        [str(run_dir / "checkpoints" / "racer_0.pt"), str(run_dir / "checkpoints" / "racer_1.pt"), "--train",
+         "--episodes", "1", "--train-steps", "1", "--max-steps", "30", "--runs-dir", str(again)]
+    )  # fmt: skip
+    (run_dir2,) = list(again.iterdir())
+    script, checkpoint = race.read_checkpoint(str(run_dir2 / "checkpoints" / "racer_0.pt"))
+    assert checkpoint["agents"][0]["num_updates"] == 1 + 2 + 1  # continued, not restarted
+    assert checkpoint["extra"]["replays"][0]["episodes"] == first.episodes + 3  # with the whole replay
 
 
 def test_dreamer_racer_decides_every_action_repeat_steps_and_records_summed_rewards(tiny_checkpoints):
