@@ -18,9 +18,8 @@ import numpy as np
 import pytest
 import torch
 import tyro
+from conftest import SCRIPTS, TINY
 from torch import nn
-
-SCRIPTS = ["dreamer_lstm", "dreamer_gru"]
 
 # The defaults: the paper's hyperparameters (Algorithm 1, appendix) and the paper authors' configurations, one column
 # per variant (docs/agent.md lists them with their sources).
@@ -40,18 +39,6 @@ DEFAULTS = {
     },
 }  # fmt: skip
 DEFAULTS["gru"] = {**DEFAULTS["lstm"], "batch_size": 50, "imagination_horizon": 15}
-
-# Tiny sizes for fast tests (the methods are size-agnostic).
-TINY = {
-    "cnn_depth": 4, "deter_size": 16, "hidden_size": 16, "mlp_size": 16, "latent_size": 4, "image_size": 64,
-    "batch_size": 3, "seq_len": 8, "imagination_horizon": 4,
-}  # fmt: skip
-
-
-@pytest.fixture(params=SCRIPTS)
-def script(request):
-    return importlib.import_module(request.param)
-
 
 def tiny_args(script, **overrides):
     return script.Args(**{**TINY, **overrides})

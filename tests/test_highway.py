@@ -14,6 +14,7 @@ import cv2
 import gymnasium as gym
 import numpy as np
 import pytest
+from conftest import TINY_RUN
 from pettingzoo.test import parallel_api_test, parallel_seed_test
 
 from envs.highway import GRAYSCALE_WEIGHTS, HIGHWAY_ENV_ID, HighwayIntersection
@@ -193,14 +194,11 @@ def test_highway_random_reads_a_runs_evaluations_per_car_over_sittings(tmp_path)
 def test_dreamer_on_highway_logs_evaluations_but_no_steer_statistic(tmp_path):
     """The racing env's action 0 is the steer, highway-env's the acceleration: a highway run logs its
     evaluation returns and no car_i/eval/mean_abs_steer."""
-    import dreamer_lstm
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    tiny = dict(
-        cnn_depth=4, deter_size=16, hidden_size=16, mlp_size=16, latent_size=4, image_size=64, batch_size=2, seq_len=8,
-        imagination_horizon=3, train_steps_per_episode=1, prefill_episodes=1, replay_capacity=500, total_episodes=1,
-        eval_every=1, eval_episodes=1, video_every=0,
-    )  # fmt: skip
+    import dreamer_lstm
+
+    tiny = {k: v for k, v in TINY_RUN.items() if k != "max_steps"}
     run_dir = dreamer_lstm.main(
         dreamer_lstm.Args(env_id="highway-intersection", num_agents=2, runs_dir=str(tmp_path), **tiny)
     )

@@ -5,6 +5,7 @@ import math
 import os
 
 import pytest
+from conftest import TINY_RUN
 
 import race
 
@@ -72,11 +73,7 @@ def tiny_checkpoints(tmp_path_factory):
     """A best.pt of each variant from a 1-race tiny single-stage run."""
     import importlib
 
-    tiny = dict(
-        cnn_depth=4, deter_size=16, hidden_size=16, mlp_size=16, latent_size=4, image_size=64, batch_size=2, seq_len=8,
-        imagination_horizon=3, max_steps=30, train_steps_per_episode=1, prefill_episodes=1, replay_capacity=500,
-        total_episodes=1, eval_every=1, eval_episodes=1, video_every=0,
-    )  # fmt: skip
+    tiny = dict(TINY_RUN)
     paths = {}
     for variant in ("lstm", "gru"):
         script = importlib.import_module(f"dreamer_{variant}")

@@ -23,13 +23,9 @@ import sys
 import numpy as np
 import pytest
 import torch
+from conftest import SCRIPTS, TINY
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-SCRIPTS = ["dreamer_lstm", "dreamer_gru"]
-TINY = {
-    "cnn_depth": 4, "deter_size": 16, "hidden_size": 16, "mlp_size": 16, "latent_size": 4, "image_size": 64,
-    "batch_size": 3, "seq_len": 8, "imagination_horizon": 4,
-}  # fmt: skip
 RUN = dict(
     **TINY, max_steps=30, train_steps_per_episode=2, prefill_episodes=1, replay_capacity=500, eval_every=0,
     video_every=0, replay_save_every=1, torch_threads=1,
@@ -38,11 +34,6 @@ RUN = dict(
 
 class Killed(BaseException):
     """Stands for a kill: nothing in the scripts catches it."""
-
-
-@pytest.fixture(params=SCRIPTS)
-def script(request):
-    return importlib.import_module(request.param)
 
 
 @pytest.fixture(autouse=True)
@@ -506,3 +497,115 @@ def test_sigterm_still_ends_the_process_after_pygame_starts(probe):
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     result = subprocess.run([sys.executable, "-c", code], cwd=root, env=env, capture_output=True, timeout=120)
     assert result.returncode == -15, result.stderr.decode()[-500:]
+
+
+# A real process killed with SIGKILL at a chosen moment: the n-th env step of race 2 (a prefill race), the
+# n-th update (inside a training burst), or the n-th atomic write after its data is written and before its rename
+# (inside a checkpoint or replay save). The script itself is unchanged; only the call is intercepted.
+KILL_AT = r"""
+import importlib, os, signal, sys
+script = importlib.import_module(sys.argv[1])
+where, n, argv = sys.argv[2], int(sys.argv[3]), sys.argv[4:]
+calls = [0]
+
+def kill_on_call(owner, name):
+    real = getattr(owner, name)
+    def wrapper(*args, **kwargs):
+        calls[0] += 1
+        if calls[0] == n:
+            os.kill(os.getpid(), signal.SIGKILL)
+        return real(*args, **kwargs)
+    setattr(owner, name, wrapper)
+
+if where == "step":  # the n-th env step of race 2 (a prefill race here)
+    real_end_race = script.end_race
+    def end_race(run, *args):
+        real_end_race(run, *args)
+        if run.counters["episode"] == 1:
+            kill_on_call(script, "step_with_repeat")
+    script.end_race = end_race
+elif where == "update":
+    kill_on_call(script.Agent, "update")
+else:  # "write": the temporary file is complete, the rename has not happened
+    real_write = script._atomic_write
+    def write_then_die(path, write):
+        calls[0] += 1
+        if calls[0] != n:
+            return real_write(path, write)
+        def write_and_die(f):
+            write(f)
+            f.flush()
+            print(f"killed while writing {os.path.basename(path)}", file=sys.stderr, flush=True)
+            os.kill(os.getpid(), signal.SIGKILL)
+        return real_write(path, write_and_die)
+    script._atomic_write = write_then_die
+script.cli(argv)
+"""
+KILL_RUN = dict(
+    TINY, max_steps=30, train_steps_per_episode=3, prefill_episodes=2, replay_capacity=500, eval_every=2,
+    eval_episodes=1, video_every=0, total_episodes=5, torch_threads=1,
+)  # fmt: skip
+
+
+def run_script(argv: list[str], kill: tuple[str, int] | None = None, module: str = "dreamer_lstm"):
+    """Run the script's command line in a fresh process (optionally killed with SIGKILL at `kill`)."""
+    code = ["-c", KILL_AT, module, *map(str, kill)] if kill else [os.path.join(ROOT, f"{module}.py")]
+    env = {**os.environ, "PYTHONPATH": ROOT}
+    command = [sys.executable, *code, *argv]
+    return subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    """The reference: the same tiny run, never killed."""
+    runs = tmp_path_factory.mktemp("whole")
+    done = run_script([*flags(**KILL_RUN), "--stage", "single", "--runs-dir", str(runs)])
+    assert done.returncode == 0, done.stderr[-2000:]
+    (run_dir,) = glob.glob(str(runs / "*"))
+    return run_dir
+
+
+@pytest.mark.parametrize(
+    "kill, writing",
+    [(("step", 5), None), (("update", 5), None), (("write", 5), "chunk_"), (("write", 10), "latest.pt")],
+    ids=["during-prefill", "during-a-training-burst", "during-a-replay-save", "during-a-checkpoint-save"],
+)  # fmt: skip
+def test_a_run_killed_with_sigkill_resumes_with_nothing_but_resume(uninterrupted, tmp_path, kill, writing):
+    """kill -9 anywhere, then `--resume <run>` alone: the run keeps every setting it was started with (5 races,
+    one torch thread), acts randomly through the rest of its prefill, and ends with the counters, update count
+    and replay of the run that was never killed."""
+    killed = run_script([*flags(**KILL_RUN), "--stage", "single", "--runs-dir", str(tmp_path)], kill)
+    assert killed.returncode == -9, killed.stderr[-2000:]
+    if writing:  # the write that was cut is the one named
+        assert f"killed while writing {writing}" in killed.stderr
+    (run_dir,) = glob.glob(str(tmp_path / "*"))
+    if not os.path.exists(os.path.join(run_dir, "checkpoints", "latest.pt")):
+        pytest.fail(f"killed at {kill} before the first checkpoint: the kill point is too early")
+    resumed = run_script(["--resume", run_dir])
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    assert "resume: --" not in resumed.stdout  # nothing overridden
+    script = importlib.import_module("dreamer_lstm")
+    a = script.load_checkpoint(os.path.join(uninterrupted, "checkpoints", "latest.pt"))
+    b = script.load_checkpoint(os.path.join(run_dir, "checkpoints", "latest.pt"))
+    assert b["counters"] == a["counters"] and b["counters"]["episode"] == 5
+    assert b["args"] == {**a["args"], "runs_dir": str(tmp_path), "resume": run_dir}
+    assert (b["args"]["total_episodes"], b["args"]["torch_threads"]) == (5, 1)
+    assert b["agents"][0]["num_updates"] == a["agents"][0]["num_updates"] == 3 * (5 - 2 + 1)
+    assert_same(a["agents"], b["agents"], "agents")  # the same networks: the prefill stayed random, the RNG exact
+    assert b["extra"]["replays"][0]["total_steps"] == a["extra"]["replays"][0]["total_steps"]
+
+
+def test_an_explicit_flag_on_resume_overrides_and_says_so(uninterrupted, tmp_path):
+    """`--resume <run> --total-episodes 6` extends the finished 5-race run by one race, and prints the change;
+    a setting that fixes the networks cannot change."""
+    import shutil
+
+    run_dir = shutil.copytree(uninterrupted, tmp_path / "run")
+    extended = run_script(["--resume", str(run_dir), "--total-episodes", "6"])
+    assert extended.returncode == 0, extended.stderr[-2000:]
+    assert "resume: --total-episodes 5 -> 6" in extended.stdout
+    checkpoint = importlib.import_module("dreamer_lstm").load_checkpoint(str(run_dir / "checkpoints" / "latest.pt"))
+    assert checkpoint["counters"]["episode"] == 6 and checkpoint["args"]["total_episodes"] == 6
+    assert checkpoint["args"]["torch_threads"] == 1  # not passed: kept
+    refused = run_script(["--resume", str(run_dir), "--deter-size", "32"])
+    assert refused.returncode == 1 and "--deter-size cannot change in a resumed run" in refused.stderr
