@@ -372,7 +372,46 @@ class TrackRenderer:
 class MultiCarRacing(ParallelEnv):
     """N cars race one lap of a random CarRacing track; each agent sees its own camera.
 
-    Args:
+    ## Description
+    The track, the car model (``car_dynamics.Car``) and the 50 Hz Box2D world are gymnasium's CarRacing-v3; this
+    env adds more cars (hull-to-hull collisions), one egocentric camera per car drawn straight at 96x96, per-car
+    rewards and the race rules below. ``rules="carracing"`` with ``num_agents=1, action_mode="classic"``
+    reproduces CarRacing-v3 exactly (same tiles, poses, rewards and termination for the same seed and actions).
+
+    ## Action Space
+    Per agent, ``action_mode="throttle_brake"`` (default): ``Box(-1, 1, (2,), float32)``, ``[steer, u]``: ``u > 0``
+    is gas ``u``; ``u <= dead_zone`` brakes with strength ``|u|`` (no effect below ``brake_speed_threshold``);
+    in between the car coasts. ``"classic"``: CarRacing's ``[steer, gas, brake]`` with its bounds. Finite
+    out-of-range actions are clipped; NaN or infinite values, wrong shapes and unknown or finished agents raise
+    ``ValueError`` naming the agent, before anything in the race changes.
+
+    ## Observation Space
+    Per agent ``Box(0, 255, (96, 96, 3), uint8)``: its own camera, following and rotating with its car, the own car
+    red (``ego_color``), every other car and ghost visible, CarRacing's dashboard in the bottom strip.
+
+    ## Rewards
+    Per car and step: -0.1; the first touch of a track tile pays ``(1 - k/N) * 1000/T`` (``T`` tiles, ``N`` cars
+    plus ghosts, ``k`` of them touched it earlier: with two cars the leader gets 1000/T and the follower 500/T; one
+    car alone collects 1000); ``-collision_penalty`` while its hull touches another car; ``speed_reward_coef``
+    times its forward speed along the track; ``-offroad_penalty`` once when it is eliminated.
+
+    ## Starting State
+    Cars start on a staggered two-column grid behind the start line, in a random order; all randomness (track,
+    grid order) comes from the seed of ``reset``.
+
+    ## Episode End
+    A car is terminated when it finishes the lap (all tiles, or 95% and back at the start) or is eliminated: its
+    centre leaves the road, it leaves the playfield, or it touches no new tile for ``stall_steps`` steps. The race
+    ends when every car is done; at ``max_steps`` the cars still racing are truncated.
+
+    ## Info
+    ``infos[agent]``: ``progress`` (fraction of tiles), ``tiles``, ``tile_reward``, ``lap_finished``,
+    ``finish_step`` and ``rank`` (-1 until finished), ``eliminated`` (None, ``"off_road"``, ``"off_playfield"``,
+    ``"stalled"``), ``speed``, ``collision_steps``, ``step``; racing a ghost also ``ghost_tiles_ahead``,
+    ``ahead_of_ghost`` and, on the car's last step, ``ghost_beaten``; on the last step of a race reset with a seed,
+    ``trajectory`` (the run as a ``GhostTrajectory``, for ghost racing: ``reset(seed, options={"ghosts": ...})``).
+
+    ## Arguments
         num_agents: number of cars, agents ``car_0 .. car_{N-1}``.
         action_mode: ``"throttle_brake"``: ``[steer, u]`` in [-1, 1]^2 with the paper's
             dead zone on ``u``; ``"classic"``: CarRacing's ``[steer, gas, brake]``.
