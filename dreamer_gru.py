@@ -1241,7 +1241,7 @@ class Run:
     from_checkpoint: bool = False  # the agents started from --checkpoint: no random prefill
     started: float = dataclasses.field(default_factory=time.time)
     fault: str | None = None  # set when an agent had --max-nonfinite-updates faulty updates in a row
-    update_seconds: list = dataclasses.field(default_factory=list)  # the first updates' times (CPU report)
+    update_seconds: list = dataclasses.field(default_factory=list)  # the first two updates' times (CPU report)
     pbar: object = None
 
     @property
@@ -1319,14 +1319,17 @@ def train_all(run: Run) -> None:
     args = run.args
     for j, (agent, replay) in enumerate(zip(run.agents, run.replays)):
 
+        burst_start = time.time()
+
         def on_update(done: int, seconds: float, j=j) -> None:
-            run.update_seconds.append(seconds)
+            if len(run.update_seconds) < 2:
+                run.update_seconds.append(seconds)
+                if len(run.update_seconds) == 2 and run.device.type == "cpu":
+                    report_update_time(run)
             if run.pbar is not None:
-                rate = (len(run.update_seconds) - 1) / max(sum(run.update_seconds[1:]), 1e-9)
+                rate = done / max(time.time() - burst_start, 1e-9)
                 run.pbar.set_postfix_str(f"training car_{j}: {done}/{args.train_steps_per_episode} updates, "
                                          f"{rate:.2f} updates/s", refresh=True)  # fmt: skip
-            if len(run.update_seconds) == 4 and run.device.type == "cpu":
-                report_update_time(run)
 
         updates_per_s = train_agent(agent, replay, args, run.logger, f"car_{j}/", on_update)
         run.logger.record(f"car_{j}/perf/updates_per_s", updates_per_s)
@@ -1339,9 +1342,10 @@ def train_all(run: Run) -> None:
 
 
 def report_update_time(run: Run) -> None:
-    """Say how long one update takes on this CPU (the first update warms up) and what that means per race."""
+    """Say how long one update takes on this CPU (the second update: the first warms up) and what that means per
+    race, as soon as it is known (at the paper's size within a minute or two of the start)."""
     args, n = run.args, len(run.agents)
-    per_update = float(np.median(run.update_seconds[1:4]))
+    per_update = run.update_seconds[1]
     minutes = per_update * args.train_steps_per_episode * n / 60
     message = (f"On this CPU one update takes {per_update:.2f} s: {args.train_steps_per_episode} updates x {n}"
                f" agent(s) = {minutes:.1f} min of training per race.")  # fmt: skip

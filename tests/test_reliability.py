@@ -586,6 +586,7 @@ def test_a_run_killed_with_sigkill_resumes_with_nothing_but_resume(uninterrupted
     assert "resume: --" not in resumed.stdout  # nothing overridden
     assert "XDG_RUNTIME_DIR" not in resumed.stderr + killed.stderr  # SDL's display probing is quiet
     assert "evaluation after race 4" in resumed.stdout and "| charts/" not in resumed.stdout  # one line, no table
+    assert "On this CPU one update takes" in resumed.stdout + killed.stdout  # after the second update
     script = importlib.import_module("dreamer_lstm")
     a = script.load_checkpoint(os.path.join(uninterrupted, "checkpoints", "latest.pt"))
     b = script.load_checkpoint(os.path.join(run_dir, "checkpoints", "latest.pt"))
