@@ -381,6 +381,7 @@ def evaluate(args, racers) -> list[dict]:
     frames = []
     if args.races % len(racers):
         print(f"note: {args.races} races is not a multiple of {len(racers)} racers: start slots are not balanced")
+    all_out = 0  # races in which every car was eliminated
     for race in range(args.races):
         seed, grid = schedule(args.seed, race, len(racers))
         filmed = race == 0 and video_env is not None
@@ -388,7 +389,8 @@ def evaluate(args, racers) -> list[dict]:
         frames = frames or result.frames
         for tally, info, won, ret in zip(tallies, result.final_infos, result.winners, result.returns):
             tally.add(info, won, ret)
-    rows = [t.row() for t in tallies]
+        all_out += all(info.get("eliminated") is not None for info in result.final_infos)
+    rows = [{**t.row(), "all_eliminated": all_out} for t in tallies]
     print(format_table(rows))
     out = args.out or os.path.join("races", time.strftime("%Y%m%d-%H%M%S"))
     for path in write_outputs(out, rows, frames):
@@ -463,7 +465,8 @@ def save_racer(racer: DreamerRacer, replay, path: str, races: int, env_steps: in
     checkpoint naming that save, so a kill between the two leaves the previous pair."""
     replay_dir = f"{os.path.splitext(path)[0]}_replay_car_0"
     manifest = replay.save(replay_dir)
-    counters = {**racer.counters, "episode": races, "race_env_steps": env_steps}
+    before = int(racer.counters.get("race_episodes", 0))  # races of earlier head-to-head sittings
+    counters = {**racer.counters, "episode": races, "race_episodes": before + races, "race_env_steps": env_steps}
     racer.module.save_checkpoint(path, racer.args, [racer.agent], counters, {"replays": [manifest]})
     racer.module.Replay.prune(replay_dir, manifest)
 

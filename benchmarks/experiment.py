@@ -1,0 +1,390 @@
+"""The paper's experiment end to end, as Ray Tune trials: single -> ghost (and its control) -> head to head.
+
+    python benchmarks/experiment.py                                   # the CPU-preset experiment on this machine
+    python benchmarks/experiment.py --seeds 11 12 13 --race-episodes 150 --tournament-every 50
+    python benchmarks/experiment.py --address auto --gpus-per-trial 1 --torch-threads 4   # on a Ray cluster
+    python benchmarks/experiment.py --aggregate-only                  # only the CSVs and the rliable summary
+
+Every (variant, seed, stage) is one Ray Tune trial (``ray.init()`` on this machine unless ``--address``; each
+trial asks for ``--torch-threads`` CPUs, so two share two cores, and ``--gpus-per-trial`` GPUs). A trial is an
+ordinary run directory of the dreamer scripts (TensorBoard, ``latest.pt``, replay) under
+``<storage>/trials/<stage>_<variant>_seed<S>/``; it works in chunks of ``--report-every`` updates (or one
+tournament interval of races), reports its latest evaluation to Tune after each, and continues from its own
+``latest.pt``, so a trial Ray retries after its worker died (``--max-failures``) and a trial left unfinished by an
+earlier command both resume where they stopped. Running the same command again skips finished trials (Tune
+restores each stage's experiment). The stages follow the paper and run one after the other:
+
+* ``single``: one car from scratch, ``--single-updates`` updates; ``best.pt`` keeps the best evaluation.
+* ``ghost``: from the single trial's ``best.pt`` of the same variant and seed, ``--ghost-updates`` more updates
+  racing the agent's own best runs; ``control`` continues ``single`` from the same ``best.pt`` for as many
+  updates without a ghost, so the ghost's effect is measured rather than assumed.
+* ``race``: per seed pair (s, s), the LSTM and the GRU ghost-stage agents race each other and both keep learning
+  (``race.py --train``, ``--race-train-steps`` updates per agent per race), with a tournament every
+  ``--tournament-every`` races: ``--tournament-races`` evaluation races on held-out tracks, start positions
+  swapped fairly, the LSTM's win rate with a Wilson 95% interval.
+
+Then it writes ``benchmarks/results/ghost_vs_control.csv``, ``head_to_head.csv`` and ``experiment.md`` (IQM and
+mean of the single-stage final returns per variant with stratified-bootstrap intervals, and the probability that
+the LSTM's head-to-head win rate exceeds the GRU's across seed pairs, both with rliable).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import glob
+import importlib
+import json
+import os
+import shutil
+import signal
+import sys
+from typing import Literal
+
+import numpy as np
+import tyro
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+RESULTS = os.path.join(ROOT, "benchmarks", "results")
+TOURNAMENT_SEED = 7_777  # held-out tracks of the tournaments (training races use the pair's seed)
+
+
+@dataclasses.dataclass
+class Spec:
+    variants: tuple[Literal["lstm", "gru"], ...] = ("lstm", "gru")
+    """variants of the single and ghost stages (the race stage needs both)"""
+    seeds: tuple[int, ...] = (11, 12, 13)
+    """seeds of every stage; the race stage pairs the LSTM and GRU agents of the same seed"""
+    stages: tuple[Literal["single", "ghost", "race"], ...] = ("single", "ghost", "race")
+    """stages to run (a later stage needs the earlier ones finished)"""
+    preset: Literal["paper", "cpu"] = "cpu"
+    """the dreamer scripts' --preset"""
+    overrides: tuple[str, ...] = ()
+    """more flags of the dreamer scripts as name=value (e.g. entropy_coef=0.5), on top of the preset"""
+    single_updates: int = 8000
+    """updates of a single-stage trial"""
+    ghost_updates: int = 2000
+    """updates of a ghost-stage trial beyond its starting best.pt (and of its control)"""
+    race_episodes: int = 150
+    """head-to-head training races per seed pair"""
+    tournament_every: int = 50
+    """races between tournaments (checkpoints of both agents)"""
+    tournament_races: int = 100
+    """evaluation races per tournament (held-out tracks, start positions swapped)"""
+    race_train_steps: int = 25
+    """updates per agent after every head-to-head race"""
+    report_every: int = 500
+    """updates of a dreamer trial between its reports to Tune"""
+    fresh_tracks: int = 20
+    """tracks (from 10100) on which ghost_vs_control.csv measures the agents"""
+    storage: str = os.path.join(ROOT, "runs", "experiment")
+    """where the trials' run directories and Tune's experiment state go"""
+    name: str = "dlc"
+    """experiment name (one Tune experiment per stage: <name>_<stage>)"""
+    torch_threads: int = 1
+    """torch threads, and CPUs Ray reserves, per trial"""
+    gpus_per_trial: float = 0.0
+    """GPUs Ray reserves per trial (on a cluster with GPUs)"""
+    address: str | None = None
+    """address of a Ray cluster (default: a local Ray on this machine)"""
+    max_failures: int = 2
+    """times Ray retries a trial whose worker died (it resumes from its latest.pt)"""
+    aggregate_only: bool = False
+    """only write the result CSVs and the summary from existing trials"""
+    results: str = RESULTS
+    """directory of ghost_vs_control.csv, head_to_head.csv and experiment.md"""
+    chaos_kill_after_updates: int = 0
+    """testing aid: each single-stage trial kills its own worker once (SIGKILL) after this many updates (0: never)"""
+
+
+# --- Trials ----------------------------------------------------------------------------------
+def trial_dir(spec: dict, stage: str, variant: str, seed: int) -> str:
+    return os.path.join(spec["storage"], "trials", f"{stage}_{variant}_seed{seed}")
+
+
+def run_of(directory: str) -> str | None:
+    """The run directory of a trial that has a checkpoint (a run killed before its first checkpoint is ignored)."""
+    runs = sorted(glob.glob(os.path.join(directory, "*", "checkpoints", "latest.pt")))
+    return os.path.dirname(os.path.dirname(runs[-1])) if runs else None
+
+
+def parse_overrides(script, overrides) -> dict:
+    """name=value pairs, each converted to the type of the script's Args field (a bad name fails loudly)."""
+    fields, values = {f.name: f for f in dataclasses.fields(script.Args)}, {}
+    for item in overrides:
+        name, _, text = item.partition("=")
+        if name not in fields or not _:
+            raise ValueError(f"--overrides: {item!r} is not name=value with a field of {script.__name__}.Args")
+        default = getattr(script.Args(), name)
+        values[name] = type(default)(text) if not isinstance(default, bool) else text.lower() in ("1", "true", "yes")
+    return values
+
+
+def dreamer_trial(config: dict) -> None:
+    """A single, ghost or control trial: the dreamer script's run, in chunks of report_every updates, each resumed
+    from latest.pt, with the latest evaluation reported to Tune after every chunk."""
+    from ray import tune
+
+    config = config["trial"]  # (the grid puts each trial's settings under "trial")
+    spec, stage, variant, seed = config["spec"], config["stage"], config["variant"], config["seed"]
+    script = importlib.import_module(f"dreamer_{variant}")
+    directory = trial_dir(spec, stage, variant, seed)
+    settings = {**parse_overrides(script, spec["overrides"]), "torch_threads": spec["torch_threads"], "seed": seed}
+    if stage == "single":
+        first, target = None, spec["single_updates"]
+        args = script.preset_args(spec["preset"], stage="single", exp_name=f"{variant}_single", **settings)
+    else:  # ghost, or its control: from the single trial's best.pt, for as many updates
+        best = os.path.join(run_of(trial_dir(spec, "single", variant, seed)), "checkpoints", "best.pt")
+        first = updates_of(best, script)
+        target = first + spec["ghost_updates"]
+        ghost = stage == "ghost"
+        # the control starts updating after as many races as the ghost stage (one per ghost track)
+        prefill = {} if ghost else {"prefill_episodes": settings.get("ghost_tracks", script.Args().ghost_tracks)}
+        args = script.preset_args(
+            spec["preset"], stage="ghost" if ghost else "single", exp_name=f"{variant}_{stage}", checkpoint=best,
+            **{**settings, **prefill},
+        )  # fmt: skip
+    args = dataclasses.replace(args, runs_dir=directory, total_episodes=10**9)
+    goal = (first or 0) + spec["report_every"]
+    while True:
+        run = run_of(directory)
+        done = updates_of(os.path.join(run, "checkpoints", "latest.pt"), script) if run else 0
+        if run is None:
+            script.main(dataclasses.replace(args, total_updates=min(goal, target)))
+        elif done < min(goal, target):
+            script.main(script.Args(resume=run, total_updates=min(goal, target)), {"total_updates"})
+        run = run_of(directory)
+        tune.report(latest_metrics(run))
+        done = latest_metrics(run)["updates"]
+        chaos = spec["chaos_kill_after_updates"]
+        marker = os.path.join(directory, "chaos_killed")
+        if chaos and stage == "single" and done >= chaos and not os.path.exists(marker):
+            open(marker, "w").close()
+            os.kill(os.getpid(), signal.SIGKILL)  # a dying worker: Ray retries the trial, which resumes
+        if done >= target:
+            return
+        goal = max(goal, done) + spec["report_every"]
+
+
+def updates_of(path: str, script) -> int:
+    return int(script.load_checkpoint(path)["agents"][0]["num_updates"])
+
+
+def latest_metrics(run: str) -> dict:
+    """The run's counters and its latest evaluation (from its progress.csv)."""
+    with open(os.path.join(run, "progress.csv"), newline="") as f:
+        rows = list(csv.DictReader(f))
+    evaluated = [r for r in rows if r.get("car_0/eval/episodic_return")]
+    last = evaluated[-1] if evaluated else (rows[-1] if rows else {})
+    updates = [r for r in rows if r.get("car_0/perf/updates")]
+
+    def number(row: dict, key: str) -> float:
+        return float(row[key]) if row.get(key) else float("nan")
+
+    return {
+        "races": int(float(rows[-1]["charts/episode"])) if rows else 0,
+        "updates": int(float(updates[-1]["car_0/perf/updates"])) if updates else 0,
+        "eval_return": number(last, "car_0/eval/episodic_return"),
+        "eval_progress": number(last, "car_0/eval/progress"),
+        "eval_mean_abs_steer": number(last, "car_0/eval/mean_abs_steer"),
+    }
+
+
+def race_trial(config: dict) -> None:
+    """Seed pair (s, s): the LSTM and GRU ghost-stage agents race and learn (race.py --train) in intervals of
+    tournament_every races; after each, a tournament on held-out tracks, reported to Tune. A finished interval is
+    kept (its tournament's results.json); an interval cut short is raced again from the previous checkpoints."""
+    from ray import tune
+
+    import race
+
+    config = config["trial"]
+    spec, seed = config["spec"], config["seed"]
+    directory = trial_dir(spec, "race", "lstm_gru", seed)
+    checkpoints = [
+        os.path.join(run_of(trial_dir(spec, "ghost", variant, seed)), "checkpoints", "latest.pt")
+        for variant in ("lstm", "gru")
+    ]
+    threads = ["--torch-threads", str(spec["torch_threads"])]
+    for k, trained in enumerate(range(spec["tournament_every"], spec["race_episodes"] + 1, spec["tournament_every"])):
+        interval = os.path.join(directory, f"races_{trained:05d}")
+        tournament = os.path.join(directory, f"tournament_{trained:05d}")
+        done = os.path.join(tournament, "results.json")
+        if not os.path.exists(done):
+            shutil.rmtree(interval, ignore_errors=True)  # an interval cut short: race it again
+            race.main([*checkpoints, "--train", "--episodes", str(spec["tournament_every"]), "--seed", str(seed),
+                       "--train-steps", str(spec["race_train_steps"]), "--runs-dir", interval, *threads])  # fmt: skip
+        (run,) = glob.glob(os.path.join(interval, "*"))
+        checkpoints = [os.path.join(run, "checkpoints", f"racer_{i}.pt") for i in (0, 1)]
+        if not os.path.exists(done):
+            race.main([*checkpoints, "--races", str(spec["tournament_races"]), "--seed", str(TOURNAMENT_SEED),
+                       "--out", tournament + ".tmp", "--no-video", *threads])  # fmt: skip
+            shutil.rmtree(tournament, ignore_errors=True)
+            os.replace(tournament + ".tmp", tournament)
+        tune.report(tournament_metrics(tournament, trained))
+
+
+def tournament_metrics(tournament: str, trained: int) -> dict:
+    """The LSTM's (racer 0) and GRU's (racer 1) results of one tournament, with the LSTM's Wilson interval."""
+    with open(os.path.join(tournament, "results.json")) as f:
+        lstm, gru = json.load(f)[:2]
+    return {
+        "races_trained": trained, "eval_races": lstm["races"], "lstm_wins": lstm["wins"], "gru_wins": gru["wins"],
+        "both_out": lstm.get("all_eliminated", 0), "lstm_win_rate": lstm["win_rate"],
+        "lstm_win_rate_ci_low": lstm["win_rate_ci_low"], "lstm_win_rate_ci_high": lstm["win_rate_ci_high"],
+        "lstm_progress": lstm["mean_progress"], "gru_progress": gru["mean_progress"],
+        "lstm_eliminations": lstm["eliminations"], "gru_eliminations": gru["eliminations"],
+        "collision_steps": lstm["collision_steps"],
+    }  # fmt: skip
+
+
+# --- Running the stages ----------------------------------------------------------------------
+def stage_configs(spec: Spec, stage: str) -> list[dict]:
+    plain = dataclasses.asdict(spec)
+    if stage == "race":
+        return [{"spec": plain, "stage": "race", "variant": "lstm_gru", "seed": s} for s in spec.seeds]
+    kinds = ["single"] if stage == "single" else ["ghost", "control"]
+    return [
+        {"spec": plain, "stage": k, "variant": v, "seed": s} for k in kinds for v in spec.variants for s in spec.seeds
+    ]
+
+
+def trial_name(trial) -> str:
+    config = trial.config["trial"]
+    return f"{config['stage']}_{config['variant']}_seed{config['seed']}"
+
+
+def run_stage(spec: Spec, stage: str):
+    """One Tune experiment per stage; an existing one is restored (finished trials are skipped)."""
+    from ray import tune
+
+    trainable = race_trial if stage == "race" else dreamer_trial
+    resources = {"cpu": spec.torch_threads, **({"gpu": spec.gpus_per_trial} if spec.gpus_per_trial else {})}
+    trainable = tune.with_resources(trainable, resources)
+    path = os.path.join(os.path.abspath(spec.storage), "tune", f"{spec.name}_{stage}")
+    if tune.Tuner.can_restore(path):
+        tuner = tune.Tuner.restore(path, trainable, resume_unfinished=True, resume_errored=True)
+    else:
+        tuner = tune.Tuner(
+            trainable,
+            param_space={"trial": tune.grid_search(stage_configs(spec, stage))},
+            tune_config=tune.TuneConfig(trial_name_creator=trial_name, trial_dirname_creator=trial_name),
+            run_config=tune.RunConfig(
+                name=f"{spec.name}_{stage}", storage_path=os.path.dirname(path), verbose=1,
+                failure_config=tune.FailureConfig(max_failures=spec.max_failures),
+            ),
+        )  # fmt: skip
+    results = tuner.fit()
+    errors = [r.error for r in results if r.error]
+    if errors:
+        raise RuntimeError(f"stage {stage}: {len(errors)} trial(s) failed: {errors[0]}")
+    return results
+
+
+def runtime_env(spec: Spec) -> dict:
+    """Where Ray's workers find this code: on this machine the repository itself; on a cluster a copy of it
+    (Ray's working_dir upload, without runs/ and .git/), with the same import paths."""
+    here = os.path.join(ROOT, "benchmarks")
+    if spec.address is None:
+        return {"env_vars": {"PYTHONPATH": os.pathsep.join([ROOT, here, os.environ.get("PYTHONPATH", "")])}}
+    return {"working_dir": ROOT, "excludes": ["runs/", ".git/", "races/"], "env_vars": {"PYTHONPATH": ".:benchmarks"}}
+
+
+def main(spec: Spec) -> None:
+    spec = dataclasses.replace(spec, storage=os.path.abspath(spec.storage))
+    for variant in ("lstm", "gru"):  # a bad override fails here, before Ray starts
+        parse_overrides(importlib.import_module(f"dreamer_{variant}"), spec.overrides)
+    if not spec.aggregate_only:
+        import ray
+
+        ray.init(address=spec.address, runtime_env=runtime_env(spec), include_dashboard=False, log_to_driver=False)
+        for stage in ("single", "ghost", "race"):
+            if stage in spec.stages:
+                run_stage(spec, stage)
+    print(aggregate(spec))
+
+
+# --- Aggregation -----------------------------------------------------------------------------
+def aggregate(spec: Spec) -> str:
+    """ghost_vs_control.csv, head_to_head.csv and experiment.md from the trials there are; returns the summary."""
+    import learning
+
+    os.makedirs(spec.results, exist_ok=True)
+    plain, first = dataclasses.asdict(spec), 10_100
+    single_returns: dict[str, list[float]] = {}
+    ghost_rows = []
+    for variant in spec.variants:
+        for seed in spec.seeds:
+            runs = {k: run_of(trial_dir(plain, k, variant, seed)) for k in ("single", "ghost", "control")}
+            if runs["single"] is None:
+                continue
+
+            def fresh(run: str, name: str) -> float:
+                path = os.path.join(run, "checkpoints", name)
+                return learning.evaluate_checkpoint(path, first, spec.fresh_tracks)["eval_return"]
+
+            single_returns.setdefault(variant, []).append(fresh(runs["single"], "latest.pt"))
+            if runs["ghost"] and runs["control"]:
+                best = os.path.join(runs["single"], "checkpoints", "best.pt")
+                updates = updates_of(best, importlib.import_module(f"dreamer_{variant}"))
+                ghost_rows.append({
+                    "variant": variant, "seed": seed, "updates_at_start": updates, "updates": spec.ghost_updates,
+                    "return_before": fresh(runs["single"], "best.pt"),
+                    "return_after_ghost": fresh(runs["ghost"], "latest.pt"),
+                    "return_after_control": fresh(runs["control"], "latest.pt"),
+                })  # fmt: skip
+    write_csv(os.path.join(spec.results, "ghost_vs_control.csv"), ghost_rows)
+    head_rows, final_rates = [], {"lstm": [], "gru": []}
+    for seed in spec.seeds:
+        tournaments = sorted(glob.glob(os.path.join(trial_dir(plain, "race", "lstm_gru", seed), "tournament_*[0-9]")))
+        for tournament in tournaments:
+            m = tournament_metrics(tournament, int(tournament.rsplit("_", 1)[1]))
+            head_rows.append({
+                "seed_pair": f"{seed},{seed}", "races_trained": m["races_trained"], "eval_races": m["eval_races"],
+                "lstm_wins": m["lstm_wins"], "gru_wins": m["gru_wins"], "both_out": m["both_out"],
+                "lstm_win_rate_ci_low": round(m["lstm_win_rate_ci_low"], 4),
+                "lstm_win_rate_ci_high": round(m["lstm_win_rate_ci_high"], 4),
+            })  # fmt: skip
+        if tournaments:
+            final_rates["lstm"].append(m["lstm_wins"] / m["eval_races"])
+            final_rates["gru"].append(m["gru_wins"] / m["eval_races"])
+    write_csv(os.path.join(spec.results, "head_to_head.csv"), head_rows)
+    summary = summarize(single_returns, final_rates)
+    with open(os.path.join(spec.results, "experiment.md"), "w") as f:
+        f.write(summary)
+    return summary
+
+
+def summarize(single_returns: dict[str, list[float]], final_rates: dict[str, list[float]], reps: int = 2000) -> str:
+    """Markdown: IQM and mean of the single-stage final returns per variant (stratified bootstrap, 95%), and the
+    probability that the LSTM's final head-to-head win rate exceeds the GRU's across seed pairs."""
+    from stats import interval_estimates, probability_of_improvement
+
+    lines = ["| variant | seeds | IQM final return [95% CI] | mean final return [95% CI] |", "|---|---|---|---|"]
+    if single_returns:
+        estimates = interval_estimates({k: np.asarray(v)[:, None] for k, v in single_returns.items()}, reps=reps)
+        for variant, e in estimates.items():
+            iqm = f"{e['iqm']:.1f} [{e['iqm_ci'][0]:.1f}, {e['iqm_ci'][1]:.1f}]"
+            mean = f"{e['mean']:.1f} [{e['mean_ci'][0]:.1f}, {e['mean_ci'][1]:.1f}]"
+            lines.append(f"| {variant} | {len(single_returns[variant])} | {iqm} | {mean} |")
+    if final_rates["lstm"]:
+        lstm, gru = (np.asarray(final_rates[v])[:, None] for v in ("lstm", "gru"))
+        p = probability_of_improvement(lstm, gru, reps)
+        lines += ["", f"P(LSTM win rate > GRU win rate) across {len(final_rates['lstm'])} seed pair(s), final "
+                      f"tournaments: {p['p']:.2f} [{p['ci'][0]:.2f}, {p['ci'][1]:.2f}]"]  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
+def write_csv(path: str, rows: list[dict]) -> None:
+    if not rows:
+        return
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Spec))

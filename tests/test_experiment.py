@@ -1,0 +1,113 @@
+"""benchmarks/experiment.py: the paper's three stages as Ray Tune trials on a local Ray, at a tiny size.
+
+One spec of 2 variants x 1 seed x all three stages runs to completion; a dreamer trial whose worker is killed
+(SIGKILL) is retried by Ray and resumes from its latest.pt with its counters intact while the other trials are
+untouched; the same spec run again does nothing; the aggregation matches hand-computed numbers."""
+
+import csv
+import dataclasses
+import glob
+import os
+import sys
+
+import numpy as np
+import pytest
+from conftest import TINY
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
+import experiment  # noqa: E402
+
+TINY_FLAGS = {
+    **TINY, "batch_size": 2, "imagination_horizon": 3, "max_steps": 30, "train_steps_per_episode": 1,
+    "prefill_episodes": 1, "replay_capacity": 500, "eval_every": 1, "eval_episodes": 1, "video_every": 0,
+    "ghost_tracks": 1, "action_repeat": 2,
+}  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory):
+    """The tiny spec, run once to the end (each single-stage trial is killed once after its first update)."""
+    pytest.importorskip("ray")
+    import ray
+
+    root = tmp_path_factory.mktemp("experiment")
+    spec = experiment.Spec(
+        seeds=(3,), preset="paper", overrides=tuple(f"{k}={v}" for k, v in TINY_FLAGS.items()), single_updates=2,
+        ghost_updates=1, race_episodes=2, tournament_every=1, tournament_races=2, race_train_steps=1,
+        report_every=1, fresh_tracks=1, storage=str(root / "storage"), results=str(root / "results"),
+        max_failures=2, chaos_kill_after_updates=1,
+    )  # fmt: skip
+    try:
+        experiment.main(spec)  # (its own ray.init: a local Ray on this machine)
+        yield spec
+    finally:
+        ray.shutdown()
+
+
+def latest(spec, stage, variant):
+    run = experiment.run_of(experiment.trial_dir(dataclasses.asdict(spec), stage, variant, 3))
+    return run, dreamer_lstm_or_gru(variant).load_checkpoint(os.path.join(run, "checkpoints", "latest.pt"))
+
+
+def dreamer_lstm_or_gru(variant):
+    return __import__(f"dreamer_{variant}")
+
+
+def test_every_stage_runs_to_completion_and_writes_the_tables(finished):
+    spec = finished
+    for variant in ("lstm", "gru"):
+        _, single = latest(spec, "single", variant)
+        assert single["agents"][0]["num_updates"] == 2
+        for kind in ("ghost", "control"):
+            run, checkpoint = latest(spec, kind, variant)
+            start = checkpoint["args"]["checkpoint"]
+            assert start.endswith("best.pt") and f"single_{variant}_seed3" in start  # from the single trial's best.pt
+            best_updates = experiment.updates_of(start, __import__(f"dreamer_{variant}"))
+            assert checkpoint["agents"][0]["num_updates"] == best_updates + 1  # as many updates, ghost and control
+        assert latest(spec, "ghost", variant)[1]["args"]["stage"] == "ghost"
+        assert latest(spec, "control", variant)[1]["args"]["stage"] == "single"
+    with open(os.path.join(spec.results, "head_to_head.csv")) as f:
+        rows = list(csv.DictReader(f))
+    assert [int(r["races_trained"]) for r in rows] == [1, 2] and all(r["seed_pair"] == "3,3" for r in rows)
+    assert all(int(r["eval_races"]) == 2 and int(r["lstm_wins"]) + int(r["gru_wins"]) <= 2 for r in rows)
+    with open(os.path.join(spec.results, "ghost_vs_control.csv")) as f:
+        assert [r["variant"] for r in csv.DictReader(f)] == ["lstm", "gru"]
+    assert "P(LSTM win rate > GRU win rate)" in open(os.path.join(spec.results, "experiment.md")).read()
+
+
+def test_a_killed_trial_resumed_with_its_counters_and_the_others_untouched(finished):
+    spec = finished
+    plain = dataclasses.asdict(spec)
+    for variant in ("lstm", "gru"):  # every dreamer trial was killed once (chaos), retried and resumed
+        directory = experiment.trial_dir(plain, "single", variant, 3)
+        assert os.path.exists(os.path.join(directory, "chaos_killed"))
+        assert len(glob.glob(os.path.join(directory, "*", "checkpoints"))) == 1  # one run, continued, not restarted
+        run, checkpoint = latest(spec, "single", variant)
+        assert checkpoint["agents"][0]["num_updates"] == 2
+        assert checkpoint["extra"]["replays"][0]["episodes"] == checkpoint["counters"]["episode"]  # replay intact
+
+
+def test_the_same_spec_again_does_nothing(finished):
+    spec = finished
+    files = sorted(glob.glob(os.path.join(spec.storage, "trials", "**", "*.pt"), recursive=True))
+    before = {path: os.path.getmtime(path) for path in files}
+    import ray
+
+    ray.shutdown()
+    experiment.main(dataclasses.replace(spec, chaos_kill_after_updates=0))
+    after = {path: os.path.getmtime(path) for path in glob.glob(os.path.join(spec.storage, "trials", "**", "*.pt"),
+                                                                 recursive=True)}  # fmt: skip
+    assert after == before
+
+
+def test_the_summary_matches_hand_computed_numbers():
+    summary = experiment.summarize({"lstm": [100.0, 200.0, 300.0], "gru": [1.0, 2.0, 3.0, 10.0]},
+                                   {"lstm": [0.6, 0.7], "gru": [0.4, 0.3]}, reps=300)  # fmt: skip
+    lines = summary.splitlines()
+    assert lines[2].startswith("| lstm | 3 | 200.0 [") and "| 200.0 [" in lines[2]  # IQM of 3 = mean
+    assert lines[3].startswith("| gru | 4 | 2.5 [") and "| 4.0 [" in lines[3]  # IQM = mean(2, 3)
+    # every LSTM win rate beats every GRU one: P(X > Y) = 1
+    assert "across 2 seed pair(s), final tournaments: 1.00 [1.00, 1.00]" in lines[-1]
+    tie = experiment.summarize({}, {"lstm": [0.5], "gru": [0.5]}, reps=100)
+    assert "0.50 [0.50, 0.50]" in tie  # ties count one half
+    assert np.isclose(float(tie.split(": ")[1].split()[0]), 0.5)
