@@ -822,3 +822,36 @@ def test_evaluate_averages_steer_over_the_decisions_of_cars_still_racing(script)
     assert returns.shape == progress.shape == abs_steer.shape == (1, 2)
     assert drivers[0].blank_calls > 0  # car_0 was asked to act after it went out ...
     assert abs_steer[0].tolist() == pytest.approx([1.0, 0.25])  # ... and those decisions do not count
+
+
+def test_dead_zone_of_the_next_race_is_set_before_its_reset(script):
+    """The env applies a dead zone at its next reset. One race at a time resets after end_race: it gets the value of
+    the races finished so far. K > 1 races have already auto-reset the finished race's slot inside the step, so
+    end_race sets the value one race ahead, for the race that starts when the next one ends."""
+
+    class Recorder:
+        def __init__(self):
+            self.calls = []
+
+        def env_method(self, name, *args):
+            self.calls.append((name, *args))
+
+        def record(self, *args, **kwargs):
+            pass
+
+        def dump(self, *args):
+            pass
+
+    for races, ahead in ((1, 0), (3, 1)):
+        args = tiny_args(script, num_agents=1, num_races=races, dead_zone_start=-1.0, dead_zone_end=-0.5,
+                         dead_zone_episodes=4, prefill_episodes=100, eval_every=0, video_every=0,
+                         replay_save_every=0, checkpoint_every=0)  # fmt: skip
+        recorder = Recorder()
+        run = script.Run(args, "unused", torch.device("cpu"), agents=[], replays=[], logger=recorder, envs=recorder,
+                         counters={"episode": 1, "global_step": 0, "best_eval_return": -math.inf}, wins=[[]])  # fmt: skip
+        car = script.CarEpisode(np.zeros((64, 64, 3), np.uint8))
+        car.final_info = {"progress": 0.5}
+        script.end_race(run, [car], None, 100.0)
+        assert run.counters["episode"] == 2
+        assert recorder.calls == [("set_dead_zone", script.dead_zone_at(2 + ahead, args))]
+        assert script.dead_zone_at(2 + ahead, args) == -1.0 + 0.5 * (2 + ahead) / 4
