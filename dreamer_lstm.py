@@ -1,6 +1,6 @@
 # LSTM-Dreamer for decentralized multi-car racing, in one file (CleanRL style).
 # Method: "Deep Latent Competition V1: Decentralized multi-car racing with LSTM-Dreamer-V3" (DLC-v1).
-# Usage: `python dreamer_lstm.py --seed 1` (or `--preset cpu`), then `tensorboard --logdir runs`. Details: docs/agent.md.
+# Usage: `python dreamer_lstm.py --seed 1` (or `--preset cpu`), then `tensorboard --logdir runs`; docs/agent.md.
 """LSTM-Dreamer: a world model learned from pixels, an actor and a critic trained in its imagination.
 
 Read top to bottom:
@@ -129,8 +129,10 @@ class Args:
     """evaluate every this many races (--eval-policy on held-out tracks); best.pt keeps the best"""
     eval_episodes: int = 10
     """races per evaluation"""
-    eval_policy: Literal["deterministic", "mean-action", "stochastic"] = "deterministic"
-    """evaluation's policy: posterior mean z and mean action / sampled z, mean action / sampled z and action"""
+    eval_policy: Literal["deterministic", "mean-action", "stochastic"] = "stochastic"
+    """evaluation's policy: sampled z and action (the policy that was optimised) / sampled z, mean action /
+    posterior mean z and mean action. The mean action is no summary of this policy: with sigma ~0.8 a mean
+    throttle in the coast zone still gives gas on half the steps, and the mean-action car stalls (docs/learning.md)"""
     eval_checkpoints: bool = False
     """also keep checkpoints/eval_<race>.pt at every evaluation (the policy as evaluated, for later analysis)"""
     eval_seed: int = 10_000
@@ -961,19 +963,18 @@ class Agent:
             continues = torch.sigmoid(wm.cont(features[1:]).float().squeeze(-1))  # c_1..c_H
             values = bootstrap(features[1:])[0]  # V(s_1..s_H)
             weights = discount_weights(continues, args.gamma, start_cont)
+            gamma, lam, zero = args.gamma, args.lambda_, torch.zeros_like(rewards)
             if args.return_norm:  # scale the task part only (lambda_returns is linear in r, V and log pi)
-                task = lambda_returns(rewards, continues, values, torch.zeros_like(log_pi), args.gamma, args.lambda_, 0.0)
-                zero = torch.zeros_like(rewards)
-                entropy = lambda_returns(zero, continues, zero, log_pi, args.gamma, args.lambda_, args.entropy_coef)
+                task = lambda_returns(rewards, continues, values, torch.zeros_like(log_pi), gamma, lam, 0.0)
+                entropy = lambda_returns(zero, continues, zero, log_pi, gamma, lam, args.entropy_coef)
                 with torch.no_grad():  # (a non-finite batch leaves the scale alone)
                     spread = return_range(task)
-                    self.return_scale.copy_(
-                        torch.where(spread.isfinite(), self.return_scale.lerp(spread, RETURN_NORM_RATE), self.return_scale)
-                    )
+                    moved = self.return_scale.lerp(spread, RETURN_NORM_RATE)
+                    self.return_scale.copy_(torch.where(spread.isfinite(), moved, self.return_scale))
                 returns = task + entropy  # what the critic learns
                 objective = task / self.return_scale.clamp(min=1.0) + entropy
             else:
-                returns = lambda_returns(rewards, continues, values, log_pi, args.gamma, args.lambda_, args.entropy_coef)
+                returns = lambda_returns(rewards, continues, values, log_pi, gamma, lam, args.entropy_coef)
                 objective = returns
             actor_loss = -(weights * objective).mean()
         wm.train()
@@ -1171,7 +1172,7 @@ class CarEpisode:
         return np.stack(self.obs), np.stack(self.action), reward, terminated
 
 
-def evaluate(agents: list[Agent], args: Args, eval_envs, policy: str | None = None, seeds=None) -> tuple[np.ndarray, ...]:
+def evaluate(agents: list[Agent], args: Args, eval_envs, policy: str | None = None, seeds=None) -> tuple:
     """Races with `policy` (default --eval-policy) on the tracks `seeds` (default: the held-out eval_seed + i, i <
     eval_episodes); per race and car the return, the final progress (fraction of tiles) and the mean |action[0]|
     of the car's decisions while racing, each (E, N). On the racing env action 0 is the steer: near 1 is bang-bang
@@ -1387,7 +1388,8 @@ def evaluate_and_keep_best(run: Run) -> None:
                 f" ({args.eval_policy}, {len(returns)} held-out tracks)")  # fmt: skip
     extra = _extra(run.ghosts, run.manifests, run.wins)
     if args.eval_checkpoints:
-        save_checkpoint(os.path.join(run.checkpoint_dir, f"eval_{counters['episode']:06d}.pt"), args, run.agents, counters, extra)
+        path = os.path.join(run.checkpoint_dir, f"eval_{counters['episode']:06d}.pt")
+        save_checkpoint(path, args, run.agents, counters, extra)
     if returns.mean() > counters["best_eval_return"]:
         counters["best_eval_return"] = float(returns.mean())
         save_checkpoint(os.path.join(run.checkpoint_dir, "best.pt"), args, run.agents, counters, extra)
@@ -1700,7 +1702,8 @@ def setup_run(args: Args, overrides=()) -> Run:
         restore_run(run, resumed, checkpoint_path)
     elif start is not None:
         for i, agent in enumerate(run.agents):
-            load_agent_state(agent, start["agents"][i % len(start["agents"])], args.checkpoint, i % len(start["agents"]))
+            source = i % len(start["agents"])
+            load_agent_state(agent, start["agents"][source], args.checkpoint, source)
     formats = ("stdout", "csv", "tensorboard") if args.print_table else ("csv", "tensorboard")
     run.logger = configure_logger(run_dir, dataclasses.asdict(args), formats)
     with open(os.path.join(run_dir, "config.json"), "w") as f:  # plot.py groups runs by variant and stage
@@ -1803,7 +1806,7 @@ def resumed_args(checkpoint: dict, path: str, args: Args, overrides) -> Args:
     the resuming command line set explicitly), which come from `args`; prints each change (old -> new)."""
     saved = args_from_checkpoint(checkpoint, path)
     changes = {name: getattr(args, name) for name in overrides if name != "resume"}
-    fixed = sorted(name for name in changes if name in ARCHITECTURE + IDENTITY and changes[name] != getattr(saved, name))
+    fixed = sorted(n for n in changes if n in ARCHITECTURE + IDENTITY and changes[n] != getattr(saved, n))
     if fixed:
         raise UsageError(f"--resume: {', '.join(_flag(n) for n in fixed)} cannot change in a resumed run")
     for name, value in changes.items():
@@ -1917,7 +1920,8 @@ def load_checkpoint(path: str, map_location="cpu", training: bool = False) -> di
     except Exception as e:  # truncated zip, not a torch file, a pickle weights_only refuses, ...
         reason = _first_line(e)
         raise CheckpointError(f"{path}: not a readable checkpoint (truncated or not a torch file): {reason}") from None
-    keys = CHECKPOINT_KEYS if isinstance(checkpoint, dict) and checkpoint.get("kind") == "policy" else (*CHECKPOINT_KEYS, "rng")
+    export = isinstance(checkpoint, dict) and checkpoint.get("kind") == "policy"
+    keys = CHECKPOINT_KEYS if export else (*CHECKPOINT_KEYS, "rng")
     if not isinstance(checkpoint, dict) or not all(key in checkpoint for key in keys):
         raise CheckpointError(f"{path}: not a checkpoint of these scripts (needs entries {', '.join(keys)})")
     if checkpoint["variant"] != VARIANT:

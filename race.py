@@ -11,9 +11,9 @@ checkpoint. A path may end in ``:k`` to pick agent ``k`` of a multi-agent checkp
 Races run on seeded tracks: track ``j`` is raced once per car with the start grid rotated, so every car starts from
 every grid slot equally often. Each Dreamer racer decides at the rate it was trained at: a new action every
 ``action_repeat`` env steps of its own, held in between (its recorded transitions sum the rewards of the held
-steps), with ``--policy`` (default: posterior mean and actor mean). The table per racer (also as CSV and JSON in
-``--out``): wins, win rate with a Wilson 95% interval, mean finish time of finished races, mean progress,
-eliminations, collision steps; plus an mp4 of the first race (``--video``).
+steps), with ``--policy`` (default: sampled, as trained; torch is seeded with ``--seed``). The table per racer
+(also as CSV and JSON in ``--out``): wins, win rate with a Wilson 95% interval, mean finish time of finished races,
+mean progress, eliminations, collision steps; plus an mp4 of the first race (``--video``).
 
 ``--train``: the multi-agent phase of the paper. Every Dreamer racer keeps training, decentralized (Algorithm 1):
 its own replay buffer (the one saved beside its checkpoint unless ``--fresh-replay``), filled with its own car's
@@ -55,9 +55,9 @@ class Args:
     """track seeds are derived from it"""
     opponent: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()
     """a scripted pure-pursuit driver to add: pursuit or pursuit:SPEED (default speed 70); repeatable"""
-    policy: Literal["deterministic", "mean-action", "stochastic"] = "deterministic"
-    """how Dreamer racers act: posterior mean z and mean action / sampled z, mean action / both sampled
-    (--train always samples, as in training)"""
+    policy: Literal["deterministic", "mean-action", "stochastic"] = "stochastic"
+    """how Dreamer racers act: sampled latent and action, as trained (the default: docs/learning.md says why) /
+    sampled latent, mean action / posterior mean and mean action (--train always samples)"""
     out: str | None = None
     """directory of results.csv/json and race.mp4 (default races/<time>)"""
     video: bool = True
@@ -474,6 +474,7 @@ def save_racer(racer: DreamerRacer, replay, path: str, races: int, env_steps: in
 def main(argv=None):
     args = parse_args(argv)
     device = torch.device("cuda" if args.cuda and torch.cuda.is_available() else "cpu")
+    torch.manual_seed(args.seed)  # sampled actions: the same command races the same races
     if args.torch_threads > 0:
         torch.set_num_threads(args.torch_threads)
     try:

@@ -232,7 +232,7 @@ def summary_table(curves: dict[str, list[dict]], base: dict) -> str:
 
 
 def evaluate_checkpoint(
-    path: str, first_track: int = 10_000, tracks: int = 10, policy: str = "deterministic", train_tracks: int = 0
+    path: str, first_track: int = 10_000, tracks: int = 10, policy: str = "stochastic", train_tracks: int = 0
 ) -> dict:
     """A saved agent (any variant, any stage; agent 0 of a multi-agent checkpoint) driving alone with `policy` on
     tracks ``first_track .. first_track + tracks - 1``, or (``train_tracks`` > 0) on the last ``train_tracks``
@@ -241,6 +241,8 @@ def evaluate_checkpoint(
     10000..10009; another block of tracks measures a best.pt without the bias of having been picked there."""
     if tracks < 1:
         raise ValueError(f"tracks must be >= 1, got {tracks}")
+    import torch
+
     from race import read_checkpoint  # one reader of checkpoints: clear one-line errors naming the file
     from utils import make_vec_env
 
@@ -259,6 +261,7 @@ def evaluate_checkpoint(
     else:
         seeds, tracks_name = list(range(first_track, first_track + tracks)), f"{first_track}..{first_track + tracks - 1}"
     envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
+    torch.manual_seed(first_track)  # sampled policies: the same command gives the same numbers
     try:
         returns, progress, abs_steer = script.evaluate([agent], args, envs, policy, seeds)
     finally:
@@ -286,7 +289,7 @@ FINAL_COLUMNS = (
 )  # fmt: skip
 
 
-def final_row(variant: str, seed: int, exp_name: str | None = None, policy: str = "deterministic") -> dict:
+def final_row(variant: str, seed: int, exp_name: str | None = None, policy: str = "stochastic") -> dict:
     """The final protocol's row of one run: its last policy (latest.pt) and its best evaluation (best.pt), both
     measured on the fresh tracks FRESH_TRACKS, with the run's updates, env steps and training hours."""
     run = find_run(exp_name or experiment_name(variant), seed)
@@ -409,8 +412,9 @@ def main():
         "--train-tracks", type=int, default=0, help="--evaluate: the last N tracks the run trained on instead",
     )  # fmt: skip
     parser.add_argument(
-        "--policy", choices=["deterministic", "mean-action", "stochastic"], default="deterministic",
-        help="--evaluate, --final: posterior mean z and mean action / sampled z, mean action / both sampled",
+        "--policy", choices=["deterministic", "mean-action", "stochastic"], default="stochastic",
+        help="--evaluate, --final: both sampled, as trained (default) / sampled z, mean action / posterior mean z "
+        "and mean action",
     )  # fmt: skip
     args = parser.parse_args()
     if args.hours <= 0:

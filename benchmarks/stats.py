@@ -39,4 +39,5 @@ def probability_of_improvement(x: np.ndarray, y: np.ndarray, reps: int = 2000, s
     np.random.seed(seed)
     pair = {"x,y": (np.asarray(x, float), np.asarray(y, float))}
     points, intervals = rly.get_interval_estimates(pair, metrics.probability_of_improvement, reps=reps)
-    return {"p": float(points["x,y"]), "ci": (float(intervals["x,y"][0]), float(intervals["x,y"][1]))}
+    low, high = np.asarray(intervals["x,y"], float).reshape(-1)  # rliable gives the interval as a (2, 1) array
+    return {"p": float(points["x,y"]), "ci": (float(low), float(high))}

@@ -155,18 +155,21 @@ def test_evaluate_checkpoint_reproduces_the_runs_own_evaluation(tmp_path, varian
         cnn_depth=4, deter_size=16, hidden_size=16, mlp_size=16, latent_size=4, image_size=64, batch_size=2, seq_len=8,
         imagination_horizon=3, max_steps=40, train_steps_per_episode=1, prefill_episodes=1, replay_capacity=500,
         total_episodes=2, eval_every=2, eval_episodes=2, eval_seed=10_000, video_every=0, action_repeat=2,
+        eval_policy="deterministic",
     )  # fmt: skip
     run_dir = script.main(script.Args(stage="single", runs_dir=str(tmp_path), **tiny))
     (logged,) = learning.eval_curve(run_dir)
-    result = learning.evaluate_checkpoint(os.path.join(run_dir, "checkpoints", "best.pt"), 10_000, 2)
+    result = learning.evaluate_checkpoint(os.path.join(run_dir, "checkpoints", "best.pt"), 10_000, 2, "deterministic")
     assert result["variant"] == variant and result["tracks"] == "10000..10001"
     assert result["eval_return"] == pytest.approx(logged["eval_return"], abs=0.01)  # the CSV keeps 2 decimals
     assert result["eval_progress"] == pytest.approx(logged["eval_progress"], abs=1e-4)
     assert len(result["returns"]) == len(result["progress"]) == 2
     on_training_tracks = learning.evaluate_checkpoint(os.path.join(run_dir, "checkpoints", "latest.pt"), train_tracks=1)
     assert on_training_tracks["tracks"] == "training races 1..1" and len(on_training_tracks["returns"]) == 1
-    sampled = learning.evaluate_checkpoint(os.path.join(run_dir, "checkpoints", "best.pt"), 10_000, 2, "stochastic")
+    sampled = learning.evaluate_checkpoint(os.path.join(run_dir, "checkpoints", "best.pt"), 10_000, 2)  # default
     assert sampled["policy"] == "stochastic" and sampled["returns"] != result["returns"]  # sampled actions differ
+    again = learning.evaluate_checkpoint(os.path.join(run_dir, "checkpoints", "best.pt"), 10_000, 2)
+    assert again["returns"] == sampled["returns"]  # seeded: the same command, the same numbers
 
 
 def test_evaluate_checkpoint_refuses_bad_input_naming_it(tmp_path):
