@@ -200,6 +200,8 @@ def load_curves(runs_dir: str = RUNS, results_dir: str = RESULTS) -> dict[str, l
             writer.writerows(rows)
         curves[name] = rows
     for csv_path in sorted(glob.glob(os.path.join(results_dir, "learning_*_seed*.csv"))):
+        if csv_path.endswith("_training.csv"):
+            continue
         name = os.path.basename(csv_path).removesuffix(".csv")
         if name not in curves:
             rows = read_curve(csv_path)
@@ -346,6 +348,35 @@ def final_summary(path: str = os.path.join(RESULTS, "learning_final.csv"), reps:
     return "\n".join(lines) + "\n"
 
 
+def training_curves(runs_dir: str = RUNS, results_dir: str = RESULTS) -> dict[str, list[dict]]:
+    """Per run, the return of every training race after the first update (the sampled policy, on tracks it has not
+    seen before) against the updates made: read from the run's progress.csv when the run is here (and saved as
+    ``<name>_training.csv``), else from that CSV."""
+    curves = {}
+    for run_dir in sorted(glob.glob(os.path.join(runs_dir, "*__learning_*"))):
+        _, exp_name, seed = os.path.basename(run_dir).split("__")[:3]
+        path = os.path.join(run_dir, "progress.csv")
+        if not os.path.exists(path):
+            continue
+        with open(path, newline="") as f:
+            rows = [
+                {"updates": int(float(r["car_0/perf/updates"])), "return": round(float(r["car_0/charts/episodic_return"]), 2)}
+                for r in csv.DictReader(f) if r.get("car_0/perf/updates") and r.get("car_0/charts/episodic_return")
+            ]  # fmt: skip
+        if rows:
+            curves[f"{exp_name}_seed{seed}"] = rows
+            with open(os.path.join(results_dir, f"{exp_name}_seed{seed}_training.csv"), "w", newline="") as f:
+                writer = csv.DictWriter(f, fieldnames=["updates", "return"])
+                writer.writeheader()
+                writer.writerows(rows)
+    for path in sorted(glob.glob(os.path.join(results_dir, "learning_*_training.csv"))):
+        name = os.path.basename(path).removesuffix("_training.csv")
+        if name not in curves:
+            with open(path, newline="") as f:
+                curves[name] = [{"updates": int(r["updates"]), "return": float(r["return"])} for r in csv.DictReader(f)]
+    return curves
+
+
 def report(runs_dir: str = RUNS, results_dir: str = RESULTS) -> None:
     """CSV per run, one PNG of every curve with the baselines and the bar, and a markdown table."""
     import matplotlib
@@ -356,8 +387,19 @@ def report(runs_dir: str = RUNS, results_dir: str = RESULTS) -> None:
     os.makedirs(results_dir, exist_ok=True)
     base = baselines(results_dir=results_dir)
     curves = load_curves(runs_dir, results_dir)
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4))
-    panels = ((axes[0], "eval_return", "evaluation return", BAR_RETURN), (axes[1], "eval_progress", "evaluation progress", BAR_PROGRESS))
+    fig, axes = plt.subplots(1, 3, figsize=(18, 4))
+    panels = (
+        (axes[1], "eval_return", "evaluation return (--eval-policy)", BAR_RETURN),
+        (axes[2], "eval_progress", "evaluation progress", BAR_PROGRESS),
+    )
+    for name, rows in training_curves(runs_dir, results_dir).items():  # the races it trained on: sampled policy
+        returns = np.array([r["return"] for r in rows])
+        smooth = np.convolve(returns, np.ones(5) / 5, mode="valid") if len(returns) >= 5 else returns
+        axes[0].plot([r["updates"] for r in rows][len(rows) - len(smooth):], smooth, label=name.removeprefix("learning_"))
+    axes[0].set_xlabel("updates")
+    axes[0].set_ylabel("training race return (mean of 5)")
+    axes[0].grid(alpha=0.3)
+    axes[0].legend(fontsize="small")
     for ax, key, label, bar in panels:
         for name, rows in curves.items():
             ax.plot([r["env_steps"] for r in rows], [r[key] for r in rows], marker="o", label=name.removeprefix("learning_"))

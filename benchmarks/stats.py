@@ -20,7 +20,8 @@ def interval_estimates(scores: dict[str, np.ndarray], reps: int = 2000, seed: in
         return np.array([metrics.aggregate_iqm(x), metrics.aggregate_mean(x)])
 
     np.random.seed(seed)  # rliable draws its bootstrap samples from numpy's global stream
-    points, intervals = rly.get_interval_estimates({k: np.asarray(v, float) for k, v in scores.items()}, aggregate, reps=reps)
+    scores = {k: np.asarray(v, float) for k, v in scores.items()}
+    points, intervals = rly.get_interval_estimates(scores, aggregate, reps=reps)
     return {
         name: {
             "iqm": float(points[name][0]), "mean": float(points[name][1]),
@@ -32,7 +33,8 @@ def interval_estimates(scores: dict[str, np.ndarray], reps: int = 2000, seed: in
 
 
 def probability_of_improvement(x: np.ndarray, y: np.ndarray, reps: int = 2000, seed: int = 0) -> dict:
-    """P(X > Y) of runs x (runs_x, tasks) against runs y (runs_y, tasks) (ties count one half), with its 95% interval."""
+    """P(X > Y) of runs x (runs_x, tasks) against runs y (runs_y, tasks), ties counting one half, with its 95%
+    interval."""
     from rliable import library as rly
     from rliable import metrics
 

@@ -180,3 +180,17 @@ def test_evaluate_checkpoint_refuses_bad_input_naming_it(tmp_path):
     (tmp_path / "notes.pt").write_text("not a checkpoint")
     with pytest.raises(ValueError, match=r"notes\.pt: not a readable checkpoint"):
         learning.evaluate_checkpoint(str(tmp_path / "notes.pt"))
+
+
+def test_training_curves_read_the_runs_races_and_keep_them_as_csv(dirs):
+    runs, results = dirs
+    run_dir = os.path.join(runs, "multi_car_racing__learning_lstm__11__1700000000")
+    os.makedirs(run_dir)
+    with open(os.path.join(run_dir, "progress.csv"), "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["charts/episode", "car_0/charts/episodic_return", "car_0/perf/updates"])
+        writer.writerows([[1, -80.0, ""], [2, -70.0, 100], [3, 150.5, 200]])  # the prefill race has no updates
+    curves = learning.training_curves(runs, results)
+    assert curves == {"learning_lstm_seed11": [{"updates": 100, "return": -70.0}, {"updates": 200, "return": 150.5}]}
+    os.remove(os.path.join(run_dir, "progress.csv"))  # the run is gone from this machine: its CSV stands in
+    assert learning.training_curves(runs, results) == curves
