@@ -256,7 +256,10 @@ def env_kwargs(args: Args, dead_zone: float) -> dict:
 
 
 def dead_zone_at(episode: int, args: Args) -> float:
-    """Linear dead-zone schedule: dead_zone_start at episode 0 to dead_zone_end at dead_zone_episodes."""
+    """Linear dead-zone schedule: dead_zone_start at episode 0 to dead_zone_end at dead_zone_episodes. It is a
+    warm-up for learning from scratch: a run whose agents start from a --checkpoint races at dead_zone_end."""
+    if args.checkpoint is not None:
+        return args.dead_zone_end
     frac = min(1.0, episode / max(1, args.dead_zone_episodes))
     return args.dead_zone_start + frac * (args.dead_zone_end - args.dead_zone_start)
 
@@ -1210,7 +1213,7 @@ def train_agent(agent: Agent, replay: Replay, args: Args, logger, prefix: str, o
     Each update's losses go to the logger as running means (SB3's record_mean; non-finite values are left out).
     `on_update(done, seconds)` is called after every update (progress display). Stops early once the agent has
     had --max-nonfinite-updates updates in a row with a non-finite loss or gradient (main then ends the run)."""
-    started = time.time()
+    started, done = time.time(), 0
     for done in range(1, args.train_steps_per_episode + 1):
         t_update = time.time()
         for key, value in agent.update(replay.sample(args.batch_size, args.seq_len)).items():

@@ -137,6 +137,8 @@ class DreamerRacer:
             message = text if text.startswith(path) else f"{path}: does not build an agent: {text}"
             raise CheckpointError(message) from None
         self.policy, self.counters = policy, dict(checkpoint.get("counters") or {})
+        saved = list((checkpoint.get("extra") or {}).get("replays") or [])
+        self.replay_manifest = saved[self.index] if self.index < len(saved) else None  # the replay save it names
         run = os.path.basename(os.path.dirname(os.path.dirname(os.path.abspath(path))))
         self.name = f"{self.variant}:{run}/{os.path.basename(path)}:{self.index}"
         self.state, self.learns = None, True
@@ -420,14 +422,17 @@ def train(args: Args, racers: list, device) -> str:
         replays[i] = r.module.Replay(r.args.replay_capacity, r.args.image_size, r.agent.action_dim)
         saved = replay_dir_of(r.path, r.index)
         if not args.fresh_replay and os.path.isdir(saved):  # the agent keeps learning from all it has seen
-            r.module.restore_replay(replays[i], saved, None, races=0)
+            r.module.restore_replay(replays[i], saved, r.replay_manifest, races=0)
             print(f"{r.name}: continues with the replay in {saved} ({len(replays[i]):,} steps)")
         steps = r.args.train_steps_per_episode if args.train_steps is None else args.train_steps
         train_args[i] = dataclasses.replace(r.args, train_steps_per_episode=steps)
     wins = {i: [] for i in range(len(racers))}
     env_steps = 0
+    # A later sitting continues the schedule of tracks (and the random stream) where the racers' last one stopped.
+    done_before = max(int(racers[i].counters.get("race_episodes", 0)) for i in learners)
+    torch.manual_seed(args.seed * 100_003 + done_before)
     for episode in range(args.episodes):
-        seed, grid = schedule(args.seed, episode, len(racers))
+        seed, grid = schedule(args.seed, done_before + episode, len(racers))
         recorders = [(lambda obs, r=racers[i]: EpisodeRecorder(r, obs)) if i in learners else None
                      for i in range(len(racers))]  # fmt: skip
         result = run_race(env, racers, seed, grid, episodes=recorders)

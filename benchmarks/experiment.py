@@ -292,10 +292,49 @@ def runtime_env(spec: Spec) -> dict:
     return {"working_dir": ROOT, "excludes": ["runs/", ".git/", "races/"], "env_vars": {"PYTHONPATH": ".:benchmarks"}}
 
 
+# What fixes the trials of an experiment: a rerun must ask for the same (Tune restores the trials it saved).
+TRIAL_FIELDS = (
+    "variants", "seeds", "preset", "overrides", "single_updates", "ghost_updates", "race_episodes", "tournament_every",
+    "tournament_races", "race_train_steps", "report_every", "torch_threads",
+)  # fmt: skip
+
+
+def check_spec(spec: Spec) -> None:
+    """Refuse, before Ray starts, what cannot work: a bad override, a stage whose earlier stage has not run, or a
+    rerun that asks for other trials than the experiment in --storage holds (its spec is saved there)."""
+    for variant in ("lstm", "gru"):
+        parse_overrides(importlib.import_module(f"dreamer_{variant}"), spec.overrides)
+    plain = dataclasses.asdict(spec)
+    needs = {"ghost": "single", "race": "ghost"}
+    for stage in spec.stages:
+        earlier = needs.get(stage)
+        if earlier and earlier not in spec.stages:
+            variants = ("lstm", "gru") if stage == "race" else spec.variants
+            missing = [f"{earlier}_{v}_seed{s}" for v in variants for s in spec.seeds
+                       if run_of(trial_dir(plain, earlier, v, s)) is None]  # fmt: skip
+            if missing:
+                raise SystemExit(f"experiment.py: stage {stage} needs the {earlier} trials {', '.join(missing)}")
+    if "race" in spec.stages and set(spec.variants) != {"lstm", "gru"}:
+        raise SystemExit("experiment.py: the race stage pairs an LSTM and a GRU agent: --variants lstm gru")
+    path = os.path.join(spec.storage, "spec.json")
+    wanted = {k: list(v) if isinstance(v, tuple) else v for k, v in plain.items() if k in TRIAL_FIELDS}
+    if os.path.exists(path):
+        with open(path) as f:
+            saved = json.load(f)
+        changed = sorted(k for k in TRIAL_FIELDS if saved.get(k) != wanted[k])
+        if changed:
+            raise SystemExit(f"experiment.py: {spec.storage} holds an experiment with other {', '.join(changed)}; "
+                             "use another --storage (or the same settings)")  # fmt: skip
+    else:
+        os.makedirs(spec.storage, exist_ok=True)
+        with open(path, "w") as f:
+            json.dump(wanted, f, indent=1)
+
+
 def main(spec: Spec) -> None:
     spec = dataclasses.replace(spec, storage=os.path.abspath(spec.storage))
-    for variant in ("lstm", "gru"):  # a bad override fails here, before Ray starts
-        parse_overrides(importlib.import_module(f"dreamer_{variant}"), spec.overrides)
+    if not spec.aggregate_only:
+        check_spec(spec)
     if not spec.aggregate_only:
         import ray
 

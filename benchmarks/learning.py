@@ -286,7 +286,7 @@ def evaluate_checkpoint(
 
 
 FINAL_COLUMNS = (
-    "variant", "seed", "updates", "env_steps", "hours", "final_return", "final_progress", "final_mean_abs_steer",
+    "exp_name", "variant", "seed", "updates", "env_steps", "hours", "final_return", "final_progress", "final_mean_abs_steer",
     "best_return", "best_progress",
 )  # fmt: skip
 
@@ -301,7 +301,7 @@ def final_row(variant: str, seed: int, exp_name: str | None = None, policy: str 
     final = evaluate_checkpoint(os.path.join(run, "checkpoints", "latest.pt"), *FRESH_TRACKS, policy)
     best = evaluate_checkpoint(os.path.join(run, "checkpoints", "best.pt"), *FRESH_TRACKS, policy)
     return {
-        "variant": variant, "seed": seed, "updates": final["updates"],
+        "exp_name": exp_name or experiment_name(variant), "variant": variant, "seed": seed, "updates": final["updates"],
         "env_steps": curve[-1]["env_steps"] if curve else 0, "hours": curve[-1]["wall_hours"] if curve else 0.0,
         "final_return": round(final["eval_return"], 2), "final_progress": round(final["eval_progress"], 4),
         "final_mean_abs_steer": round(final["mean_abs_steer"], 4),
@@ -310,13 +310,14 @@ def final_row(variant: str, seed: int, exp_name: str | None = None, policy: str 
 
 
 def write_final_row(row: dict, path: str = os.path.join(RESULTS, "learning_final.csv")) -> None:
-    """Add `row` to learning_final.csv, replacing an earlier row of the same variant and seed."""
+    """Add `row` to learning_final.csv, replacing an earlier row of the same experiment (an ablation is its own) and
+    seed."""
     rows = []
     if os.path.exists(path):
         with open(path, newline="") as f:
-            rows = [r for r in csv.DictReader(f) if (r["variant"], int(r["seed"])) != (row["variant"], row["seed"])]
+            rows = [r for r in csv.DictReader(f) if (r["exp_name"], int(r["seed"])) != (row["exp_name"], row["seed"])]
     rows.append(row)
-    rows.sort(key=lambda r: (r["variant"], int(r["seed"])))
+    rows.sort(key=lambda r: (r["exp_name"], int(r["seed"])))
     with open(path, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=FINAL_COLUMNS)
         writer.writeheader()
@@ -331,12 +332,12 @@ def final_summary(path: str = os.path.join(RESULTS, "learning_final.csv"), reps:
     with open(path, newline="") as f:
         rows = list(csv.DictReader(f))
     lines = [
-        "| variant | seeds | IQM final return [95% CI] | mean final return [95% CI] | min seed | mean progress "
+        "| experiment | seeds | IQM final return [95% CI] | mean final return [95% CI] | min seed | mean progress "
         "| mean \\|steer\\| |",
         "|---|---|---|---|---|---|---|",
     ]
-    for variant in sorted({r["variant"] for r in rows}):
-        mine = [r for r in rows if r["variant"] == variant]
+    for variant in sorted({r["exp_name"] for r in rows}):  # each experiment (a variant, or an ablation of it)
+        mine = [r for r in rows if r["exp_name"] == variant]
         returns = np.array([float(r["final_return"]) for r in mine])
         est = interval_estimates({variant: returns[:, None]}, reps=reps)[variant]
         lines.append(

@@ -8,8 +8,8 @@ skip 2 (rewards summed), 64x64 grayscale, 2 stacked frames, 8 envs, rewards norm
 with gSDE, 512 steps per env per rollout, batch 128, 10 epochs, learning rate 1e-4 decaying linearly over
 ``--budget-steps``, GELU, log-std init -2. The env has the Dreamer runs' settings (``dreamer_lstm.Args``'
 defaults at their final dead zone, -0.5). It gets the wall-clock budget of one Dreamer run of the learning
-benchmark (``--hours``) on one torch thread, and is evaluated like the Dreamer runs' final policies: the
-deterministic policy on the 20 fresh tracks 10100..10119. Its row goes to ``benchmarks/results/ppo_peer.csv``.
+benchmark (``--hours`` over all sittings) on one torch thread, and is evaluated on the Dreamer runs' 20 fresh tracks
+10100..10119 with its deterministic policy. Its row goes to ``benchmarks/results/ppo_peer.csv``.
 """
 
 from __future__ import annotations
@@ -97,7 +97,7 @@ def make_model(seed: int, venv, run_dir: str):
 
 
 def train(seed: int, hours: float, budget_steps: int, run_dir: str, save_every: int = 4) -> dict:
-    """Train until `hours` of this sitting have passed (or `budget_steps` PPO steps), saving model, normaliser and
+    """Train until the run has trained `hours` in all (or `budget_steps` PPO steps), saving model, normaliser and
     record every `save_every` rollouts and at the end (atomic renames); a later sitting continues from them, with
     the learning rate still decaying over the whole budget. Returns the record (env steps, gradient steps, hours)."""
     import json
@@ -109,7 +109,7 @@ def train(seed: int, hours: float, budget_steps: int, run_dir: str, save_every: 
     os.makedirs(run_dir, exist_ok=True)
     paths = {name: os.path.join(run_dir, name) for name in ("model.zip", "vecnormalize.pkl", "record.json")}
     record = {"env_steps": 0, "hours": 0.0, "updates": 0}
-    if os.path.exists(paths["model.zip"]):
+    if all(os.path.exists(path) for path in paths.values()):  # (the record is written last: a save is whole)
         with open(paths["record.json"]) as f:
             record = json.load(f)
         norm = VecNormalize.load(paths["vecnormalize.pkl"], make_venv(seed))
@@ -119,6 +119,7 @@ def train(seed: int, hours: float, budget_steps: int, run_dir: str, save_every: 
         norm = VecNormalize(make_venv(seed), norm_obs=False, norm_reward=True, gamma=ZOO["gamma"])
         model = make_model(seed, norm, run_dir)
     hours_before, started = record["hours"], time.time()
+    hours = hours - hours_before  # the budget is the whole run's, over every sitting
 
     def save() -> None:
         record.update(
@@ -146,22 +147,23 @@ def train(seed: int, hours: float, budget_steps: int, run_dir: str, save_every: 
                 save()
 
     remaining = budget_steps - int(model.num_timesteps)
-    if remaining > 0:  # learning rate 1e-4 * (1 - steps / budget) across sittings (SB3's progress_remaining)
+    if remaining > 0 and hours > 0:  # learning rate 1e-4 * (1 - steps / budget) across sittings (SB3's progress_remaining)
         model.learn(remaining, callback=Budget(), reset_num_timesteps=False, tb_log_name="ppo")
     save()
     return record
 
 
 def evaluate(model, first_track: int, tracks: int) -> dict:
-    """The deterministic policy alone on tracks first_track .. first_track + tracks - 1: mean return (the raw env
-    reward), progress and |steer| of its decisions."""
+    """The deterministic policy (PPO's own choice for evaluation; gSDE's noise is exploration) alone on tracks
+    first_track .. first_track + tracks - 1, the frame stack starting from zeros as VecFrameStack's does: mean return
+    (the raw env reward), progress and |steer| of its decisions."""
     from collections import deque
 
     returns, progress, steer = [], [], []
     for seed in range(first_track, first_track + tracks):
         env = make_env()
         obs, _ = env.reset(seed=seed)
-        frames = deque([obs] * ZOO["frame_stack"], maxlen=ZOO["frame_stack"])
+        frames = deque([np.zeros_like(obs)] * (ZOO["frame_stack"] - 1) + [obs], maxlen=ZOO["frame_stack"])
         total, done, info, steers = 0.0, False, {}, []
         while not done:
             action, _ = model.predict(np.concatenate(frames, axis=-1)[None], deterministic=True)
@@ -192,7 +194,7 @@ def write_row(row: dict, path: str = os.path.join(RESULTS, "ppo_peer.csv")) -> N
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seed", type=int, default=11)
-    parser.add_argument("--hours", type=float, default=2.5, help="wall-clock budget of this sitting")
+    parser.add_argument("--hours", type=float, default=2.5, help="wall-clock budget of the whole run (all sittings)")
     parser.add_argument("--budget-steps", type=int, default=4_000_000, help="PPO steps the learning rate decays over")
     parser.add_argument("--torch-threads", type=int, default=1)
     parser.add_argument("--tracks", type=int, default=FRESH_TRACKS[1], help="evaluation tracks from 10100")

@@ -855,3 +855,5 @@ def test_dead_zone_of_the_next_race_is_set_before_its_reset(script):
         assert run.counters["episode"] == 2
         assert recorder.calls == [("set_dead_zone", script.dead_zone_at(2 + ahead, args))]
         assert script.dead_zone_at(2 + ahead, args) == -1.0 + 0.5 * (2 + ahead) / 4
+    # the schedule is a warm-up for learning from scratch: agents that start trained race at its end from race 0
+    assert script.dead_zone_at(0, tiny_args(script, checkpoint="best.pt", dead_zone_start=-1.0)) == -0.5

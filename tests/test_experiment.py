@@ -100,6 +100,15 @@ def test_the_same_spec_again_does_nothing(finished):
     assert after == before
 
 
+def test_a_rerun_with_other_trials_or_a_missing_stage_is_refused_before_ray_starts(finished, tmp_path):
+    with pytest.raises(SystemExit, match="holds an experiment with other single_updates"):
+        experiment.check_spec(dataclasses.replace(finished, single_updates=5))
+    with pytest.raises(SystemExit, match="stage ghost needs the single trials single_lstm_seed1"):
+        experiment.check_spec(experiment.Spec(seeds=(1,), stages=("ghost",), storage=str(tmp_path)))
+    with pytest.raises(ValueError, match="not name=value"):
+        experiment.check_spec(experiment.Spec(overrides=("no_such_flag=1",), storage=str(tmp_path)))
+
+
 def test_the_summary_matches_hand_computed_numbers():
     summary = experiment.summarize({"lstm": [100.0, 200.0, 300.0], "gru": [1.0, 2.0, 3.0, 10.0]},
                                    {"lstm": [0.6, 0.7], "gru": [0.4, 0.3]}, reps=300)  # fmt: skip

@@ -70,18 +70,22 @@ def test_final_table_rows_replace_their_run_and_the_summary_matches_hand_compute
         ("lstm", 13, 300.0, 0.6, 0.3),  # the same run measured again: replaces its row
     ]:  # fmt: skip
         learning.write_final_row(
-            {"variant": variant, "seed": seed, "final_return": ret, "final_progress": progress,
-             "final_mean_abs_steer": steer, **base}, path,
+            {"exp_name": f"learning_{variant}", "variant": variant, "seed": seed, "final_return": ret,
+             "final_progress": progress, "final_mean_abs_steer": steer, **base}, path,
         )  # fmt: skip
     with open(path, newline="") as f:
         rows = list(csv.DictReader(f))
     assert list(rows[0]) == list(learning.FINAL_COLUMNS)
     assert [(r["variant"], r["seed"]) for r in rows] == [("gru", "11"), ("gru", "12"), ("gru", "13"), ("gru", "14"),
                                                          ("lstm", "11"), ("lstm", "12"), ("lstm", "13")]  # fmt: skip
+    ablation = {**rows[0], "exp_name": "learning_gru_alpha0.1", "seed": 11, "final_return": 999.0}
+    learning.write_final_row(ablation, path)  # an ablation's row stands beside the baseline's, never replaces it
+    with open(path, newline="") as f:
+        assert len(list(csv.DictReader(f))) == 8
     table = learning.final_summary(path, reps=500).splitlines()
     # lstm: 100, 200, 300 -> mean 200, IQM of 3 trims nothing (200); gru: 1, 2, 3, 10 -> mean 4, IQM mean(2, 3) = 2.5
-    lstm = next(line for line in table if line.startswith("| lstm |")).split("|")
-    gru = next(line for line in table if line.startswith("| gru |")).split("|")
+    lstm = next(line for line in table if line.startswith("| learning_lstm |")).split("|")
+    gru = next(line for line in table if line.startswith("| learning_gru |")).split("|")
     assert lstm[2].strip() == "3" and lstm[3].strip().startswith("200.0 [") and lstm[4].strip().startswith("200.0 [")
     assert lstm[5].strip() == "100.0" and lstm[6].strip() == "0.40" and lstm[7].strip() == "0.20"
     assert gru[3].strip().startswith("2.5 [") and gru[4].strip().startswith("4.0 [") and gru[5].strip() == "1.0"
