@@ -5,6 +5,7 @@
     python benchmarks/learning.py --variant lstm --seed 11 --final         # its row of learning_final.csv
     python benchmarks/learning.py --report                                 # curves + table only
     python benchmarks/learning.py --evaluate runs/learning/<run>/checkpoints/latest.pt --first-track 10100 --tracks 20
+    python benchmarks/learning.py --export runs/learning/<run>/checkpoints/latest.pt pretrained/lstm_cpu.pt
 
 Trains `dreamer_<variant>.py --preset cpu` on the single-car race (stage ``single``, one torch thread, so two runs
 share two cores) until ``--updates`` updates or ``--hours`` of wall time (resumable: a run may span sittings),
@@ -449,6 +450,10 @@ def main():
         help="an ablation: DreamerV3's return normalisation (run named ..._retnorm)",
     )
     parser.add_argument("--evaluate", metavar="CHECKPOINT", help="only evaluate this saved agent alone (no training)")
+    parser.add_argument(
+        "--export", nargs=2, metavar=("CHECKPOINT", "OUT"),
+        help="only write agent 0 of CHECKPOINT as an acting-only export OUT (e.g. pretrained/lstm_cpu.pt)",
+    )  # fmt: skip
     parser.add_argument("--first-track", type=int, default=10_000, help="--evaluate: seed of the first track")
     parser.add_argument("--tracks", type=int, default=10, help="--evaluate: number of tracks")
     parser.add_argument(
@@ -465,6 +470,16 @@ def main():
     if args.updates < 1:
         parser.error(f"--updates must be >= 1, got {args.updates}")
     ablation = {name: getattr(args, name) for name in ABLATION_TAGS}
+    if args.export:
+        from race import read_checkpoint
+
+        try:
+            script, _ = read_checkpoint(args.export[0])
+        except ValueError as e:
+            parser.error(str(e))
+        size = script.export_policy(args.export[0], args.export[1])
+        print(f"wrote {args.export[1]} ({size / 1e6:.1f} MB)")
+        return
     if args.evaluate:
         if args.tracks < 1 or args.train_tracks < 0:
             parser.error(f"--tracks must be >= 1 and --train-tracks >= 0, got {args.tracks} and {args.train_tracks}")
