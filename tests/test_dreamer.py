@@ -847,8 +847,9 @@ def test_dead_zone_of_the_next_race_is_set_before_its_reset(script):
                          dead_zone_episodes=4, prefill_episodes=100, eval_every=0, video_every=0,
                          replay_save_every=0, checkpoint_every=0)  # fmt: skip
         recorder = Recorder()
+        counters = {"episode": 1, "global_step": 0, "best_eval_return": -math.inf}
         run = script.Run(args, "unused", torch.device("cpu"), agents=[], replays=[], logger=recorder, envs=recorder,
-                         counters={"episode": 1, "global_step": 0, "best_eval_return": -math.inf}, wins=[[]])  # fmt: skip
+                         counters=counters, wins=[[]])  # fmt: skip
         car = script.CarEpisode(np.zeros((64, 64, 3), np.uint8))
         car.final_info = {"progress": 0.5}
         script.end_race(run, [car], None, 100.0)
