@@ -123,7 +123,7 @@ def replay_dir_of(path: str, index: int) -> str:
 class DreamerRacer:
     """A saved Dreamer agent driving one car; built and loaded by its own script."""
 
-    def __init__(self, spec: str, device="cpu", policy: str = "deterministic", training: bool = False):
+    def __init__(self, spec: str, device="cpu", policy: str = "stochastic", training: bool = False):
         path, _, index = spec.rpartition(":") if spec.rpartition(":")[2].isdigit() else (spec, "", "0")
         self.module, checkpoint = read_checkpoint(path, device, training)
         self.path, self.index, self.variant = path, int(index), checkpoint["variant"]

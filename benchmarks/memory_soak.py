@@ -25,7 +25,6 @@ import torch
 import tyro
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from train_throughput import CPU_SIZE  # noqa: E402  (one definition of the CPU size)
 
 
 @dataclasses.dataclass
@@ -65,7 +64,7 @@ def main(args: Args) -> dict:
         torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     np.random.seed(args.seed)
-    config = script.Args(**CPU_SIZE, replay_capacity=args.replay_capacity)
+    config = script.preset_args("cpu", replay_capacity=args.replay_capacity)  # the scripts' CPU preset
     agents = [script.Agent(config) for _ in range(2)]
     replays = [script.Replay(config.replay_capacity, config.image_size) for _ in range(2)]
     step_bytes = script.Replay.bytes_per_step(config.image_size)

@@ -33,16 +33,15 @@ from torch.utils.flop_counter import FlopCounterMode
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-# The CPU-sized configuration of the README.
-CPU_SIZE = {
-    "cnn_depth": 16, "deter_size": 256, "hidden_size": 256, "mlp_size": 256, "image_size": 64,
-    "batch_size": 16, "seq_len": 32, "imagination_horizon": 15, "imagination_starts": 256,
-}  # fmt: skip
 CONFIGS = {
     "paper-100": {"imagination_starts": 100},  # the paper authors' setting
     "paper-all": {},  # the default: all B*L starts
-    "cpu": CPU_SIZE,
+    "cpu": None,  # the script's own --preset cpu (each variant has its own batch size and horizon)
 }
+
+
+def config_of(script, name: str) -> dict:
+    return dict(script.PRESETS["cpu"]) if CONFIGS[name] is None else CONFIGS[name]
 
 
 @dataclasses.dataclass
@@ -176,7 +175,8 @@ def main(args: Args) -> None:
     reference, reference_flops = bare_encoder_reference(args.reference_repeats)
     print(f"bare encoder reference (750 frames 96x96, fwd+bwd): {reference:.2f} s")
     for name in args.configs:
-        r = time_update(script, {**CONFIGS[name], "compile": args.compile, "amp": args.amp}, args.updates, args.warmup)
+        config = {**config_of(script, name), "compile": args.compile, "amp": args.amp}
+        r = time_update(script, config, args.updates, args.warmup)
         a = r["args"]
         print(
             f"{name:10s} B={a.batch_size} L={a.seq_len} H={a.imagination_horizon} {a.image_size}px depth={a.cnn_depth} "
@@ -188,7 +188,7 @@ def main(args: Args) -> None:
         )
     if args.env_steps:
         for name in args.configs:
-            acting, random_actions = env_throughput(script, CONFIGS[name], args.env_steps)
+            acting, random_actions = env_throughput(script, config_of(script, name), args.env_steps)
             print(
                 f"env steps/s, one two-car race, {name} agents acting: {acting:.0f} (random actions: {random_actions:.0f})"
             )
