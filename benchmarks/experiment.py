@@ -134,7 +134,10 @@ def dreamer_trial(config: dict) -> None:
     settings = {**parse_overrides(script, spec["overrides"]), "torch_threads": spec["torch_threads"], "seed": seed}
     if stage == "single":
         first, target = None, spec["single_updates"]
-        args = script.preset_args(spec["preset"], stage="single", exp_name=f"{variant}_single", **settings)
+        # every evaluated policy kept (checkpoints/eval_<race>.pt), as in benchmarks/learning.py
+        args = script.preset_args(
+            spec["preset"], stage="single", exp_name=f"{variant}_single", eval_checkpoints=True, **settings
+        )
     else:  # ghost, or its control: from the single trial's best.pt, for as many updates
         best = os.path.join(run_of(trial_dir(spec, "single", variant, seed)), "checkpoints", "best.pt")
         first = updates_of(best, script)
@@ -247,8 +250,8 @@ def stage_configs(spec: Spec, stage: str) -> list[dict]:
         return [{"spec": plain, "stage": "race", "variant": "lstm_gru", "seed": s} for s in spec.seeds]
     kinds = ["single"] if stage == "single" else ["ghost", "control"]
     return [
-        {"spec": plain, "stage": k, "variant": v, "seed": s} for k in kinds for v in spec.variants for s in spec.seeds
-    ]
+        {"spec": plain, "stage": k, "variant": v, "seed": s} for s in spec.seeds for k in kinds for v in spec.variants
+    ]  # seed by seed, so that an experiment cut short has whole seeds of every variant
 
 
 def trial_name(trial) -> str:
