@@ -502,6 +502,7 @@ class MultiCarRacing(ParallelEnv):
         self.world = Box2D.b2World((0, 0), contactListener=_RaceContactListener(self))
         self.np_random, _ = seeding.np_random(None)
         self.cars: list[Car | None] = []
+        self._hull_tags = [_HullTag(i) for i in range(len(self.possible_agents))]  # see _create_car
         self.road: list = []
         self.renderer: TrackRenderer | None = None
         self._window = None
@@ -768,7 +769,9 @@ class MultiCarRacing(ParallelEnv):
         car = Car(self.world, *pose)
         for w in car.wheels:
             w.car_index = i
-        car.hull.userData = _HullTag(i)
+        # pybox2d drops its reference to a body's userData before destroying the body, and the destruction then
+        # reports EndContact for the body's contacts: the env holds the tags, so the listener never reads a freed one
+        car.hull.userData = self._hull_tags[i]
         if self.rules == "race":  # hull-to-hull collisions; wheels only feel the road
             for f in car.hull.fixtures:
                 self._set_filter(f, CATEGORY_HULL, CATEGORY_HULL)

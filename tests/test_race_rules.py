@@ -1,6 +1,8 @@
 """Race rules (docs/environment.md), checked with the pure-pursuit driver as the oracle."""
 
 
+import weakref
+
 import numpy as np
 import pytest
 
@@ -114,6 +116,34 @@ def test_collision_penalty_paid_by_both_cars():
                 assert rewards[a] == pytest.approx(-0.15, abs=1e-9)
     assert contact_steps[front] > 0 and contact_steps[rear] > 0
     assert contact_steps[front] == contact_steps[rear]
+
+
+def test_car_eliminated_while_touching_another_leaves_the_contact_cleanly():
+    """A stalled car pushed from behind is eliminated mid-contact: removing it ends the contact for the pusher
+    (no more collision steps or penalties), and the removed hull's tag outlives the removal. pybox2d drops its
+    reference to a body's userData before destroying it and reporting EndContact; a tag only the body held was
+    freed there and read afterwards (a segmentation fault in CI)."""
+    env = MultiCarRacing(num_agents=3, stall_steps=40, eliminate_offroad=False, collision_penalty=0.05)
+    env.reset(seed=4)  # the three cars on distinct tiles; slots 0 and 2 share the left column
+    starts = {a: env.car_state(a)["tile"] for a in env.agents}
+    front, _, rear = sorted(env.agents, key=lambda a: -starts[a] % env.num_tiles)
+    tag = weakref.ref(env.cars[env._index[front]].hull.userData)
+    infos = {}
+    for _ in range(300):
+        actions = {a: np.array([0.0, 1.0]) if a == rear else np.zeros(2) for a in env.agents}
+        touching = infos.get(rear, {}).get("collision_steps", 0)
+        _, _, terms, _, infos = env.step(actions)
+        if terms.get(front):
+            break
+    assert infos[front]["eliminated"] == "stalled"
+    assert infos[rear]["collision_steps"] > touching > 0  # in contact up to the elimination
+    assert tag() is not None
+    steps = infos[rear]["collision_steps"]
+    for _ in range(5):  # the pusher drives on into the empty place: never in a collision again
+        _, _, terms, _, infos = env.step({a: np.array([0.0, 1.0]) if a == rear else np.zeros(2) for a in env.agents})
+        assert infos[rear]["collision_steps"] == steps
+        if terms[rear]:
+            break
 
 
 def test_off_road_elimination_removes_only_that_car():
