@@ -47,6 +47,7 @@ import tyro
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import learning  # noqa: E402  (the single stage is the learning benchmark's run)
 RESULTS = os.path.join(ROOT, "benchmarks", "results")
 TOURNAMENT_SEED = 7_777  # held-out tracks of the tournaments (training races use the pair's seed)
 
@@ -122,22 +123,20 @@ def parse_overrides(script, overrides) -> dict:
     return values
 
 
-def dreamer_trial(config: dict) -> None:
-    """A single, ghost or control trial: the dreamer script's run, in chunks of report_every updates, each resumed
-    from latest.pt, with the latest evaluation reported to Tune after every chunk."""
-    from ray import tune
-
-    config = config["trial"]  # (the grid puts each trial's settings under "trial")
-    spec, stage, variant, seed = config["spec"], config["stage"], config["variant"], config["seed"]
+def trial_args(spec: dict, stage: str, variant: str, seed: int):
+    """The dreamer script of a single, ghost or control trial, the Args of its run, the updates it starts from
+    (None: from scratch) and the updates it ends at."""
     script = importlib.import_module(f"dreamer_{variant}")
-    directory = trial_dir(spec, stage, variant, seed)
     settings = {**parse_overrides(script, spec["overrides"]), "torch_threads": spec["torch_threads"], "seed": seed}
     if stage == "single":
         first, target = None, spec["single_updates"]
-        # every evaluated policy kept (checkpoints/eval_<race>.pt), as in benchmarks/learning.py
+        # the learning benchmark's run (benchmarks/learning.py --runs-dir <storage>/trials reads it) unless the
+        # spec changes the preset or a flag
+        plain = spec["preset"] == "cpu" and not spec["overrides"]
         args = script.preset_args(
-            spec["preset"], stage="single", exp_name=f"{variant}_single", eval_checkpoints=True, **settings
-        )
+            spec["preset"], exp_name=learning.experiment_name(variant) if plain else f"{variant}_single",
+            **{**learning.LEARNING_CONFIG, **settings},
+        )  # fmt: skip
     else:  # ghost, or its control: from the single trial's best.pt, for as many updates
         best = os.path.join(run_of(trial_dir(spec, "single", variant, seed)), "checkpoints", "best.pt")
         first = updates_of(best, script)
@@ -149,7 +148,19 @@ def dreamer_trial(config: dict) -> None:
             spec["preset"], stage="ghost" if ghost else "single", exp_name=f"{variant}_{stage}", checkpoint=best,
             **{**settings, **prefill},
         )  # fmt: skip
-    args = dataclasses.replace(args, runs_dir=directory, total_episodes=10**9)
+    args = dataclasses.replace(args, runs_dir=trial_dir(spec, stage, variant, seed), total_episodes=10**9)
+    return script, args, first, target
+
+
+def dreamer_trial(config: dict) -> None:
+    """A single, ghost or control trial: the dreamer script's run, in chunks of report_every updates, each resumed
+    from latest.pt, with the latest evaluation reported to Tune after every chunk."""
+    from ray import tune
+
+    config = config["trial"]  # (the grid puts each trial's settings under "trial")
+    spec, stage, variant, seed = config["spec"], config["stage"], config["variant"], config["seed"]
+    script, args, first, target = trial_args(spec, stage, variant, seed)
+    directory = trial_dir(spec, stage, variant, seed)
     goal = (first or 0) + spec["report_every"]
     while True:
         run = run_of(directory)

@@ -4,6 +4,7 @@
     python benchmarks/learning.py --variant lstm --seed 11 --resume        # continue it in a later sitting
     python benchmarks/learning.py --variant lstm --seed 11 --final         # its row of learning_final.csv
     python benchmarks/learning.py --report                                 # curves + table only
+    python benchmarks/learning.py --runs-dir runs/experiment/trials --variant gru --seed 12 --final
     python benchmarks/learning.py --evaluate runs/learning/<run>/checkpoints/latest.pt --first-track 10100 --tracks 20
     python benchmarks/learning.py --export runs/learning/<run>/checkpoints/latest.pt pretrained/lstm_cpu.pt
 
@@ -20,6 +21,9 @@ evaluating every 5 races on the 10 held-out tracks (seeds 10000..10009) and keep
 
 The bar, per variant over 3 seeds: final-policy mean return >= 600 with every seed >= 350, mean progress >= 0.65,
 mean |steer| <= 0.3, and each run's last three evaluations within 150 of its best (docs/learning.md).
+
+``benchmarks/experiment.py`` trains these same runs as its single stage (under ``<storage>/trials/``);
+``--runs-dir`` points every mode at them.
 """
 
 from __future__ import annotations
@@ -77,18 +81,28 @@ def experiment_name(variant: str, **ablation: float | str | bool | None) -> str:
     return f"learning_{variant}" + "".join(tags)
 
 
+def learning_runs(runs_dir: str = RUNS, exp_name: str = "learning_*", seed: int | str = "*") -> list[str]:
+    """Run directories of the learning benchmark under ``runs_dir``, at any depth (benchmarks/experiment.py keeps
+    its single-stage runs, which are these runs, one directory per trial), oldest first."""
+    pattern = os.path.join(runs_dir, "**", f"*__{exp_name}__{seed}__*")
+    runs = [path for path in glob.glob(pattern, recursive=True) if os.path.isdir(path)]
+    return sorted(runs, key=lambda run: (os.path.basename(run).split("__")[-1], run))
+
+
 def find_run(exp_name: str, seed: int, runs_dir: str = RUNS) -> str | None:
-    runs = sorted(glob.glob(os.path.join(runs_dir, f"*__{exp_name}__{seed}__*")))
+    runs = learning_runs(runs_dir, exp_name, seed)
     return runs[-1] if runs else None
 
 
-def run_args(variant: str, seed: int, hours: float, resume: bool, updates: int = FINAL_UPDATES, **ablation):
+def run_args(
+    variant: str, seed: int, hours: float, resume: bool, updates: int = FINAL_UPDATES, runs_dir: str = RUNS, **ablation
+):
     """The dreamer script of ``variant``, the Args of this sitting and the fields they override: a new run at the
     CPU preset plus LEARNING_CONFIG with the ablated flags changed, or (``resume``) the latest run of the same name
     and seed, continued with its own settings (only the time limit and the update target are this sitting's)."""
     script = importlib.import_module(f"dreamer_{variant}")
     exp_name = experiment_name(variant, **ablation)
-    existing = find_run(exp_name, seed)
+    existing = find_run(exp_name, seed, runs_dir)
     if resume and existing:
         args = script.Args(resume=existing, time_limit_hours=hours, total_updates=updates)
         return script, args, {"time_limit_hours", "total_updates"}
@@ -96,7 +110,7 @@ def run_args(variant: str, seed: int, hours: float, resume: bool, updates: int =
         print(f"note: {existing} exists; starting a new run (use --resume to continue it)")
     ablated = {name: value for name, value in ablation.items() if value is not None}
     args = script.preset_args(
-        "cpu", seed=seed, exp_name=exp_name, runs_dir=RUNS, time_limit_hours=hours, total_updates=updates,
+        "cpu", seed=seed, exp_name=exp_name, runs_dir=runs_dir, time_limit_hours=hours, total_updates=updates,
         **LEARNING_CONFIG, **ablated,
     )  # fmt: skip
     return script, args, set()
@@ -183,7 +197,7 @@ def load_curves(runs_dir: str = RUNS, results_dir: str = RESULTS) -> dict[str, l
     so runs on other machines stay in the table and the figure. A saved CSV that reaches further than the
     run here (a run restarted from scratch) is kept, never overwritten by the shorter curve."""
     curves = {}
-    for run_dir in sorted(glob.glob(os.path.join(runs_dir, "*__learning_*"))):
+    for run_dir in learning_runs(runs_dir):
         _, exp_name, seed = os.path.basename(run_dir).split("__")[:3]
         rows = eval_curve(run_dir)
         if not rows:
@@ -292,12 +306,14 @@ FINAL_COLUMNS = (
 )  # fmt: skip
 
 
-def final_row(variant: str, seed: int, exp_name: str | None = None, policy: str = "stochastic") -> dict:
+def final_row(
+    variant: str, seed: int, exp_name: str | None = None, policy: str = "stochastic", runs_dir: str = RUNS
+) -> dict:
     """The final protocol's row of one run: its last policy (latest.pt) and its best evaluation (best.pt), both
     measured on the fresh tracks FRESH_TRACKS, with the run's updates, env steps and training hours."""
-    run = find_run(exp_name or experiment_name(variant), seed)
+    run = find_run(exp_name or experiment_name(variant), seed, runs_dir)
     if run is None:
-        raise ValueError(f"no run of {exp_name or experiment_name(variant)} seed {seed} in {RUNS}")
+        raise ValueError(f"no run of {exp_name or experiment_name(variant)} seed {seed} in {runs_dir}")
     curve = eval_curve(run)
     final = evaluate_checkpoint(os.path.join(run, "checkpoints", "latest.pt"), *FRESH_TRACKS, policy)
     best = evaluate_checkpoint(os.path.join(run, "checkpoints", "best.pt"), *FRESH_TRACKS, policy)
@@ -355,7 +371,7 @@ def training_curves(runs_dir: str = RUNS, results_dir: str = RESULTS) -> dict[st
     seen before) against the updates made: read from the run's progress.csv when the run is here (and saved as
     ``<name>_training.csv``), else from that CSV."""
     curves = {}
-    for run_dir in sorted(glob.glob(os.path.join(runs_dir, "*__learning_*"))):
+    for run_dir in learning_runs(runs_dir):
         _, exp_name, seed = os.path.basename(run_dir).split("__")[:3]
         path = os.path.join(run_dir, "progress.csv")
         if not os.path.exists(path):
@@ -430,6 +446,10 @@ def main():
     parser.add_argument("--resume", action="store_true", help="continue the latest run of this variant and seed")
     parser.add_argument("--report", action="store_true", help="only write the curves and the table")
     parser.add_argument(
+        "--runs-dir", default=RUNS,
+        help="where the runs are, at any depth (e.g. runs/experiment/trials: the experiment's single stage)",
+    )  # fmt: skip
+    parser.add_argument(
         "--final", action="store_true",
         help="only evaluate the run's final and best policies on the fresh tracks; its row in learning_final.csv",
     )  # fmt: skip
@@ -491,7 +511,9 @@ def main():
         return
     if args.final:
         try:
-            row = final_row(args.variant, args.seed, experiment_name(args.variant, **ablation), args.policy)
+            row = final_row(
+                args.variant, args.seed, experiment_name(args.variant, **ablation), args.policy, args.runs_dir
+            )
         except ValueError as e:
             parser.error(str(e))
         write_final_row(row)
@@ -500,14 +522,14 @@ def main():
         return
     if not args.report:
         script, script_args, overrides = run_args(
-            args.variant, args.seed, args.hours, args.resume, args.updates, **ablation
+            args.variant, args.seed, args.hours, args.resume, args.updates, args.runs_dir, **ablation
         )
         try:  # an ablated value the script refuses ends here, before any work, naming the flag
             script.validate_args(script_args)
         except script.UsageError as e:
             parser.error(str(e))
         script.main(script_args, overrides)
-    report()
+    report(args.runs_dir)
 
 
 if __name__ == "__main__":

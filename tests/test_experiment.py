@@ -120,3 +120,22 @@ def test_the_summary_matches_hand_computed_numbers():
     tie = experiment.summarize({}, {"lstm": [0.5], "gru": [0.5]}, reps=100)
     assert "0.50 [0.50, 0.50]" in tie  # ties count one half
     assert np.isclose(float(tie.split(": ")[1].split()[0]), 0.5)
+
+
+def test_the_default_single_stage_is_the_learning_benchmarks_run(tmp_path):
+    """At the default spec (CPU preset, no overrides) a single-stage trial trains exactly the run that
+    ``benchmarks/learning.py`` would (same flags, same name), so ``learning.py --runs-dir <storage>/trials``
+    reports it; a spec that changes a flag names its trials apart."""
+    import learning
+
+    spec = dataclasses.asdict(experiment.Spec(storage=str(tmp_path)))
+    for variant in ("lstm", "gru"):
+        _, args, first, target = experiment.trial_args(spec, "single", variant, 12)
+        _, reference, _ = learning.run_args(variant, 12, hours=1.0, resume=False, runs_dir=str(tmp_path / "learning"))
+        differ = {f.name for f in dataclasses.fields(args) if getattr(args, f.name) != getattr(reference, f.name)}
+        assert differ == {"runs_dir", "total_episodes", "time_limit_hours", "total_updates"}
+        assert (first, target, reference.total_updates) == (None, 8000, 8000)
+        os.makedirs(os.path.join(args.runs_dir, f"multi_car_racing__{args.exp_name}__12__1700000000"))
+        assert learning.find_run(learning.experiment_name(variant), 12, str(tmp_path / "trials")) is not None
+    changed = dataclasses.asdict(experiment.Spec(storage=str(tmp_path), overrides=("entropy_coef=0.5",)))
+    assert experiment.trial_args(changed, "single", "gru", 12)[1].exp_name == "gru_single"
