@@ -45,7 +45,7 @@ def test_a_run_resumes_in_a_later_sitting_and_writes_its_row(tmp_path, monkeypat
     monkeypatch.setitem(ppo_peer.ZOO, "n_steps", 32)
     monkeypatch.setitem(ppo_peer.ZOO, "batch_size", 32)
     monkeypatch.setitem(ppo_peer.ZOO, "n_epochs", 1)
-    argv = ["--seed", "3", "--hours", "1", "--budget-steps", "64", "--tracks", "1", "--runs-dir", str(tmp_path),
+    argv = ["--seed", "3", "--cpu-hours", "1", "--budget-steps", "64", "--tracks", "1", "--runs-dir", str(tmp_path),
             "--results", str(tmp_path / "ppo_peer.csv")]  # fmt: skip
     first = ppo_peer.main(argv)
     assert (first["env_steps"], first["updates"]) == (2 * 64, 1)  # one rollout of 2 x 32 steps, frame skip 2
@@ -56,4 +56,17 @@ def test_a_run_resumes_in_a_later_sitting_and_writes_its_row(tmp_path, monkeypat
     assert len(rows) == 1 and rows[0]["variant"] == "ppo" and int(rows[0]["env_steps"]) == 256  # replaced, not added
     assert -200 < float(rows[0]["final_return"]) < 1000 and 0 <= float(rows[0]["final_mean_abs_steer"]) <= 1
     with pytest.raises(SystemExit):
-        ppo_peer.main(["--hours", "0"])
+        ppo_peer.main(["--cpu-hours", "0"])
+
+
+def test_the_budget_is_cpu_time_of_the_process(tmp_path, monkeypatch):
+    """A clock of CPU time that advances 20 minutes per reading: the run stops at its 1 CPU-hour budget, long before
+    its PPO steps, whatever the wall clock says; the record counts the CPU hours."""
+    monkeypatch.setitem(ppo_peer.ZOO, "n_envs", 2)
+    monkeypatch.setitem(ppo_peer.ZOO, "n_steps", 32)
+    monkeypatch.setitem(ppo_peer.ZOO, "batch_size", 32)
+    monkeypatch.setitem(ppo_peer.ZOO, "n_epochs", 1)
+    readings = iter(range(10**6))
+    monkeypatch.setattr(ppo_peer.time, "process_time", lambda: 1200.0 * next(readings))
+    record = ppo_peer.train(3, hours=1.0, budget_steps=10**6, run_dir=str(tmp_path))
+    assert record["env_steps"] < 2 * 64 and record["hours"] >= 1.0
