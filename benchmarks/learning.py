@@ -4,6 +4,7 @@
     python benchmarks/learning.py --variant lstm --seed 11 --resume        # continue it in a later sitting
     python benchmarks/learning.py --variant lstm --seed 11 --final         # its row of learning_final.csv
     python benchmarks/learning.py --report                                 # curves + table only
+    python benchmarks/learning.py --variant lstm --seed 11 --diagnose      # sigma, entropy, kl_dyn... per 500 updates
     python benchmarks/learning.py --runs-dir runs/experiment/trials --variant gru --seed 12 --final
     python benchmarks/learning.py --evaluate runs/learning/<run>/checkpoints/latest.pt --first-track 10100 --tracks 20
     python benchmarks/learning.py --export runs/learning/<run>/checkpoints/latest.pt pretrained/lstm_cpu.pt
@@ -302,7 +303,8 @@ def evaluate_checkpoint(
 
 FINAL_COLUMNS = (
     "exp_name", "variant", "seed", "updates", "env_steps", "hours", "final_return", "final_progress", "final_mean_abs_steer",
-    "best_return", "best_progress",
+    "best_return", "best_progress", "mean_action_return", "mean_action_progress", "mean_action_abs_steer",
+    "best_eval_return", "last3_eval_return",
 )  # fmt: skip
 
 
@@ -310,20 +312,48 @@ def final_row(
     variant: str, seed: int, exp_name: str | None = None, policy: str = "stochastic", runs_dir: str = RUNS
 ) -> dict:
     """The final protocol's row of one run: its last policy (latest.pt) and its best evaluation (best.pt), both
-    measured on the fresh tracks FRESH_TRACKS, with the run's updates, env steps and training hours."""
+    measured with `policy` on the fresh tracks FRESH_TRACKS; the last policy's mean action there too (how smoothly
+    the policy means to steer, without the sampling noise); the run's updates, env steps and training hours; and
+    its best and last-three-average evaluation returns (the 10 evaluation tracks), which say whether it holds."""
     run = find_run(exp_name or experiment_name(variant), seed, runs_dir)
     if run is None:
         raise ValueError(f"no run of {exp_name or experiment_name(variant)} seed {seed} in {runs_dir}")
     curve = eval_curve(run)
-    final = evaluate_checkpoint(os.path.join(run, "checkpoints", "latest.pt"), *FRESH_TRACKS, policy)
+    latest = os.path.join(run, "checkpoints", "latest.pt")
+    final = evaluate_checkpoint(latest, *FRESH_TRACKS, policy)
     best = evaluate_checkpoint(os.path.join(run, "checkpoints", "best.pt"), *FRESH_TRACKS, policy)
+    mean_action = evaluate_checkpoint(latest, *FRESH_TRACKS, "mean-action")
+    evals = [r["eval_return"] for r in curve]
     return {
         "exp_name": exp_name or experiment_name(variant), "variant": variant, "seed": seed, "updates": final["updates"],
         "env_steps": curve[-1]["env_steps"] if curve else 0, "hours": curve[-1]["wall_hours"] if curve else 0.0,
         "final_return": round(final["eval_return"], 2), "final_progress": round(final["eval_progress"], 4),
         "final_mean_abs_steer": round(final["mean_abs_steer"], 4),
         "best_return": round(best["eval_return"], 2), "best_progress": round(best["eval_progress"], 4),
+        "mean_action_return": round(mean_action["eval_return"], 2),
+        "mean_action_progress": round(mean_action["eval_progress"], 4),
+        "mean_action_abs_steer": round(mean_action["mean_abs_steer"], 4),
+        "best_eval_return": round(max(evals), 2) if evals else float("nan"),
+        "last3_eval_return": round(float(np.mean(evals[-3:])), 2) if evals else float("nan"),
     }  # fmt: skip
+
+
+def bar_verdict(rows: list[dict]) -> dict[str, bool]:
+    """Each part of the bar for the rows of one variant (its seeds): mean final return >= BAR_RETURN, every seed
+    >= BAR_SEED_RETURN, mean progress >= BAR_PROGRESS, mean |steer| <= BAR_STEER (of the evaluated policy, and of
+    its mean action), and every run holds (its last three evaluations average within BAR_HOLD of its best)."""
+
+    def values(key: str) -> np.ndarray:
+        return np.array([float(r[key]) for r in rows])
+
+    return {
+        "return": values("final_return").mean() >= BAR_RETURN,
+        "every seed": values("final_return").min() >= BAR_SEED_RETURN,
+        "progress": values("final_progress").mean() >= BAR_PROGRESS,
+        "steer": values("final_mean_abs_steer").mean() <= BAR_STEER,
+        "steer (mean action)": values("mean_action_abs_steer").mean() <= BAR_STEER,
+        "holds": bool(np.all(values("best_eval_return") - values("last3_eval_return") <= BAR_HOLD)),
+    }
 
 
 def write_final_row(row: dict, path: str = os.path.join(RESULTS, "learning_final.csv")) -> None:
@@ -343,26 +373,80 @@ def write_final_row(row: dict, path: str = os.path.join(RESULTS, "learning_final
 
 def final_summary(path: str = os.path.join(RESULTS, "learning_final.csv"), reps: int = 2000) -> str:
     """Markdown: per variant the IQM and mean of the final return with stratified-bootstrap 95% intervals (rliable),
-    and the bar's parts (mean return >= 600, every seed >= 350, progress >= 0.65, |steer| <= 0.3)."""
+    the bar's numbers, and which parts of the bar (bar_verdict) fail."""
     from stats import interval_estimates
 
     with open(path, newline="") as f:
         rows = list(csv.DictReader(f))
     lines = [
         "| experiment | seeds | IQM final return [95% CI] | mean final return [95% CI] | min seed | mean progress "
-        "| mean \\|steer\\| |",
-        "|---|---|---|---|---|---|---|",
+        "| mean \\|steer\\| (mean action) | runs that hold | bar |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for variant in sorted({r["exp_name"] for r in rows}):  # each experiment (a variant, or an ablation of it)
         mine = [r for r in rows if r["exp_name"] == variant]
         returns = np.array([float(r["final_return"]) for r in mine])
         est = interval_estimates({variant: returns[:, None]}, reps=reps)[variant]
+        verdict = bar_verdict(mine)
+        holds = sum(float(r["best_eval_return"]) - float(r["last3_eval_return"]) <= BAR_HOLD for r in mine)
+        failed = [part for part, ok in verdict.items() if not ok]
         lines.append(
             f"| {variant} | {len(mine)} | {est['iqm']:.1f} [{est['iqm_ci'][0]:.1f}, {est['iqm_ci'][1]:.1f}] "
             f"| {est['mean']:.1f} [{est['mean_ci'][0]:.1f}, {est['mean_ci'][1]:.1f}] | {returns.min():.1f} "
             f"| {np.mean([float(r['final_progress']) for r in mine]):.2f} "
-            f"| {np.mean([float(r['final_mean_abs_steer']) for r in mine]):.2f} |"
+            f"| {np.mean([float(r['final_mean_abs_steer']) for r in mine]):.2f} "
+            f"({np.mean([float(r['mean_action_abs_steer']) for r in mine]):.2f}) | {holds} of {len(mine)} "
+            f"| {'met' if not failed else 'not met: ' + ', '.join(failed)} |"
         )
+    return "\n".join(lines) + "\n"
+
+
+# What to look at when a run falls short: (column, tag of progress.csv), averaged per bucket of updates.
+DIAGNOSTICS = (
+    ("training return", "car_0/charts/episodic_return"),
+    ("training progress", "car_0/charts/progress"),
+    ("actor sigma", "car_0/losses/actor_std"),
+    ("entropy", "car_0/losses/entropy"),
+    ("kl_dyn", "car_0/losses/kl_dyn"),
+    ("reward NLL (real data)", "car_0/losses/reward"),
+    ("imagined return", "car_0/losses/imagined_return"),
+    ("eval return", "car_0/eval/episodic_return"),
+    ("eval progress", "car_0/eval/progress"),
+    ("eval mean |steer|", "car_0/eval/mean_abs_steer"),
+)
+
+
+def diagnostics(run_dir: str, bucket: int = 500) -> list[dict]:
+    """A run's progress.csv in buckets of `bucket` updates: per bucket its training races and the mean of each
+    DIAGNOSTICS column over the rows logged in it. A row belongs to the bucket of the updates made when it was
+    logged (rows before the first update: bucket 0); empty cells stay out of the means (NaN if all are empty).
+    The imagined return is the lambda-return of imagination with its entropy part; the training races are driven
+    by the sampled policy; the evaluation uses the run's --eval-policy."""
+    with open(os.path.join(run_dir, "progress.csv"), newline="") as f:
+        rows = list(csv.DictReader(f))
+    updates, table = 0, {}
+    for row in rows:
+        if row.get("car_0/perf/updates"):
+            updates = int(float(row["car_0/perf/updates"]))
+        cell = table.setdefault(updates // bucket, {"races": 0, **{name: [] for name, _ in DIAGNOSTICS}})
+        cell["races"] += bool(row.get("car_0/charts/episodic_return"))
+        for name, tag in DIAGNOSTICS:
+            if row.get(tag):
+                cell[name].append(float(row[tag]))
+    return [
+        {"updates": f"{b * bucket}-{(b + 1) * bucket - 1}", "races": cell.pop("races"),
+         **{name: float(np.mean(v)) if v else float("nan") for name, v in cell.items()}}
+        for b, cell in sorted(table.items())
+    ]  # fmt: skip
+
+
+def diagnostics_table(rows: list[dict]) -> str:
+    """Markdown of diagnostics(): one line per bucket."""
+    names = list(rows[0]) if rows else ["updates", "races"]
+    lines = ["| " + " | ".join(n.replace("|", "\\|") for n in names) + " |", "|" + "---|" * len(names)]
+    for row in rows:
+        cells = [v if isinstance(v, (str, int)) else "" if np.isnan(v) else f"{v:.2f}" for v in row.values()]
+        lines.append("| " + " | ".join(str(c) for c in cells) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -446,6 +530,11 @@ def main():
     parser.add_argument("--resume", action="store_true", help="continue the latest run of this variant and seed")
     parser.add_argument("--report", action="store_true", help="only write the curves and the table")
     parser.add_argument(
+        "--diagnose", action="store_true",
+        help="only the run's diagnostics per 500 updates (returns, sigma, entropy, kl_dyn, reward NLL, imagined "
+        "return, evaluations): printed and written to benchmarks/results/<run>_diagnostics.md",
+    )  # fmt: skip
+    parser.add_argument(
         "--runs-dir", default=RUNS,
         help="where the runs are, at any depth (e.g. runs/experiment/trials: the experiment's single stage)",
     )  # fmt: skip
@@ -508,6 +597,16 @@ def main():
         except ValueError as e:  # race.CheckpointError is a ValueError naming the file
             parser.error(str(e))
         print(json.dumps(result, indent=1))
+        return
+    if args.diagnose:
+        name = experiment_name(args.variant, **ablation)
+        run = find_run(name, args.seed, args.runs_dir)
+        if run is None:
+            parser.error(f"no run of {name} seed {args.seed} in {args.runs_dir}")
+        table = diagnostics_table(diagnostics(run))
+        with open(os.path.join(RESULTS, f"{name}_seed{args.seed}_diagnostics.md"), "w") as f:
+            f.write(f"{os.path.basename(run)}\n\n{table}")
+        print(table)
         return
     if args.final:
         try:

@@ -8,6 +8,7 @@ import json
 import os
 import sys
 
+import numpy as np
 import pytest
 from torch.utils.tensorboard import SummaryWriter
 
@@ -63,7 +64,8 @@ def test_first_at_bar_needs_return_and_progress_at_the_same_evaluation():
 
 def test_final_table_rows_replace_their_run_and_the_summary_matches_hand_computed_numbers(tmp_path):
     path = str(tmp_path / "learning_final.csv")
-    base = {"updates": 8000, "env_steps": 40000, "hours": 2.5, "best_return": 0.0, "best_progress": 0.0}
+    base = {"updates": 8000, "env_steps": 40000, "hours": 2.5, "best_return": 0.0, "best_progress": 0.0,
+            "mean_action_return": 0.0, "mean_action_progress": 0.0, "best_eval_return": 500.0}  # fmt: skip
     for variant, seed, ret, progress, steer in [
         ("lstm", 11, 100.0, 0.2, 0.1), ("lstm", 12, 200.0, 0.4, 0.2), ("lstm", 13, 600.0, 0.9, 0.3),
         ("gru", 11, 1.0, 0.1, 0.5), ("gru", 12, 2.0, 0.1, 0.5), ("gru", 13, 3.0, 0.1, 0.5), ("gru", 14, 10.0, 0.1, 0.5),
@@ -71,7 +73,8 @@ def test_final_table_rows_replace_their_run_and_the_summary_matches_hand_compute
     ]:  # fmt: skip
         learning.write_final_row(
             {"exp_name": f"learning_{variant}", "variant": variant, "seed": seed, "final_return": ret,
-             "final_progress": progress, "final_mean_abs_steer": steer, **base}, path,
+             "final_progress": progress, "final_mean_abs_steer": steer, "mean_action_abs_steer": steer / 2,
+             "last3_eval_return": 500.0 - 0.6 * ret, **base}, path,
         )  # fmt: skip
     with open(path, newline="") as f:
         rows = list(csv.DictReader(f))
@@ -87,10 +90,52 @@ def test_final_table_rows_replace_their_run_and_the_summary_matches_hand_compute
     lstm = next(line for line in table if line.startswith("| learning_lstm |")).split("|")
     gru = next(line for line in table if line.startswith("| learning_gru |")).split("|")
     assert lstm[2].strip() == "3" and lstm[3].strip().startswith("200.0 [") and lstm[4].strip().startswith("200.0 [")
-    assert lstm[5].strip() == "100.0" and lstm[6].strip() == "0.40" and lstm[7].strip() == "0.20"
+    assert lstm[5].strip() == "100.0" and lstm[6].strip() == "0.40" and lstm[7].strip() == "0.20 (0.10)"
+    # holds: best - last3 = 0.6 ret <= 150 for 100 and 200, not for 300; every part of the bar but steer fails
+    assert lstm[8].strip() == "2 of 3"
+    assert lstm[9].strip() == "not met: return, every seed, progress, holds"
     assert gru[3].strip().startswith("2.5 [") and gru[4].strip().startswith("4.0 [") and gru[5].strip() == "1.0"
+    assert gru[8].strip() == "4 of 4" and gru[9].strip() == "not met: return, every seed, progress, steer"
     low, high = (float(x) for x in gru[4].split("[")[1].rstrip("] ").split(","))
     assert 1.0 <= low < 4.0 < high <= 10.0  # a bootstrap interval of the mean lies within the scores
+
+
+def test_the_bar_is_met_only_when_every_part_is(tmp_path):
+    def row(ret, progress=0.7, steer=0.2, best=700.0, last3=600.0):
+        return {"final_return": ret, "final_progress": progress, "final_mean_abs_steer": steer,
+                "mean_action_abs_steer": steer, "best_eval_return": best, "last3_eval_return": last3}  # fmt: skip
+
+    assert all(learning.bar_verdict([row(600.0), row(650.0), row(550.0)]).values())  # mean 600, min 550
+    assert not learning.bar_verdict([row(900.0), row(900.0), row(349.0)])["every seed"]  # mean 716, one seed < 350
+    assert not learning.bar_verdict([row(600.0), row(599.0)])["return"]
+    assert not learning.bar_verdict([row(700.0, progress=0.6), row(700.0, progress=0.69)])["progress"]  # 0.645
+    assert not learning.bar_verdict([row(700.0, steer=0.31)])["steer"]
+    assert not learning.bar_verdict([row(700.0), row(700.0, best=800.0, last3=649.0)])["holds"]  # 151 below best
+
+
+def test_diagnostics_average_each_bucket_of_updates(tmp_path):
+    tags = dict(learning.DIAGNOSTICS)
+    columns = ["charts/episode", "car_0/perf/updates", *tags.values()]
+    logged = [  # (episode, updates, training return, actor sigma, eval return)
+        (1, "", -80.0, "", ""), (2, "", -60.0, "", ""),  # prefill races: bucket 0
+        (3, 100, 10.0, 0.9, ""), (4, 400, 30.0, 0.7, 50.0),  # bucket 0 (updates 0-499)
+        (5, 500, 100.0, 0.6, ""), (6, 900, 300.0, 0.5, 250.0), (7, 999, 200.0, "", ""),  # bucket 1
+        (8, 1500, 400.0, 0.4, ""),  # bucket 3 (no row in 1000-1499: no bucket 2)
+    ]
+    with open(tmp_path / "progress.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=columns)
+        writer.writeheader()
+        for episode, updates, ret, sigma, evaluation in logged:
+            writer.writerow({"charts/episode": episode, "car_0/perf/updates": updates, tags["training return"]: ret,
+                             tags["actor sigma"]: sigma, tags["eval return"]: evaluation})  # fmt: skip
+    rows = learning.diagnostics(str(tmp_path), bucket=500)
+    assert [(r["updates"], r["races"]) for r in rows] == [("0-499", 4), ("500-999", 3), ("1500-1999", 1)]
+    assert [r["training return"] for r in rows] == pytest.approx([(-80 - 60 + 10 + 30) / 4, 200.0, 400.0])
+    assert [r["actor sigma"] for r in rows] == pytest.approx([0.8, 0.55, 0.4])
+    assert rows[0]["eval return"] == 50.0 and rows[1]["eval return"] == 250.0 and np.isnan(rows[2]["eval return"])
+    table = learning.diagnostics_table(rows).splitlines()
+    assert table[0].startswith("| updates | races | training return |") and len(table) == 2 + 3
+    assert table[2].startswith("| 0-499 | 4 | -25.00 |") and table[4].endswith("|  |  |  |")
 
 
 def test_report_keeps_saved_curves_and_never_shrinks_one(dirs):
