@@ -1,6 +1,7 @@
 """Paper-style figures from the TensorBoard logs of several runs and seeds.
 
     python plot.py runs/ --out figures/ [--sigma 2]
+    python plot.py runs/experiment/trials --out figures/ --head-to-head benchmarks/results/head_to_head.csv
 
 Every run directory under ``runs/`` holding a TensorBoard event file is one seed of one
 group. A run's group is ``(variant, stage)``, read from the ``config.json`` the dreamer
@@ -19,6 +20,11 @@ Each curve is smoothed with a Gaussian filter (``--sigma`` in logged points, sci
 * ``single_agent_eval_{return,progress}.png`` - stage ``single``: deterministic evaluation on the
   held-out tracks (when logged)
 * ``losses.png``               - actor, critic, reconstruction, KL (dyn) for every group
+* ``head_to_head.png``         - with ``--head-to-head CSV``: the tournaments of ``benchmarks/experiment.py``
+
+A ``race.py --train`` run (tags ``racer_<i>_<variant>/...``) counts as one run per variant of its racers, drawn
+against the race count it logs (``charts/race``); its later sittings (the experiment's intervals of races) join
+it end to end.
 """
 
 from __future__ import annotations
@@ -55,13 +61,18 @@ FIGURES = {
 LOSSES = ("losses/actor", "losses/critic", "losses/reconstruction", "losses/kl_dyn")
 
 
+RACER_PREFIX = re.compile(r"^racer_\d+_([A-Za-z0-9]+)/")  # race.py --train: racer_<i>_<variant>/...
+RACE_COUNT = "charts/race"  # race.py --train: the races each learning racer has run, over every sitting
+
+
 @dataclasses.dataclass
 class Run:
     path: str
     variant: str
     stage: str
     seed: int
-    scalars: dict[str, list[tuple[np.ndarray, np.ndarray]]]  # tag -> one (steps, values) per agent
+    scalars: dict[str, list[tuple[np.ndarray, np.ndarray]]]  # tag -> one (x, values) per agent
+    x_label: str = "step"
 
     @property
     def group(self) -> tuple[str, str]:
@@ -104,12 +115,68 @@ def read_scalars(run_dir: str) -> dict[str, list[tuple[np.ndarray, np.ndarray]]]
     return scalars
 
 
+def racer_runs(path: str, stage: str, seed: int, scalars: dict) -> list[Run]:
+    """A race.py --train run as one Run per variant of its racers (``racer_<i>_<variant>/`` tags, the prefix
+    removed), each against the race count: the x of a point is the race after which it was logged."""
+    count = scalars.get(RACE_COUNT)
+    races = dict(zip(*count[0])) if count else {}
+    by_variant: dict[str, dict] = {}
+    for tag, curves in scalars.items():
+        match = RACER_PREFIX.match(tag)
+        if match is None:
+            continue
+        for steps, values in curves:
+            keep = np.array([s in races for s in steps], dtype=bool) if races else np.ones(len(steps), dtype=bool)
+            x = np.array([races[s] for s in steps[keep]]) if races else steps
+            by_variant.setdefault(match.group(1), {}).setdefault(RACER_PREFIX.sub("", tag), []).append((x, values[keep]))
+    label = "races" if races else "step"
+    return [Run(path, variant, stage, seed, tags, label) for variant, tags in sorted(by_variant.items())]
+
+
+def join_sittings(runs: list[Run]) -> list[Run]:
+    """Runs counted in races with the same (variant, stage, seed) are sittings of one run (race.py --train
+    continued from the checkpoints of the last): one Run whose curves are theirs end to end, in race order (the
+    i-th curve of a tag, one per racer of the variant, joined with the i-th curve of every sitting)."""
+    sittings: dict[tuple, list[Run]] = {}
+    out = []
+    for run in runs:
+        if run.x_label != "races":
+            out.append(run)
+            continue
+        key = (run.variant, run.stage, run.seed)
+        if key not in sittings:
+            sittings[key] = []
+            out.append(key)
+        sittings[key].append(run)
+    joined = {}
+    for key, parts in sittings.items():
+        scalars = {}
+        for tag in {tag for part in parts for tag in part.scalars}:
+            pieces = [part.scalars.get(tag, []) for part in parts]
+            scalars[tag] = []
+            for i in range(max(len(p) for p in pieces)):
+                x = np.concatenate([p[i][0] for p in pieces if i < len(p)])
+                v = np.concatenate([p[i][1] for p in pieces if i < len(p)])
+                order = np.argsort(x, kind="stable")
+                scalars[tag].append((x[order], v[order]))
+        joined[key] = Run(parts[0].path, *key, scalars, "races")
+    return [joined[item] if isinstance(item, tuple) else item for item in out]
+
+
 def load_runs(logdir: str) -> list[Run]:
     event_files = glob.glob(os.path.join(logdir, "**", "events.out.tfevents.*"), recursive=True)
     run_dirs = sorted({os.path.dirname(f) for f in event_files})
     if not run_dirs:
         raise ValueError(f"no TensorBoard event files under {logdir!r}")
-    return [Run(d, *run_identity(d), read_scalars(d)) for d in run_dirs]
+    runs = []
+    for d in run_dirs:
+        variant, stage, seed = run_identity(d)
+        scalars = read_scalars(d)
+        if any(RACER_PREFIX.match(tag) for tag in scalars):
+            runs.extend(racer_runs(d, stage, seed, scalars))
+        else:
+            runs.append(Run(d, variant, stage, seed, scalars))
+    return join_sittings(runs)
 
 
 def group_runs(runs: list[Run]) -> dict[tuple[str, str], list[Run]]:
@@ -139,7 +206,7 @@ def aggregate(curves: list[tuple[np.ndarray, np.ndarray]], sigma: float):
 
 
 def plot_metric(ax, groups, tag: str, sigma: float, stage: str | None = None) -> list[str]:
-    labels = []
+    labels, x_labels = [], set()
     for (variant, group_stage), runs in groups.items():
         if stage is not None and group_stage != stage:
             continue
@@ -147,23 +214,65 @@ def plot_metric(ax, groups, tag: str, sigma: float, stage: str | None = None) ->
         result = aggregate(curves, sigma)
         if result is None:
             continue
+        x_labels.update(run.x_label for run in runs if tag in run.scalars)
         grid, mean, std, n = result
         label = f"{variant} ({len(runs)} seed{'s' * (len(runs) > 1)})" if stage else f"{variant}/{group_stage}"
         (line,) = ax.plot(grid, mean, label=label)
         ax.fill_between(grid, mean - std, mean + std, color=line.get_color(), alpha=0.2)
         labels.append(label)
-    ax.set_xlabel("step")
+    ax.set_xlabel(x_labels.pop() if len(x_labels) == 1 else "step")
     ax.grid(alpha=0.3)
     if labels:
         ax.legend()
     return labels
 
 
-def make_figures(logdir: str, out: str, sigma: float = 2.0) -> dict[str, plt.Figure]:
-    """Build every figure that has data; save each as a PNG in ``out``; return them."""
+def head_to_head_figure(csv_path: str) -> plt.Figure:
+    """The tournaments of benchmarks/experiment.py (its head_to_head.csv): per seed pair the LSTM's win rate in
+    the evaluation races with its Wilson 95% interval, the GRU's, and the races both cars were eliminated in,
+    against the head-to-head races trained."""
+    import csv
+
+    columns = {"seed_pair", "races_trained", "eval_races", "lstm_wins", "gru_wins", "both_out",
+               "lstm_win_rate_ci_low", "lstm_win_rate_ci_high"}  # fmt: skip
+    with open(csv_path, newline="") as f:
+        reader = csv.DictReader(f)
+        missing = sorted(columns - set(reader.fieldnames or ()))
+        rows = list(reader)
+    if missing:
+        raise ValueError(f"{csv_path}: not a head_to_head.csv (no column {', '.join(missing)})")
+    if not rows:
+        raise ValueError(f"{csv_path}: no tournaments")
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for pair in sorted({r["seed_pair"] for r in rows}):
+        mine = sorted((r for r in rows if r["seed_pair"] == pair), key=lambda r: int(r["races_trained"]))
+        x = np.array([int(r["races_trained"]) for r in mine])
+        n = np.array([int(r["eval_races"]) for r in mine])
+        lstm = np.array([int(r["lstm_wins"]) for r in mine]) / n
+        low, high = (np.array([float(r[k]) for r in mine]) for k in ("lstm_win_rate_ci_low", "lstm_win_rate_ci_high"))
+        (line,) = ax.plot(x, lstm, marker="o", label=f"LSTM, seeds {pair}")
+        ax.fill_between(x, low, high, color=line.get_color(), alpha=0.15)
+        ax.plot(x, np.array([int(r["gru_wins"]) for r in mine]) / n, marker="s", linestyle="--",
+                color=line.get_color(), alpha=0.6, label=f"GRU, seeds {pair}")  # fmt: skip
+        ax.plot(x, np.array([int(r["both_out"]) for r in mine]) / n, linestyle=":", color=line.get_color(), alpha=0.6)
+    ax.axhline(0.5, color="gray", linewidth=0.8)
+    ax.set_xlabel("head-to-head races trained")
+    ax.set_ylabel("win rate in evaluation races (dotted: both out)")
+    ax.set_ylim(0, 1)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize="small")
+    ax.set_title("tournaments: LSTM vs GRU (Wilson 95%)")
+    return fig
+
+
+def make_figures(logdir: str, out: str, sigma: float = 2.0, head_to_head: str | None = None) -> dict[str, plt.Figure]:
+    """Build every figure that has data (and the tournaments' figure from a head_to_head.csv); save each as a PNG
+    in ``out``; return them."""
     groups = group_runs(load_runs(logdir))
     os.makedirs(out, exist_ok=True)
     figures = {}
+    if head_to_head is not None:
+        figures["head_to_head.png"] = head_to_head_figure(head_to_head)
     for name, (stage, tag, ylabel) in FIGURES.items():
         fig, ax = plt.subplots(figsize=(6, 4))
         if plot_metric(ax, groups, tag, sigma, stage=stage):
@@ -190,15 +299,20 @@ def main(argv=None):
     parser.add_argument("logdir", help="directory holding run directories (e.g. runs/)")
     parser.add_argument("--out", default="figures", help="where the PNGs go")
     parser.add_argument("--sigma", type=float, default=2.0, help="Gaussian smoothing, in logged points (0: none)")
+    parser.add_argument(
+        "--head-to-head", metavar="CSV", help="also the tournaments' figure from benchmarks/experiment.py's head_to_head.csv"
+    )
     args = parser.parse_args(argv)
     if not os.path.isdir(args.logdir):
         parser.error(f"logdir {args.logdir!r} is not a directory")
     if not math.isfinite(args.sigma) or args.sigma < 0:
         parser.error(f"--sigma must be a finite number >= 0, got {args.sigma}")
+    if args.head_to_head is not None and not os.path.isfile(args.head_to_head):
+        parser.error(f"--head-to-head {args.head_to_head!r} is not a file")
     if os.path.exists(args.out) and not os.path.isdir(args.out):
         parser.error(f"--out {args.out!r} exists and is not a directory")
     try:
-        figures = make_figures(args.logdir, args.out, args.sigma)
+        figures = make_figures(args.logdir, args.out, args.sigma, args.head_to_head)
     except ValueError as e:
         sys.exit(f"plot.py: {e}")
     for name in figures:

@@ -437,6 +437,7 @@ def train(args: Args, racers: list, device) -> str:
                      for i in range(len(racers))]  # fmt: skip
         result = run_race(env, racers, seed, grid, episodes=recorders)
         env_steps += max(int(info["step"]) for info in result.final_infos)
+        logger.record("charts/race", done_before + episode + 1)  # over every sitting: the x of plot.py's race figures
         for i, (info, won, ret) in enumerate(zip(result.final_infos, result.winners, result.returns)):
             wins[i].append(won)
             prefix = f"racer_{i}_{racers[i].variant if i in learners else 'pursuit'}"

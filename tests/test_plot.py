@@ -105,3 +105,56 @@ def test_evaluation_figures_appear_when_evaluations_are_logged(tmp_path):
     line = figures["single_agent_eval_progress.png"].axes[0].lines[0]
     assert line.get_label() == "lstm (1 seed)"
     np.testing.assert_allclose(line.get_ydata()[[0, -1]], [0.02, 0.5], atol=1e-6)  # sigma 0: the logged values
+
+
+def write_race_sitting(root, name, races, values):
+    """A race.py --train sitting: racer tags per variant and the race count, logged at env-step x (one per race)."""
+    run_dir = os.path.join(root, name)
+    writer = SummaryWriter(run_dir)
+    for k, race_number in enumerate(races):
+        step = 1000 * race_number + 7 * k  # env steps: not the race count
+        writer.add_scalar("charts/race", race_number, step)
+        writer.add_scalar("racer_0_lstm/charts/win_rate", values[k], step)
+        writer.add_scalar("racer_1_gru/charts/win_rate", 1 - values[k], step)
+    writer.close()
+    with open(os.path.join(run_dir, "config.json"), "w") as f:
+        json.dump({"variant": "lstm+gru", "stage": "race", "seed": 5}, f)
+
+
+def test_race_sittings_join_per_variant_against_races(tmp_path):
+    write_race_sitting(str(tmp_path), "races_00002/run", [1, 2], [0.2, 0.4])
+    write_race_sitting(str(tmp_path), "races_00004/run", [3, 4], [0.6, 0.8])  # the next sitting of the same seed
+    groups = plot.group_runs(plot.load_runs(str(tmp_path)))
+    assert set(groups) == {("lstm", "race"), ("gru", "race")}
+    ((races, lstm),) = groups[("lstm", "race")][0].scalars["charts/win_rate"]
+    ((_, gru),) = groups[("gru", "race")][0].scalars["charts/win_rate"]
+    assert races.tolist() == [1, 2, 3, 4] and lstm.tolist() == pytest.approx([0.2, 0.4, 0.6, 0.8])
+    assert gru.tolist() == pytest.approx([0.8, 0.6, 0.4, 0.2])
+    figures = plot.make_figures(str(tmp_path), str(tmp_path / "figures"), sigma=0.0)
+    ax = figures["multi_agent_win_rate.png"].axes[0]
+    assert ax.get_xlabel() == "races"
+    line = next(line for line in ax.lines if line.get_label() == "lstm (1 seed)")
+    np.testing.assert_allclose(line.get_xdata()[[0, -1]], [1, 4])
+    np.testing.assert_allclose(line.get_ydata()[[0, -1]], [0.2, 0.8], atol=1e-6)
+
+
+def test_head_to_head_figure_from_the_tournaments_csv(logdir, tmp_path, capsys):
+    path = tmp_path / "head_to_head.csv"
+    path.write_text(
+        "seed_pair,races_trained,eval_races,lstm_wins,gru_wins,both_out,lstm_win_rate_ci_low,lstm_win_rate_ci_high\n"
+        "\"11,11\",100,100,60,30,10,0.5,0.69\n\"11,11\",50,100,40,50,10,0.31,0.5\n\"12,12\",50,100,20,70,10,0.13,0.29\n"
+    )
+    figures = plot.make_figures(logdir, str(tmp_path / "f"), head_to_head=str(path))
+    ax = figures["head_to_head.png"].axes[0]
+    lstm = next(line for line in ax.lines if line.get_label() == "LSTM, seeds 11,11")
+    assert lstm.get_xdata().tolist() == [50, 100] and lstm.get_ydata().tolist() == pytest.approx([0.4, 0.6])
+    gru = next(line for line in ax.lines if line.get_label() == "GRU, seeds 12,12")
+    assert gru.get_ydata().tolist() == pytest.approx([0.7])
+    assert os.path.getsize(tmp_path / "f" / "head_to_head.png") > 1000
+    bad = tmp_path / "bad.csv"
+    bad.write_text("seed_pair,races_trained\n\"1,1\",50\n")
+    with pytest.raises(SystemExit, match="not a head_to_head.csv"):
+        plot.main([logdir, "--out", str(tmp_path / "g"), "--head-to-head", str(bad)])
+    with pytest.raises(SystemExit):
+        plot.main([logdir, "--out", str(tmp_path / "g"), "--head-to-head", str(tmp_path / "missing.csv")])
+    assert "is not a file" in capsys.readouterr().err

@@ -126,6 +126,14 @@ def test_tiny_train_run_logs_per_agent_win_rates(tiny_checkpoints, tmp_path):
     script, checkpoint = race.read_checkpoint(str(run_dir2 / "checkpoints" / "racer_0.pt"))
     assert checkpoint["agents"][0]["num_updates"] == 1 + 2 + 1  # continued, not restarted
     assert checkpoint["extra"]["replays"][0]["episodes"] == first.episodes + 3  # with the whole replay
+    # plot.py: one race-stage curve per variant, the two sittings joined on the race count (1, 2, then 3)
+    import plot
+
+    groups = plot.group_runs(plot.load_runs(str(tmp_path)))
+    assert set(groups) == {("lstm", "race"), ("gru", "race")}
+    for (variant, _), runs in groups.items():
+        ((races, values),) = runs[0].scalars["charts/episodic_return"]
+        assert len(runs) == 1 and races.tolist() == [1.0, 2.0, 3.0] and runs[0].x_label == "races"
 
 
 def test_dreamer_racer_decides_every_action_repeat_steps_and_records_summed_rewards(tiny_checkpoints):
