@@ -16,15 +16,18 @@ Each curve is smoothed with a Gaussian filter (``--sigma`` in logged points, sci
 * ``single_agent_return.png``  - stage ``single``: episodic return
 * ``multi_agent_return.png``   - stage ``race``: episodic return
 * ``multi_agent_win_rate.png`` - stage ``race``: win rate
-* ``ghost_return.png``         - stage ``ghost``: episodic return (when present)
+* ``ghost_return.png``         - stage ``ghost`` and its control (a ``single`` run continued from a checkpoint,
+  ``single-continued``): episodic return (when present)
 * ``single_agent_eval_{return,progress}.png`` - stage ``single``: deterministic evaluation on the
   held-out tracks (when logged)
-* ``losses.png``               - actor, critic, reconstruction, KL (dyn) for every group
+* ``losses.png``               - actor, critic, reconstruction, KL (dyn) for every group against steps
+* ``losses_race.png``          - the same for ``race.py --train`` runs, against races
 * ``head_to_head.png``         - with ``--head-to-head CSV``: the tournaments of ``benchmarks/experiment.py``
 
 A ``race.py --train`` run (tags ``racer_<i>_<variant>/...``) counts as one run per variant of its racers, drawn
 against the race count it logs (``charts/race``); its later sittings (the experiment's intervals of races) join
-it end to end.
+it end to end. (Its ``charts/win_rate`` is over the last 20 races of the sitting, so it restarts with each one;
+the tournaments' figure is the measured win rate.)
 """
 
 from __future__ import annotations
@@ -54,7 +57,7 @@ FIGURES = {
     "single_agent_return.png": ("single", "charts/episodic_return", "episodic return"),
     "multi_agent_return.png": ("race", "charts/episodic_return", "episodic return"),
     "multi_agent_win_rate.png": ("race", "charts/win_rate", "win rate"),
-    "ghost_return.png": ("ghost", "charts/episodic_return", "episodic return"),
+    "ghost_return.png": (("ghost", "single-continued"), "charts/episodic_return", "episodic return"),
     "single_agent_eval_return.png": ("single", "eval/episodic_return", "evaluation return (held-out tracks)"),
     "single_agent_eval_progress.png": ("single", "eval/progress", "evaluation progress (held-out tracks)"),
 }
@@ -86,7 +89,10 @@ def run_identity(run_dir: str) -> tuple[str, str, int]:
         try:
             with open(config_path) as f:
                 config = json.load(f)
-            return str(config["variant"]), str(config["stage"]), int(config["seed"])
+            stage = str(config["stage"])
+            if stage == "single" and config.get("checkpoint"):  # continued from a saved agent (e.g. a control)
+                stage = "single-continued"
+            return str(config["variant"]), stage, int(config["seed"])
         except KeyError as e:
             raise ValueError(f"{config_path} lacks {e.args[0]!r} (needs variant, stage, seed)") from None
         except (ValueError, TypeError, OSError) as e:  # not JSON, not an object, a seed that is no integer
@@ -134,33 +140,36 @@ def racer_runs(path: str, stage: str, seed: int, scalars: dict) -> list[Run]:
 
 
 def join_sittings(runs: list[Run]) -> list[Run]:
-    """Runs counted in races with the same (variant, stage, seed) are sittings of one run (race.py --train
-    continued from the checkpoints of the last): one Run whose curves are theirs end to end, in race order (the
-    i-th curve of a tag, one per racer of the variant, joined with the i-th curve of every sitting)."""
-    sittings: dict[tuple, list[Run]] = {}
-    out = []
-    for run in runs:
+    """Runs counted in races with the same (variant, stage, seed) where one starts at the race after the other's
+    last are sittings of one run (race.py --train continued from the checkpoints of the last): one Run whose curves
+    are theirs end to end (the i-th curve of a tag, one per racer of the variant, joined with the i-th curve of the
+    next sitting). Runs whose races do not follow on stay apart (e.g. two runs of the same seed)."""
+
+    def races(run: Run) -> tuple[float, float]:
+        xs = [x for curves in run.scalars.values() for x, _ in curves if len(x)]
+        return (min(x[0] for x in xs), max(x[-1] for x in xs)) if xs else (0.0, 0.0)
+
+    out, chains = [], []  # chains: (key, [sittings]), in the order they start
+    for run in sorted(runs, key=lambda r: races(r)[0]):
         if run.x_label != "races":
             out.append(run)
             continue
         key = (run.variant, run.stage, run.seed)
-        if key not in sittings:
-            sittings[key] = []
-            out.append(key)
-        sittings[key].append(run)
-    joined = {}
-    for key, parts in sittings.items():
+        chain = next((c for k, c in chains if k == key and races(c[-1])[1] + 1 == races(run)[0]), None)
+        if chain is None:
+            chains.append((key, [run]))
+        else:
+            chain.append(run)
+    for key, parts in chains:
         scalars = {}
         for tag in {tag for part in parts for tag in part.scalars}:
             pieces = [part.scalars.get(tag, []) for part in parts]
-            scalars[tag] = []
-            for i in range(max(len(p) for p in pieces)):
-                x = np.concatenate([p[i][0] for p in pieces if i < len(p)])
-                v = np.concatenate([p[i][1] for p in pieces if i < len(p)])
-                order = np.argsort(x, kind="stable")
-                scalars[tag].append((x[order], v[order]))
-        joined[key] = Run(parts[0].path, *key, scalars, "races")
-    return [joined[item] if isinstance(item, tuple) else item for item in out]
+            scalars[tag] = [
+                (np.concatenate([p[i][0] for p in pieces if i < len(p)]), np.concatenate([p[i][1] for p in pieces if i < len(p)]))
+                for i in range(max(len(p) for p in pieces))
+            ]  # fmt: skip
+        out.append(Run(parts[0].path, *key, scalars, "races"))
+    return out
 
 
 def load_runs(logdir: str) -> list[Run]:
@@ -205,10 +214,13 @@ def aggregate(curves: list[tuple[np.ndarray, np.ndarray]], sigma: float):
     return grid, stacked.mean(axis=0), stacked.std(axis=0), len(curves)
 
 
-def plot_metric(ax, groups, tag: str, sigma: float, stage: str | None = None) -> list[str]:
+def plot_metric(ax, groups, tag: str, sigma: float, stage: str | tuple[str, ...] | None = None) -> list[str]:
+    """Mean and one standard deviation across the seeds of each group (of `stage`, or of any of several stages,
+    or of every stage) that logged `tag`; returns the labels drawn."""
+    stages = (stage,) if isinstance(stage, str) else stage
     labels, x_labels = [], set()
     for (variant, group_stage), runs in groups.items():
-        if stage is not None and group_stage != stage:
+        if stages is not None and group_stage not in stages:
             continue
         curves = [c for run in runs for c in run.scalars.get(tag, [])]
         result = aggregate(curves, sigma)
@@ -216,7 +228,8 @@ def plot_metric(ax, groups, tag: str, sigma: float, stage: str | None = None) ->
             continue
         x_labels.update(run.x_label for run in runs if tag in run.scalars)
         grid, mean, std, n = result
-        label = f"{variant} ({len(runs)} seed{'s' * (len(runs) > 1)})" if stage else f"{variant}/{group_stage}"
+        seeds = f"{len(runs)} seed{'s' * (len(runs) > 1)}"
+        label = f"{variant} ({seeds})" if stages and len(stages) == 1 else f"{variant}/{group_stage} ({seeds})"
         (line,) = ax.plot(grid, mean, label=label)
         ax.fill_between(grid, mean - std, mean + std, color=line.get_color(), alpha=0.2)
         labels.append(label)
@@ -277,17 +290,20 @@ def make_figures(logdir: str, out: str, sigma: float = 2.0, head_to_head: str | 
         fig, ax = plt.subplots(figsize=(6, 4))
         if plot_metric(ax, groups, tag, sigma, stage=stage):
             ax.set_ylabel(ylabel)
-            ax.set_title(f"{stage}: {ylabel}")
+            ax.set_title(f"{stage if isinstance(stage, str) else ' vs '.join(stage)}: {ylabel}")
             figures[name] = fig
         else:
             plt.close(fig)
-    fig, axes = plt.subplots(1, len(LOSSES), figsize=(5 * len(LOSSES), 4))
-    if any(plot_metric(ax, groups, tag, sigma) for ax, tag in zip(axes, LOSSES)):
-        for ax, tag in zip(axes, LOSSES):
-            ax.set_title(tag)
-        figures["losses.png"] = fig
-    else:
-        plt.close(fig)
+    for x_label, name in (("step", "losses.png"), ("races", "losses_race.png")):  # one x unit per figure
+        same_x = {k: [r for r in runs if r.x_label == x_label] for k, runs in groups.items()}
+        same_x = {k: runs for k, runs in same_x.items() if runs}
+        fig, axes = plt.subplots(1, len(LOSSES), figsize=(5 * len(LOSSES), 4))
+        if any([plot_metric(ax, same_x, tag, sigma) for ax, tag in zip(axes, LOSSES)]):
+            for ax, tag in zip(axes, LOSSES):
+                ax.set_title(tag)
+            figures[name] = fig
+        else:
+            plt.close(fig)
     for name, fig in figures.items():
         fig.tight_layout()
         fig.savefig(os.path.join(out, name), dpi=100)

@@ -131,8 +131,9 @@ def trial_args(spec: dict, stage: str, variant: str, seed: int):
     if stage == "single":
         first, target = None, spec["single_updates"]
         # the learning benchmark's run (benchmarks/learning.py --runs-dir <storage>/trials reads it) unless the
-        # spec changes the preset or a flag
-        plain = spec["preset"] == "cpu" and not spec["overrides"]
+        # spec changes the preset, a flag, the updates or the threads
+        plain = spec["preset"] == "cpu" and not spec["overrides"] and spec["single_updates"] == learning.FINAL_UPDATES
+        plain = plain and spec["torch_threads"] == learning.LEARNING_CONFIG["torch_threads"]
         args = script.preset_args(
             spec["preset"], exp_name=learning.experiment_name(variant) if plain else f"{variant}_single",
             **{**learning.LEARNING_CONFIG, **settings},

@@ -10,8 +10,7 @@ with gSDE, 512 steps per env per rollout, batch 128, 10 epochs, learning rate 1e
 defaults at their final dead zone, -0.5). It gets the budget of one Dreamer run of the learning benchmark on one
 torch thread, counted as this process's CPU time (``--cpu-hours`` over all sittings), so that other processes on
 the same cores neither shorten nor lengthen it; and it is evaluated on the Dreamer runs' 20 fresh tracks
-10100..10119 with its deterministic policy. Its row goes to ``benchmarks/results/ppo_peer.csv`` (``hours``: CPU
-hours).
+10100..10119 with its deterministic policy. Its row goes to ``benchmarks/results/ppo_peer.csv``.
 """
 
 from __future__ import annotations
@@ -30,7 +29,7 @@ sys.path.insert(0, ROOT)
 RESULTS = os.path.join(ROOT, "benchmarks", "results")
 RUNS = os.path.join(ROOT, "runs", "ppo_peer")
 FRESH_TRACKS = (10_100, 20)
-COLUMNS = ("variant", "seed", "updates", "env_steps", "hours", "final_return", "final_progress", "final_mean_abs_steer")
+COLUMNS = ("variant", "seed", "updates", "env_steps", "cpu_hours", "final_return", "final_progress", "final_mean_abs_steer")
 # rl-baselines3-zoo, hyperparams/ppo.yml, CarRacing-v3
 ZOO = dict(
     n_envs=8, frame_skip=2, image_size=64, frame_stack=2, batch_size=128, n_steps=512, gamma=0.99, gae_lambda=0.95,
@@ -111,23 +110,25 @@ def train(seed: int, hours: float, budget_steps: int, run_dir: str, save_every: 
 
     os.makedirs(run_dir, exist_ok=True)
     paths = {name: os.path.join(run_dir, name) for name in ("model.zip", "vecnormalize.pkl", "record.json")}
-    record = {"env_steps": 0, "hours": 0.0, "updates": 0}
+    record = {"env_steps": 0, "cpu_hours": 0.0, "updates": 0}
     if all(os.path.exists(path) for path in paths.values()):  # (the record is written last: a save is whole)
         with open(paths["record.json"]) as f:
             record = json.load(f)
+        if "hours" in record:  # a record of the first version, which named the same CPU hours "hours"
+            record["cpu_hours"] = record.pop("hours")
         norm = VecNormalize.load(paths["vecnormalize.pkl"], make_venv(seed))
         model = PPO.load(paths["model.zip"], env=norm, device="cpu", tensorboard_log=run_dir)
-        print(f"continuing from {paths['model.zip']} at {record['env_steps']} env steps, {record['hours']:.2f} h")
+        print(f"continuing from {paths['model.zip']} at {record['env_steps']} env steps, {record['cpu_hours']:.2f} CPU-h")
     else:
         norm = VecNormalize(make_venv(seed), norm_obs=False, norm_reward=True, gamma=ZOO["gamma"])
         model = make_model(seed, norm, run_dir)
-    hours_before, started = record["hours"], time.process_time()
+    hours_before, started = record["cpu_hours"], time.process_time()
     hours = hours - hours_before  # the budget is the whole run's, over every sitting
 
     def save() -> None:
         record.update(
             env_steps=int(model.num_timesteps) * ZOO["frame_skip"], updates=int(model._n_updates),
-            hours=round(hours_before + (time.process_time() - started) / 3600, 4),
+            cpu_hours=round(hours_before + (time.process_time() - started) / 3600, 4),
         )  # fmt: skip
         model.save(paths["model.zip"] + ".tmp.zip")
         os.replace(paths["model.zip"] + ".tmp.zip", paths["model.zip"])
@@ -136,7 +137,7 @@ def train(seed: int, hours: float, budget_steps: int, run_dir: str, save_every: 
         with open(paths["record.json"] + ".tmp", "w") as f:
             json.dump(record, f)
         os.replace(paths["record.json"] + ".tmp", paths["record.json"])
-        print(f"{record['env_steps']} env steps, {record['updates']} gradient steps, {record['hours']:.2f} h")
+        print(f"{record['env_steps']} env steps, {record['updates']} gradient steps, {record['cpu_hours']:.2f} CPU-h")
 
     class Budget(BaseCallback):
         """Stop at the sitting's CPU-time budget; save every `save_every` rollouts."""
@@ -226,7 +227,7 @@ def main(argv=None) -> dict:
     result = evaluate(model, FRESH_TRACKS[0], args.tracks)
     row = {
         "variant": "ppo", "seed": args.seed, "updates": record["updates"], "env_steps": record["env_steps"],
-        "hours": record["hours"], "final_return": round(result["return"], 2),
+        "cpu_hours": record["cpu_hours"], "final_return": round(result["return"], 2),
         "final_progress": round(result["progress"], 4), "final_mean_abs_steer": round(result["abs_steer"], 4),
     }  # fmt: skip
     write_row(row, args.results)

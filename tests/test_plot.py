@@ -116,6 +116,7 @@ def write_race_sitting(root, name, races, values):
         writer.add_scalar("charts/race", race_number, step)
         writer.add_scalar("racer_0_lstm/charts/win_rate", values[k], step)
         writer.add_scalar("racer_1_gru/charts/win_rate", 1 - values[k], step)
+        writer.add_scalar("racer_0_lstm/losses/actor", -values[k], step)
     writer.close()
     with open(os.path.join(run_dir, "config.json"), "w") as f:
         json.dump({"variant": "lstm+gru", "stage": "race", "seed": 5}, f)
@@ -136,6 +137,34 @@ def test_race_sittings_join_per_variant_against_races(tmp_path):
     line = next(line for line in ax.lines if line.get_label() == "lstm (1 seed)")
     np.testing.assert_allclose(line.get_xdata()[[0, -1]], [1, 4])
     np.testing.assert_allclose(line.get_ydata()[[0, -1]], [0.2, 0.8], atol=1e-6)
+    write_race_sitting(str(tmp_path), "again/run", [1, 2], [0.5, 0.5])  # another run of seed 5: not a sitting
+    runs = plot.group_runs(plot.load_runs(str(tmp_path)))[("lstm", "race")]
+    assert sorted(run.scalars["charts/win_rate"][0][0].tolist() for run in runs) == [[1, 2], [1, 2, 3, 4]]
+
+
+def test_losses_are_drawn_per_x_unit_and_controls_beside_the_ghost(logdir, tmp_path):
+    """Steps and races never share an axis; a single-stage run continued from a checkpoint (the experiment's
+    control) is not a seed of the single stage but the ghost stage's comparison."""
+    import shutil
+
+    root = tmp_path / "runs"
+    shutil.copytree(logdir, root)
+    write_race_sitting(str(root), "races/run", [1, 2, 3], [0.2, 0.4, 0.6])
+    control = write_run(str(root), "lstm", "single", 9, agents=1)
+    with open(os.path.join(control, "config.json"), "w") as f:
+        json.dump({"variant": "lstm", "stage": "single", "seed": 9, "checkpoint": "runs/x/checkpoints/best.pt"}, f)
+    write_run(str(root), "lstm", "ghost", 9, agents=1)
+    figures = plot.make_figures(str(root), str(tmp_path / "f"), sigma=0.0)
+    steps = figures["losses.png"].axes[0]
+    races = figures["losses_race.png"].axes[0]
+    assert steps.get_xlabel() == "step" and races.get_xlabel() == "races"
+    assert "lstm/race (3 seeds)" in [line.get_label() for line in steps.lines]  # the step-counted race runs only
+    assert [line.get_label() for line in races.lines] == ["lstm/race (1 seed)"]
+    assert max(line.get_xdata().max() for line in races.lines) == 3
+    single = [line.get_label() for line in figures["single_agent_return.png"].axes[0].lines]
+    assert sorted(single) == ["gru (3 seeds)", "lstm (3 seeds)"]  # the continued run is no fourth seed
+    ghost = sorted(line.get_label() for line in figures["ghost_return.png"].axes[0].lines)
+    assert ghost == ["lstm/ghost (1 seed)", "lstm/single-continued (1 seed)"]
 
 
 def test_head_to_head_figure_from_the_tournaments_csv(logdir, tmp_path, capsys):
