@@ -1,7 +1,9 @@
 """Statistics of RL results over seeds, with rliable (Agarwal et al., 2021).
 
 * ``interval_estimates``: IQM and mean of each method's scores with stratified-bootstrap 95% intervals;
-* ``probability_of_improvement``: P(X > Y) across runs, with its stratified-bootstrap interval.
+* ``probability_of_improvement``: P(X > Y) across runs, with its stratified-bootstrap interval;
+* ``mean_difference``: mean(X) - mean(Y) of independent runs, with its stratified-bootstrap interval;
+* ``verdict``: what an interval of a difference says of the claim that it is positive.
 
 Scores are arrays of shape (runs, tasks), rliable's layout; one task is a column of one.
 """
@@ -43,3 +45,25 @@ def probability_of_improvement(x: np.ndarray, y: np.ndarray, reps: int = 2000, s
     points, intervals = rly.get_interval_estimates(pair, metrics.probability_of_improvement, reps=reps)
     low, high = np.asarray(intervals["x,y"], float).reshape(-1)  # rliable gives the interval as a (2, 1) array
     return {"p": float(points["x,y"]), "ci": (float(low), float(high))}
+
+
+def mean_difference(x: np.ndarray, y: np.ndarray, reps: int = 2000, seed: int = 0) -> dict:
+    """mean(X) - mean(Y) of independent runs x and y (each resampled on its own), with its 95% interval. For paired
+    runs, take the differences and use ``interval_estimates`` on them instead."""
+    from rliable import library as rly
+
+    np.random.seed(seed)
+    pair = {"x-y": (np.asarray(x, float), np.asarray(y, float))}
+    points, intervals = rly.get_interval_estimates(pair, lambda a, b: np.mean(a) - np.mean(b), reps=reps)
+    low, high = np.asarray(intervals["x-y"], float).reshape(-1)
+    return {"diff": float(points["x-y"]), "ci": (float(low), float(high))}
+
+
+def verdict(ci: tuple[float, float]) -> str:
+    """The claim "the difference is positive", judged by its 95% interval."""
+    low, high = ci
+    if low > 0:
+        return "supported"
+    if high < 0:
+        return "contradicted (the opposite holds)"
+    return "not supported (the interval includes 0)"

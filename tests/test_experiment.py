@@ -72,7 +72,9 @@ def test_every_stage_runs_to_completion_and_writes_the_tables(finished):
     assert all(int(r["eval_races"]) == 2 and int(r["lstm_wins"]) + int(r["gru_wins"]) <= 2 for r in rows)
     with open(os.path.join(spec.results, "ghost_vs_control.csv")) as f:
         assert [r["variant"] for r in csv.DictReader(f)] == ["lstm", "gru"]
-    assert "P(LSTM win rate > GRU win rate)" in open(os.path.join(spec.results, "experiment.md")).read()
+    summary = open(os.path.join(spec.results, "experiment.md")).read()
+    assert "P(LSTM win rate > GRU win rate)" in summary
+    assert "| the LSTM-Dreamer beats the GRU-Dreamer head to head | last tournament (after 2 races)" in summary
 
 
 def test_a_killed_trial_resumed_with_its_counters_and_the_others_untouched(finished):
@@ -182,3 +184,29 @@ def test_a_whole_experiment_killed_mid_trial_resumes_on_the_same_command(tmp_pat
     )
     assert checkpoint["agents"][0]["num_updates"] == 8
     assert checkpoint["extra"]["replays"][0]["episodes"] == checkpoint["counters"]["episode"]
+
+
+def test_the_claims_table_answers_each_claim_from_hand_made_results():
+    """Clear-cut numbers, so each verdict is known by hand: the solo gap is large and consistent (supported),
+    head to head the GRU wins every final tournament (contradicted), the LSTM's win rate rises in one pair and
+    falls in another (not supported), and the ghost helps by exactly 50 in every run (supported, interval 50)."""
+    single = {"lstm": [600.0, 700.0, 800.0], "gru": [100.0, 200.0, 300.0]}
+    ghost = [{"return_after_ghost": 350.0 + k, "return_after_control": 300.0 + k} for k in range(4)]
+
+    def tournament(pair, races, lstm, gru, low):
+        return {"seed_pair": pair, "races_trained": races, "eval_races": 100, "lstm_wins": lstm, "gru_wins": gru,
+                "lstm_win_rate_ci_low": low}  # fmt: skip
+
+    head = [tournament("11,11", 50, 20, 70, 0.13), tournament("11,11", 150, 30, 60, 0.22),
+            tournament("12,12", 50, 40, 50, 0.31), tournament("12,12", 150, 20, 70, 0.13)]  # fmt: skip
+    table = experiment.claims_table(single, ghost, head, reps=300).splitlines()
+    solo, versus, recovery, ghost_row = (line.split(" | ") for line in table[2:6])
+    assert solo[2].startswith("500.0 [") and solo[3].startswith("supported")
+    low, high = (float(v) for v in solo[2].split("[")[1].rstrip("]").split(","))
+    assert 300.0 <= low < 500.0 < high <= 700.0  # within the extremes of the resampled gaps
+    # last tournaments: 0.30 - 0.60 and 0.20 - 0.70 -> mean -0.40, every resample negative
+    assert versus[2].startswith("-0.40 [") and versus[3].startswith("contradicted")
+    assert "above 0.5 in 0 of 2" in versus[1]
+    # the LSTM's rate: +0.10 and -0.20 -> mean -0.05, the interval spans 0
+    assert recovery[2].startswith("-0.05 [") and recovery[3].startswith("not supported")
+    assert ghost_row[2] == "50.0 [50.0, 50.0]" and ghost_row[3].startswith("supported")
