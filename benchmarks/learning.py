@@ -18,7 +18,8 @@ evaluating every 5 races on the 10 held-out tracks (seeds 10000..10009) and keep
 * ``baselines.json``: random actions and the pure-pursuit driver on the same 10 tracks;
 * ``learning.png`` and ``learning.md``: every curve, with the baselines;
 * with ``--final``: the run's row of ``learning_final.csv`` (its final and best policies on the 20 fresh tracks
-  10100..10119) and the IQM and mean over seeds with stratified-bootstrap intervals (rliable).
+  10100..10119) and, in ``learning_final.md``, the IQM and mean over seeds with stratified-bootstrap intervals
+  (rliable) and the parts of the bar each variant fails.
 
 The bar, per variant over 3 seeds: final-policy mean return >= 600 with every seed >= 350, mean progress >= 0.65,
 mean |steer| <= 0.3, and each run's last three evaluations within 150 of its best (docs/learning.md).
@@ -638,7 +639,10 @@ def main():
             parser.error(str(e))
         write_final_row(row)
         print(json.dumps(row, indent=1))
-        print(final_summary())
+        summary = final_summary()
+        with open(os.path.join(RESULTS, "learning_final.md"), "w") as f:
+            f.write(summary)
+        print(summary)
         return
     if not args.report:
         script, script_args, overrides = run_args(
