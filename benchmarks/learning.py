@@ -67,6 +67,7 @@ LEARNING_CONFIG = {
 # Ablations: a flag of the dreamer scripts changed from the preset, and its tag in the run's name.
 ABLATION_TAGS = {
     "entropy_coef": "alpha", "decoder_min_log_sigma": "logsigmamin", "norm": "norm", "return_norm": "retnorm",
+    "dead_zone_start": "dzstart",
 }  # fmt: skip
 
 
@@ -579,6 +580,10 @@ def main():
         "--return-norm", action="store_const", const=True, default=None,
         help="an ablation: DreamerV3's return normalisation (run named ..._retnorm)",
     )
+    parser.add_argument(
+        "--dead-zone-start", type=float, default=None,
+        help="an ablation: the dead zone's first value (-0.5, the final one: no schedule; run named ..._dzstart<v>)",
+    )  # fmt: skip
     parser.add_argument("--evaluate", metavar="CHECKPOINT", help="only evaluate this saved agent alone (no training)")
     parser.add_argument(
         "--export", nargs=2, metavar=("CHECKPOINT", "OUT"),

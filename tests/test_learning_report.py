@@ -173,6 +173,7 @@ def test_ablation_runs_are_named_by_every_changed_flag():
     assert learning.experiment_name("lstm", entropy_coef=None, decoder_min_log_sigma=-1.5) == "learning_lstm_logsigmamin-1.5"
     assert learning.experiment_name("gru", norm="layer") == "learning_gru_normlayer"
     assert learning.experiment_name("gru", return_norm=True) == "learning_gru_retnorm"
+    assert learning.experiment_name("lstm", dead_zone_start=-0.5) == "learning_lstm_dzstart-0.5"
     with pytest.raises(ValueError, match="^not an ablation flag: free_bits"):
         learning.experiment_name("lstm", free_bits=2.0)
     for name in learning.ABLATION_TAGS:  # each ablation is a real flag of both scripts
@@ -191,6 +192,10 @@ def test_an_ablation_reaches_the_script_and_a_refused_value_names_its_flag(tmp_p
     assert (args.seed, args.time_limit_hours, args.total_updates) == (2, 1.5, learning.FINAL_UPDATES)
     assert (args.image_size, args.batch_size, args.imagination_horizon) == (64, cpu["batch_size"], 15)
     assert (args.stage, args.eval_checkpoints, args.preset, overrides) == ("single", True, "cpu", set())
+    _, args, _ = learning.run_args("lstm", 3, 1.0, False, dead_zone_start=-0.5)  # no schedule: the final value
+    script = importlib.import_module("dreamer_lstm")
+    assert args.exp_name == "learning_lstm_dzstart-0.5" and args.dead_zone_start == args.dead_zone_end == -0.5
+    assert {script.dead_zone_at(e, args) for e in (0, 10, 1000)} == {-0.5}
     script, args, _ = learning.run_args("lstm", 1, 1.0, False, decoder_min_log_sigma=3.0)
     with pytest.raises(script.UsageError, match=r"^--decoder-min-log-sigma must lie in \[-5, 2\], got 3.0$"):
         script.validate_args(args)
