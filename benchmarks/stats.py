@@ -34,29 +34,32 @@ def interval_estimates(scores: dict[str, np.ndarray], reps: int = 2000, seed: in
     }
 
 
+def two_sample_estimate(x: np.ndarray, y: np.ndarray, statistic, reps: int = 2000, seed: int = 0):
+    """statistic(x, y) of independent runs x (runs_x, tasks) and y (runs_y, tasks), each resampled on its own
+    (rliable's stratified independent bootstrap), with its 95% interval: (estimate, (low, high))."""
+    from rliable import library as rly
+
+    np.random.seed(seed)  # rliable draws its bootstrap samples from numpy's global stream
+    pair = {"x,y": (np.asarray(x, float), np.asarray(y, float))}
+    points, intervals = rly.get_interval_estimates(pair, statistic, reps=reps)
+    low, high = np.asarray(intervals["x,y"], float).reshape(-1)  # rliable gives the interval as a (2, 1) array
+    return float(points["x,y"]), (float(low), float(high))
+
+
 def probability_of_improvement(x: np.ndarray, y: np.ndarray, reps: int = 2000, seed: int = 0) -> dict:
     """P(X > Y) of runs x (runs_x, tasks) against runs y (runs_y, tasks), ties counting one half, with its 95%
     interval."""
-    from rliable import library as rly
     from rliable import metrics
 
-    np.random.seed(seed)
-    pair = {"x,y": (np.asarray(x, float), np.asarray(y, float))}
-    points, intervals = rly.get_interval_estimates(pair, metrics.probability_of_improvement, reps=reps)
-    low, high = np.asarray(intervals["x,y"], float).reshape(-1)  # rliable gives the interval as a (2, 1) array
-    return {"p": float(points["x,y"]), "ci": (float(low), float(high))}
+    p, ci = two_sample_estimate(x, y, metrics.probability_of_improvement, reps, seed)
+    return {"p": p, "ci": ci}
 
 
 def mean_difference(x: np.ndarray, y: np.ndarray, reps: int = 2000, seed: int = 0) -> dict:
-    """mean(X) - mean(Y) of independent runs x and y (each resampled on its own), with its 95% interval. For paired
-    runs, take the differences and use ``interval_estimates`` on them instead."""
-    from rliable import library as rly
-
-    np.random.seed(seed)
-    pair = {"x-y": (np.asarray(x, float), np.asarray(y, float))}
-    points, intervals = rly.get_interval_estimates(pair, lambda a, b: np.mean(a) - np.mean(b), reps=reps)
-    low, high = np.asarray(intervals["x-y"], float).reshape(-1)
-    return {"diff": float(points["x-y"]), "ci": (float(low), float(high))}
+    """mean(X) - mean(Y) of independent runs x and y, with its 95% interval. For paired runs, take the differences
+    and use ``interval_estimates`` on them instead."""
+    diff, ci = two_sample_estimate(x, y, lambda a, b: np.mean(a) - np.mean(b), reps, seed)
+    return {"diff": diff, "ci": ci}
 
 
 def verdict(ci: tuple[float, float]) -> str:
