@@ -134,7 +134,9 @@ def racer_runs(path: str, stage: str, seed: int, scalars: dict) -> list[Run]:
         for steps, values in curves:
             keep = np.array([s in races for s in steps], dtype=bool) if races else np.ones(len(steps), dtype=bool)
             x = np.array([races[s] for s in steps[keep]]) if races else steps
-            by_variant.setdefault(match.group(1), {}).setdefault(RACER_PREFIX.sub("", tag), []).append((x, values[keep]))
+            by_variant.setdefault(match.group(1), {}).setdefault(RACER_PREFIX.sub("", tag), []).append(
+                (x, values[keep])
+            )
     label = "races" if races else "step"
     return [Run(path, variant, stage, seed, tags, label) for variant, tags in sorted(by_variant.items())]
 
@@ -165,7 +167,10 @@ def join_sittings(runs: list[Run]) -> list[Run]:
         for tag in {tag for part in parts for tag in part.scalars}:
             pieces = [part.scalars.get(tag, []) for part in parts]
             scalars[tag] = [
-                (np.concatenate([p[i][0] for p in pieces if i < len(p)]), np.concatenate([p[i][1] for p in pieces if i < len(p)]))
+                (
+                    np.concatenate([p[i][0] for p in pieces if i < len(p)]),
+                    np.concatenate([p[i][1] for p in pieces if i < len(p)]),
+                )
                 for i in range(max(len(p) for p in pieces))
             ]  # fmt: skip
         out.append(Run(parts[0].path, *key, scalars, "races"))
@@ -316,7 +321,9 @@ def main(argv=None):
     parser.add_argument("--out", default="figures", help="where the PNGs go")
     parser.add_argument("--sigma", type=float, default=2.0, help="Gaussian smoothing, in logged points (0: none)")
     parser.add_argument(
-        "--head-to-head", metavar="CSV", help="also the tournaments' figure from benchmarks/experiment.py's head_to_head.csv"
+        "--head-to-head",
+        metavar="CSV",
+        help="also the tournaments' figure from benchmarks/experiment.py's head_to_head.csv",
     )
     args = parser.parse_args(argv)
     if not os.path.isdir(args.logdir):

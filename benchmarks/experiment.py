@@ -449,7 +449,10 @@ def claims_table(single_returns: dict[str, list[float]], ghost_rows: list[dict],
         return est["mean"], est["mean_ci"]
 
     def row(claim: str, measured: str, estimate: float, ci: tuple[float, float], digits: int = 1) -> str:
-        return f"| {claim} | {measured} | {estimate:.{digits}f} [{ci[0]:.{digits}f}, {ci[1]:.{digits}f}] | {verdict(ci)} |"
+        return (
+            f"| {claim} | {measured} | {estimate:.{digits}f} "
+            f"[{ci[0]:.{digits}f}, {ci[1]:.{digits}f}] | {verdict(ci)} |"
+        )
 
     lines = ["| claim of the paper | what we measured | estimate [95% CI] | verdict |", "|---|---|---|---|"]
     lstm, gru = single_returns.get("lstm", []), single_returns.get("gru", [])

@@ -136,7 +136,9 @@ def eval_curve(run_dir: str) -> list[dict]:
         wall_times = [e.wall_time for tag in tags for e in acc.Scalars(tag)]
         start, end = min(wall_times), max(wall_times)
         if "car_0/eval/episodic_return" in tags:
-            progress = {e.step: e.value for e in acc.Scalars("car_0/eval/progress")} if "car_0/eval/progress" in tags else {}
+            progress = (
+                {e.step: e.value for e in acc.Scalars("car_0/eval/progress")} if "car_0/eval/progress" in tags else {}
+            )
             updates = acc.Scalars("car_0/perf/updates") if "car_0/perf/updates" in tags else []
             update_steps = np.array([e.step for e in updates])
             update_values = np.array([e.value for e in updates])
@@ -236,7 +238,10 @@ def first_at_bar(rows: list[dict]) -> dict | None:
 def summary_table(curves: dict[str, list[dict]], base: dict) -> str:
     """Markdown: per run its last point, its best evaluation, and where it first met the bar."""
     lines = [
-        "| run | env steps | updates | hours | last eval return | last progress | best eval return (progress) | bar first met at |",
+        (
+            "| run | env steps | updates | hours | last eval return | last progress | best eval return (progress) "
+            "| bar first met at |"
+        ),
         "|---|---|---|---|---|---|---|---|",
     ]
     for name, rows in curves.items():
@@ -244,7 +249,8 @@ def summary_table(curves: dict[str, list[dict]], base: dict) -> str:
         met = f"{hit['env_steps']} steps, {hit['wall_hours']:.2f} h" if hit else "not met"
         lines.append(
             f"| {name.removeprefix('learning_')} | {last['env_steps']} | {last['updates']} | {last['wall_hours']:.2f} "
-            f"| {last['eval_return']:.1f} | {last['eval_progress']:.2f} | {best['eval_return']:.1f} ({best['eval_progress']:.2f}) | {met} |"
+            f"| {last['eval_return']:.1f} | {last['eval_progress']:.2f} "
+            f"| {best['eval_return']:.1f} ({best['eval_progress']:.2f}) | {met} |"
         )
     for bname, b in base.items():
         lines.append(f"| {bname} (baseline) | | | | {b['eval_return']:.1f} | {b['eval_progress']:.2f} | | |")
@@ -279,7 +285,10 @@ def evaluate_checkpoint(
         seeds = [script.race_seed(args.seed, e) for e in range(max(0, races - train_tracks), races)]
         tracks_name = f"training races {max(0, races - train_tracks)}..{races - 1}"
     else:
-        seeds, tracks_name = list(range(first_track, first_track + tracks)), f"{first_track}..{first_track + tracks - 1}"
+        seeds, tracks_name = (
+            list(range(first_track, first_track + tracks)),
+            f"{first_track}..{first_track + tracks - 1}",
+        )
     envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
     torch.manual_seed(first_track)  # sampled policies: the same command gives the same numbers
     try:
@@ -304,7 +313,8 @@ def evaluate_checkpoint(
 
 
 FINAL_COLUMNS = (
-    "exp_name", "variant", "seed", "updates", "env_steps", "hours", "final_return", "final_progress", "final_mean_abs_steer",
+    "exp_name", "variant", "seed", "updates", "env_steps", "hours",
+    "final_return", "final_progress", "final_mean_abs_steer",
     "best_return", "best_progress", "mean_action_return", "mean_action_progress", "mean_action_abs_steer",
     "best_eval_return", "last3_eval_return",
 )  # fmt: skip
@@ -480,7 +490,10 @@ def training_curves(runs_dir: str = RUNS, results_dir: str = RESULTS) -> dict[st
             continue
         with open(path, newline="") as f:
             rows = [
-                {"updates": int(float(r["car_0/perf/updates"])), "return": round(float(r["car_0/charts/episodic_return"]), 2)}
+                {
+                    "updates": int(float(r["car_0/perf/updates"])),
+                    "return": round(float(r["car_0/charts/episodic_return"]), 2),
+                }
                 for r in csv.DictReader(f) if r.get("car_0/perf/updates") and r.get("car_0/charts/episodic_return")
             ]  # fmt: skip
         saved_path = os.path.join(results_dir, f"{exp_name}_seed{seed}_training.csv")
@@ -519,14 +532,18 @@ def report(runs_dir: str = RUNS, results_dir: str = RESULTS) -> None:
     for name, rows in training_curves(runs_dir, results_dir).items():  # the races it trained on: sampled policy
         returns = np.array([r["return"] for r in rows])
         smooth = np.convolve(returns, np.ones(5) / 5, mode="valid") if len(returns) >= 5 else returns
-        axes[0].plot([r["updates"] for r in rows][len(rows) - len(smooth):], smooth, label=name.removeprefix("learning_"))
+        axes[0].plot(
+            [r["updates"] for r in rows][len(rows) - len(smooth):], smooth, label=name.removeprefix("learning_")
+        )
     axes[0].set_xlabel("updates")
     axes[0].set_ylabel("training race return (mean of 5)")
     axes[0].grid(alpha=0.3)
     axes[0].legend(fontsize="small")
     for ax, key, label, bar in panels:
         for name, rows in curves.items():
-            ax.plot([r["env_steps"] for r in rows], [r[key] for r in rows], marker="o", label=name.removeprefix("learning_"))
+            ax.plot(
+                [r["env_steps"] for r in rows], [r[key] for r in rows], marker="o", label=name.removeprefix("learning_")
+            )
         for (bname, b), style in zip(base.items(), (":", "--")):
             ax.axhline(b[key], color="gray", linestyle=style, label=bname)
         ax.axhline(bar, color="red", linestyle="-.", alpha=0.6, label="bar (final policy, mean over seeds)")

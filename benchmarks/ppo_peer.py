@@ -29,7 +29,9 @@ sys.path.insert(0, ROOT)
 RESULTS = os.path.join(ROOT, "benchmarks", "results")
 RUNS = os.path.join(ROOT, "runs", "ppo_peer")
 FRESH_TRACKS = (10_100, 20)
-COLUMNS = ("variant", "seed", "updates", "env_steps", "cpu_hours", "final_return", "final_progress", "final_mean_abs_steer")
+COLUMNS = (
+    "variant", "seed", "updates", "env_steps", "cpu_hours", "final_return", "final_progress", "final_mean_abs_steer"
+)
 # rl-baselines3-zoo, hyperparams/ppo.yml, CarRacing-v3
 ZOO = dict(
     n_envs=8, frame_skip=2, image_size=64, frame_stack=2, batch_size=128, n_steps=512, gamma=0.99, gae_lambda=0.95,
@@ -118,7 +120,9 @@ def train(seed: int, hours: float, budget_steps: int, run_dir: str, save_every: 
             record["cpu_hours"] = record.pop("hours")
         norm = VecNormalize.load(paths["vecnormalize.pkl"], make_venv(seed))
         model = PPO.load(paths["model.zip"], env=norm, device="cpu", tensorboard_log=run_dir)
-        print(f"continuing from {paths['model.zip']} at {record['env_steps']} env steps, {record['cpu_hours']:.2f} CPU-h")
+        print(
+            f"continuing from {paths['model.zip']} at {record['env_steps']} env steps, {record['cpu_hours']:.2f} CPU-h"
+        )
     else:
         norm = VecNormalize(make_venv(seed), norm_obs=False, norm_reward=True, gamma=ZOO["gamma"])
         model = make_model(seed, norm, run_dir)
@@ -151,7 +155,8 @@ def train(seed: int, hours: float, budget_steps: int, run_dir: str, save_every: 
                 save()
 
     remaining = budget_steps - int(model.num_timesteps)
-    if remaining > 0 and hours > 0:  # learning rate 1e-4 * (1 - steps / budget) across sittings (SB3's progress_remaining)
+    if remaining > 0 and hours > 0:
+        # learning rate 1e-4 * (1 - steps / budget) across sittings (SB3's progress_remaining)
         model.learn(remaining, callback=Budget(), reset_num_timesteps=False, tb_log_name="ppo")
     save()
     return record

@@ -190,7 +190,8 @@ def main(args: Args) -> None:
         for name in args.configs:
             acting, random_actions = env_throughput(script, config_of(script, name), args.env_steps)
             print(
-                f"env steps/s, one two-car race, {name} agents acting: {acting:.0f} (random actions: {random_actions:.0f})"
+                f"env steps/s, one two-car race, {name} agents acting: {acting:.0f} "
+                f"(random actions: {random_actions:.0f})"
             )
 
 

@@ -84,7 +84,10 @@ WHEEL_COLOR = car_dynamics.WHEEL_COLOR
 
 # Car outlines in body coordinates, polygons stacked; *_POLYGONS: (start, end) of each.
 _HULL_VERTICES = np.concatenate(
-    [np.array(p, dtype=np.float64) for p in (car_dynamics.HULL_POLY1, car_dynamics.HULL_POLY2, car_dynamics.HULL_POLY3, car_dynamics.HULL_POLY4)]
+    [
+        np.array(p, dtype=np.float64)
+        for p in (car_dynamics.HULL_POLY1, car_dynamics.HULL_POLY2, car_dynamics.HULL_POLY3, car_dynamics.HULL_POLY4)
+    ]
 ) * car_dynamics.SIZE
 HULL_POLYGONS = ((0, 4), (4, 8), (8, 16), (16, 20))  # HULL_POLY1..4
 _WHEEL_VERTICES = (
@@ -300,11 +303,15 @@ class TrackRenderer:
         )
         if layers:
             # all vertices in one transform, fixed point with 4 fractional bits (shift=4)
-            points = np.concatenate([v for _, v, _ in layers]) @ (world_to_view[:, :2].T * 16) + world_to_view[:, 2] * 16
+            points = (
+                np.concatenate([v for _, v, _ in layers]) @ (world_to_view[:, :2].T * 16) + world_to_view[:, 2] * 16
+            )
             points = np.round(points).astype(np.int32)
             start = 0
             for color, vertices, polygons in layers:
-                cv2.fillPoly(img, [points[start + a : start + b] for a, b in polygons], color, lineType=cv2.LINE_AA, shift=4)
+                cv2.fillPoly(
+                    img, [points[start + a : start + b] for a, b in polygons], color, lineType=cv2.LINE_AA, shift=4
+                )
                 start += len(vertices)
         if dashboard is not None:
             self.draw_dashboard(img, **dashboard)
@@ -557,7 +564,8 @@ class MultiCarRacing(ParallelEnv):
                 ghosts[agent] = ghost = GhostTrajectory.from_dict(ghost)
             if seed is None or int(seed) != ghost.track_seed:
                 raise ValueError(
-                    f"ghost of {agent} was recorded on track seed {ghost.track_seed}; reset with seed={ghost.track_seed} (got {seed})"
+                    f"ghost of {agent} was recorded on track seed {ghost.track_seed}; "
+                    f"reset with seed={ghost.track_seed} (got {seed})"
                 )
         self._destroy()
         self._dead_zone = self._pending_dead_zone
@@ -634,7 +642,11 @@ class MultiCarRacing(ParallelEnv):
             rewards[agent] = float(step_reward)
             terminations[agent] = bool(terminated)
             truncations[agent] = bool(truncate and not terminated)
-        done_agents = [self.possible_agents[i] for i in live if terminations[self.possible_agents[i]] or truncations[self.possible_agents[i]]]
+        done_agents = [
+            self.possible_agents[i]
+            for i in live
+            if terminations[self.possible_agents[i]] or truncations[self.possible_agents[i]]
+        ]
         observations = self._observe(self.agents)
         infos = {a: self._info(self._index[a]) for a in self.agents}
         for agent in done_agents:
@@ -762,7 +774,9 @@ class MultiCarRacing(ParallelEnv):
         for slot in order:
             beta, x, y = self.track[-int(slot) % self.num_tiles, 1:4]
             side = -1.0 if slot % 2 == 0 else 1.0
-            poses.append((beta, x + side * GRID_LATERAL_OFFSET * math.cos(beta), y + side * GRID_LATERAL_OFFSET * math.sin(beta)))
+            poses.append(
+                (beta, x + side * GRID_LATERAL_OFFSET * math.cos(beta), y + side * GRID_LATERAL_OFFSET * math.sin(beta))
+            )
         return poses
 
     def _create_car(self, i: int, pose) -> Car:
@@ -882,7 +896,11 @@ class MultiCarRacing(ParallelEnv):
         if self.first_touch_step[i, tile] < 0:
             self.first_touch_step[i, tile] = self.step_count
             self._pending_touches.append((i, tile))
-        elif self.rules == "race" and tile == self._start_tile[i] and self._tiles[i] / self.num_tiles > LAP_COMPLETE_PERCENT:
+        elif (
+            self.rules == "race"
+            and tile == self._start_tile[i]
+            and self._tiles[i] / self.num_tiles > LAP_COMPLETE_PERCENT
+        ):
             self._new_lap[i] = True  # back over its own start tile after most of the lap
 
     def _on_hull_contact(self, i: int, j: int, begin: bool):
@@ -1010,7 +1028,8 @@ class MultiCarRacing(ParallelEnv):
         """Every listed agent's camera: ghosts first, then the other cars, own car on top."""
         outlines = {i: self._car_vertices(i) for i, car in enumerate(self.cars) if car is not None}
         ghost_layers = [
-            (GHOST_COLOR, _HULL_VERTICES @ _rotation(angle).T + (x, y), HULL_POLYGONS) for x, y, angle in self._ghost_poses()
+            (GHOST_COLOR, _HULL_VERTICES @ _rotation(angle).T + (x, y), HULL_POLYGONS)
+            for x, y, angle in self._ghost_poses()
         ]
         obs = {}
         for agent in agents:

@@ -92,7 +92,9 @@ def lane_of(env: MultiCarRacing, agent: str) -> float:
     its start-grid column, so drivers of different speeds overtake instead of colliding;
     clipped to +-MAX_LANE, the widest lane the driver holds on every tested track."""
     state = env.car_state(agent)
-    tile = state["tile"] if state["tile"] >= 0 else int(np.argmin(np.sum((env.track_xy - state["position"]) ** 2, axis=1)))
+    tile = (
+        state["tile"] if state["tile"] >= 0 else int(np.argmin(np.sum((env.track_xy - state["position"]) ** 2, axis=1)))
+    )
     beta = env.track[tile, 1]
     offset = float(np.dot(state["position"] - env.track_xy[tile], [math.cos(beta), math.sin(beta)]))
     return float(np.clip(offset, -MAX_LANE, MAX_LANE))

@@ -28,7 +28,8 @@ DEFAULTS = {
         "batch_size": 15, "seq_len": 50, "imagination_horizon": 50, "train_steps_per_episode": 200,
         "model_lr": 6e-4, "critic_lr": 6e-4, "actor_lr": 1e-4, "entropy_coef": 1.0, "lambda_": 0.95, "gamma": 0.99,
         "tau": 0.005, "free_bits": 1.0, "kl_dyn_scale": 1.0, "kl_rep_scale": 1.0, "grad_clip": 100.0,
-        "imagination_starts": 0, "action_repeat": 1, "image_size": 96, "prefill_episodes": 5, "replay_capacity": 100_000,
+        "imagination_starts": 0, "action_repeat": 1, "image_size": 96,
+        "prefill_episodes": 5, "replay_capacity": 100_000,
         "eval_episodes": 10, "dead_zone_start": -1.0, "dead_zone_end": -0.5, "dead_zone_episodes": 200,
         "brake_speed_threshold": 50.0, "max_steps": 1000, "stall_steps": 150,
         "collision_penalty": 0.05, "offroad_penalty": 100.0, "speed_reward_coef": 0.0,
@@ -187,7 +188,9 @@ def test_amp_runs_the_networks_in_bfloat16_and_keeps_the_losses_of_float32(scrip
     for amp in ("off", "on"):
         torch.manual_seed(0)
         agent = script.Agent(tiny_args(script, amp=amp))
-        hook = agent.world_model.encoder.convs[0].register_forward_hook(lambda m, i, out: matmul_dtypes.append(out.dtype))
+        hook = agent.world_model.encoder.convs[0].register_forward_hook(
+            lambda m, i, out: matmul_dtypes.append(out.dtype)
+        )
         metrics[amp] = agent.update(random_batch())
         hook.remove()
         assert all(p.dtype == torch.float32 for p in agent.world_model.parameters())  # master weights stay float32
@@ -498,12 +501,19 @@ def moving_square_batch(B=4, L=8, S=64):
             x = 4 + 6 * t + 3 * b
             obs[b, t, 20:36, x : x + 12] = (230, 200, 40)
     reward = np.linspace(0, 1, L, dtype=np.float32)[None].repeat(B, 0)
-    tensors = [torch.as_tensor(obs), torch.zeros(B, L, 2), torch.as_tensor(reward), torch.as_tensor(np.eye(1, L, dtype=bool).repeat(B, 0))]
+    tensors = [
+        torch.as_tensor(obs),
+        torch.zeros(B, L, 2),
+        torch.as_tensor(reward),
+        torch.as_tensor(np.eye(1, L, dtype=bool).repeat(B, 0)),
+    ]
     return tensors, torch.zeros(B, L)  # (obs, action, reward, is_first), terminated
 
 
 def small_model_args(script, **overrides):
-    return tiny_args(script, cnn_depth=8, deter_size=32, hidden_size=32, mlp_size=32, latent_size=8, model_lr=3e-3, **overrides)
+    return tiny_args(
+        script, cnn_depth=8, deter_size=32, hidden_size=32, mlp_size=32, latent_size=8, model_lr=3e-3, **overrides
+    )
 
 
 def test_world_model_loss_falls_on_a_fixed_batch(script):

@@ -15,7 +15,10 @@ from torch.utils.tensorboard import SummaryWriter
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
 import learning  # noqa: E402
 
-BASELINES = {"random": {"eval_return": -76.6, "eval_progress": 0.03}, "pursuit@70": {"eval_return": 909.0, "eval_progress": 1.0}}
+BASELINES = {
+    "random": {"eval_return": -76.6, "eval_progress": 0.03},
+    "pursuit@70": {"eval_return": 909.0, "eval_progress": 1.0},
+}
 
 
 def write_sitting(run_dir, points, wall_start):
@@ -156,7 +159,9 @@ def test_report_keeps_saved_curves_and_never_shrinks_one(dirs):
 
     learning.report(runs, results)
     curves = learning.load_curves(runs, results)
-    assert sorted(curves) == ["learning_gru_seed2", "learning_gru_seed3", "learning_lstm_alpha0.03_seed3", "learning_lstm_seed1"]
+    assert sorted(curves) == [
+        "learning_gru_seed2", "learning_gru_seed3", "learning_lstm_alpha0.03_seed3", "learning_lstm_seed1"
+    ]
     assert curves["learning_gru_seed2"][-1]["env_steps"] == 4000  # the restarted run is behind: CSV kept
     assert learning.read_curve(os.path.join(results, "learning_gru_seed3.csv"))[-1]["updates"] == 100
     with open(os.path.join(results, "learning.md")) as f:
@@ -169,8 +174,14 @@ def test_report_keeps_saved_curves_and_never_shrinks_one(dirs):
 
 def test_ablation_runs_are_named_by_every_changed_flag():
     assert learning.experiment_name("gru") == "learning_gru"
-    assert learning.experiment_name("lstm", entropy_coef=0.03, decoder_min_log_sigma=0.0) == "learning_lstm_alpha0.03_logsigmamin0"
-    assert learning.experiment_name("lstm", entropy_coef=None, decoder_min_log_sigma=-1.5) == "learning_lstm_logsigmamin-1.5"
+    assert (
+        learning.experiment_name("lstm", entropy_coef=0.03, decoder_min_log_sigma=0.0)
+        == "learning_lstm_alpha0.03_logsigmamin0"
+    )
+    assert (
+        learning.experiment_name("lstm", entropy_coef=None, decoder_min_log_sigma=-1.5)
+        == "learning_lstm_logsigmamin-1.5"
+    )
     assert learning.experiment_name("gru", norm="layer") == "learning_gru_normlayer"
     assert learning.experiment_name("gru", return_norm=True) == "learning_gru_retnorm"
     assert learning.experiment_name("lstm", dead_zone_start=-0.5) == "learning_lstm_dzstart-0.5"

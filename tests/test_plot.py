@@ -63,7 +63,13 @@ def test_mean_curve_is_mean_of_scipy_smoothed_seeds(logdir):
     assert n == 6
     expected = np.stack(
         [
-            np.interp(grid, STEPS, gaussian_filter1d(curve("gru", "race", seed, agent).astype(np.float32).astype(float), 3.0, mode="nearest"))
+            np.interp(
+                grid,
+                STEPS,
+                gaussian_filter1d(
+                    curve("gru", "race", seed, agent).astype(np.float32).astype(float), 3.0, mode="nearest"
+                ),
+            )
             for seed in (1, 2, 3)
             for agent in (0, 1)
         ]
@@ -74,7 +80,9 @@ def test_mean_curve_is_mean_of_scipy_smoothed_seeds(logdir):
 
 def test_figures_have_the_expected_series(logdir, tmp_path):
     figures = plot.make_figures(logdir, str(tmp_path), sigma=2.0)
-    assert set(figures) == {"single_agent_return.png", "multi_agent_return.png", "multi_agent_win_rate.png", "losses.png"}
+    assert set(figures) == {
+        "single_agent_return.png", "multi_agent_return.png", "multi_agent_win_rate.png", "losses.png"
+    }
     for name in figures:
         assert os.path.getsize(tmp_path / name) > 1000
     labels = [line.get_label() for line in figures["single_agent_return.png"].axes[0].lines]

@@ -28,8 +28,9 @@ def test_schedule_rotates_the_grid_on_each_track():
 
 def test_faster_pursuit_driver_wins_every_race(tmp_path):
     rows = race.main(
-        ["--opponent", "pursuit:70", "--opponent", "pursuit:40", "--races", "4", "--max-steps", "3000", "--out", str(tmp_path)]
-    )
+        ["--opponent", "pursuit:70", "--opponent", "pursuit:40", "--races", "4", "--max-steps", "3000",
+         "--out", str(tmp_path)]
+    )  # fmt: skip
     fast, slow = rows
     assert fast["wins"] == 4 and slow["wins"] == 0
     assert (fast["win_rate_ci_low"], fast["win_rate_ci_high"]) == pytest.approx(race.wilson_interval(4, 4))
@@ -84,7 +85,10 @@ def tiny_checkpoints(tmp_path_factory):
 
 
 def test_race_of_saved_agents_of_both_variants(tiny_checkpoints, tmp_path):
-    rows = race.main([tiny_checkpoints["lstm"], tiny_checkpoints["gru"], "--races", "2", "--max-steps", "30", "--no-video", "--out", str(tmp_path)])
+    rows = race.main(
+        [tiny_checkpoints["lstm"], tiny_checkpoints["gru"], "--races", "2", "--max-steps", "30", "--no-video",
+         "--out", str(tmp_path)]
+    )  # fmt: skip
     assert [r["racer"].split(":")[0] for r in rows] == ["lstm", "gru"]
     assert all(r["races"] == 2 for r in rows) and sum(r["wins"] for r in rows) <= 2
 
@@ -150,7 +154,13 @@ def test_dreamer_racer_decides_every_action_repeat_steps_and_records_summed_rewa
 
     racer.agent.act = counting_act
     env = MultiCarRacing(num_agents=2, max_steps=31)
-    result = race.run_race(env, [racer, race.PursuitRacer(60.0)], seed=3, grid=[0, 1], episodes=[lambda obs: race.EpisodeRecorder(racer, obs), None])
+    result = race.run_race(
+        env,
+        [racer, race.PursuitRacer(60.0)],
+        seed=3,
+        grid=[0, 1],
+        episodes=[lambda obs: race.EpisodeRecorder(racer, obs), None],
+    )
     steps = result.final_infos[0]["step"]  # env steps car_0 raced
     assert steps > 3
     assert decisions == [True] + [False] * (math.ceil(steps / 3) - 1)  # is_first only at the race's first decision
@@ -168,7 +178,8 @@ def test_train_continues_with_the_replay_saved_beside_the_checkpoint(tiny_checkp
     with np.load(os.path.join(replay_dir, "meta.npz")) as meta:
         saved_steps = int(meta["size"])
     assert saved_steps > 0
-    args = [tiny_checkpoints["gru"], "--opponent", "pursuit", "--train", "--episodes", "1", "--train-steps", "1", "--max-steps", "30"]
+    args = [tiny_checkpoints["gru"], "--opponent", "pursuit", "--train", "--episodes", "1", "--train-steps", "1",
+            "--max-steps", "30"]  # fmt: skip
     race.main([*args, "--runs-dir", str(tmp_path / "kept")])
     assert f"continues with the replay in {replay_dir} ({saved_steps:,} steps)" in capsys.readouterr().out
     race.main([*args, "--runs-dir", str(tmp_path / "fresh"), "--fresh-replay"])

@@ -88,7 +88,9 @@ def test_competitive_tile_split(two_car_race):
                 continue
             touched = env.first_touch_step[i]
             new = (touched == step) | ((touched == 0) & (step == 1))  # reset's touches pay at step 1
-            hit = step > 1 and infos[agent]["collision_steps"] > history[step - 2][1].get(agent, {}).get("collision_steps", 0)
+            hit = step > 1 and (
+                infos[agent]["collision_steps"] > history[step - 2][1].get(agent, {}).get("collision_steps", 0)
+            )
             assert rewards[agent] == pytest.approx(-0.1 - 0.05 * hit + expected[i, new].sum(), abs=1e-9)
 
 
