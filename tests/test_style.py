@@ -1,0 +1,19 @@
+"""The code stays within the line length `pyproject.toml` configures for ruff (120 columns)."""
+
+from __future__ import annotations
+
+import glob
+import os
+import tomllib
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def test_no_python_line_exceeds_the_configured_length():
+    limit = tomllib.load(open(os.path.join(ROOT, "pyproject.toml"), "rb"))["tool"]["ruff"]["line-length"]
+    folders = ["", "envs", "utils", "benchmarks", "tests", "docs"]  # the project's own code, not a venv or runs/
+    files = [p for folder in folders for p in glob.glob(os.path.join(ROOT, folder, "*.py"))]
+    assert len(files) > 20
+    long = [f"{os.path.relpath(p, ROOT)}:{i}" for p in files for i, line in enumerate(open(p), 1)
+            if len(line.rstrip("\n")) > limit]  # fmt: skip
+    assert not long, f"lines over {limit} columns: {long}"
