@@ -55,8 +55,8 @@ VARIANT = "gru"  # written into every checkpoint, so race.py knows which script 
 class Args:
     # --- experiment
     preset: Literal["paper", "cpu"] = "paper"
-    """paper: the paper's sizes and schedule; cpu: a configuration that learns on a 2-core CPU in hours (explicit
-    flags override the preset's values; the README lists what it changes)"""
+    """paper: the paper's sizes and schedule; cpu: a configuration that learns on a 2-core CPU in hours
+    (explicit flags override the preset's values; docs/deviations.md lists what it changes)"""
     exp_name: str = os.path.basename(__file__)[: -len(".py")]
     """the name of this experiment (part of the run name)"""
     seed: int = 1
@@ -408,7 +408,7 @@ class Decoder(nn.Module):
 
     def sigma(self) -> torch.Tensor:
         # A floor at 0 with log sigma starting at 0 fixes sigma = 1: the pixel term keeps its weight
-        # against the KL instead of growing as the reconstructions sharpen (README: learning).
+        # against the KL instead of growing as the reconstructions sharpen (docs/learning_history.md).
         return self.log_sigma.clamp(self.min_log_sigma, LOG_SIGMA_RANGE[1]).exp()
 
 
