@@ -139,8 +139,9 @@ class DreamerRacer:
         self.policy, self.counters = policy, dict(checkpoint.get("counters") or {})
         saved = list((checkpoint.get("extra") or {}).get("replays") or [])
         self.replay_manifest = saved[self.index] if self.index < len(saved) else None  # the replay save it names
-        run = os.path.basename(os.path.dirname(os.path.dirname(os.path.abspath(path))))
-        self.name = f"{self.variant}:{run}/{os.path.basename(path)}:{self.index}"
+        folder = os.path.dirname(os.path.abspath(path))  # a run's checkpoints/ is named by its run directory
+        owner = os.path.dirname(folder) if os.path.basename(folder) == "checkpoints" else folder
+        self.name = f"{self.variant}:{os.path.basename(owner)}/{os.path.basename(path)}:{self.index}"
         self.state, self.learns = None, True
         self.action_repeat = int(self.args.action_repeat)  # as in training: one decision per this many env steps
         self.held, self.held_steps = None, 0

@@ -1,5 +1,6 @@
 """race.py: Wilson intervals, races with a known winner, checkpoint errors."""
 
+import importlib
 import json
 import math
 import os
@@ -89,8 +90,18 @@ def test_race_of_saved_agents_of_both_variants(tiny_checkpoints, tmp_path):
         [tiny_checkpoints["lstm"], tiny_checkpoints["gru"], "--races", "2", "--max-steps", "30", "--no-video",
          "--out", str(tmp_path)]
     )  # fmt: skip
-    assert [r["racer"].split(":")[0] for r in rows] == ["lstm", "gru"]
+    runs = [os.path.basename(os.path.dirname(os.path.dirname(tiny_checkpoints[v]))) for v in ("lstm", "gru")]
+    assert [r["racer"] for r in rows] == [f"lstm:{runs[0]}/best.pt:0", f"gru:{runs[1]}/best.pt:0"]
     assert all(r["races"] == 2 for r in rows) and sum(r["wins"] for r in rows) <= 2
+
+
+def test_an_export_outside_a_run_is_named_by_its_folder(tiny_checkpoints, tmp_path):
+    shipped = tmp_path / "pretrained"
+    shipped.mkdir()
+    importlib.import_module("dreamer_lstm").export_policy(tiny_checkpoints["lstm"], str(shipped / "lstm_tiny.pt"))
+    rows = race.main([str(shipped / "lstm_tiny.pt"), "--opponent", "pursuit:70", "--races", "2", "--max-steps", "30",
+                      "--no-video", "--out", str(tmp_path / "races")])  # fmt: skip
+    assert [r["racer"] for r in rows] == ["lstm:pretrained/lstm_tiny.pt:0", "pursuit@70"]
 
 
 def test_tiny_train_run_logs_per_agent_win_rates(tiny_checkpoints, tmp_path):
