@@ -78,3 +78,12 @@ def test_a_documented_command_parses(page, command, monkeypatch):
             return  # the parser printed its help, as asked
         pytest.fail(f"{page}: `{command}` is refused by its parser (exit {e.code})")
     pytest.fail(f"{page}: `{command}` ran without parsing a command line")
+
+
+@pytest.mark.parametrize("page", PAGES)
+def test_code_fences_open_and_close_on_their_own_lines(page):
+    """A fence glued to text (e.g. "``` more prose") renders the rest of the page as code."""
+    lines = open(os.path.join(ROOT, page)).read().splitlines()
+    fences = [i for i, line in enumerate(lines, 1) if "```" in line]
+    glued = [i for i in fences if not re.fullmatch(r"```[a-z]*", lines[i - 1].strip())]
+    assert not glued and len(fences) % 2 == 0, f"{page}: fences glued to text at lines {glued} or left open"
