@@ -87,3 +87,12 @@ def test_code_fences_open_and_close_on_their_own_lines(page):
     fences = [i for i, line in enumerate(lines, 1) if "```" in line]
     glued = [i for i in fences if not re.fullmatch(r"```[a-z]*", lines[i - 1].strip())]
     assert not glued and len(fences) % 2 == 0, f"{page}: fences glued to text at lines {glued} or left open"
+
+
+@pytest.mark.parametrize("page", PAGES)
+def test_links_and_images_point_at_files_that_exist(page):
+    text = open(os.path.join(ROOT, page)).read()
+    targets = re.findall(r"\]\(([^)#\s]+)(?:#[^)]*)?\)", text)  # [text](path#anchor) and ![alt](path)
+    local = [t for t in targets if not re.match(r"[a-z]+://", t)]
+    missing = [t for t in local if not os.path.exists(os.path.join(ROOT, os.path.dirname(page), t))]
+    assert not missing, f"{page}: links to files that do not exist: {missing}"
