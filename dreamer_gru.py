@@ -104,7 +104,7 @@ class Args:
     speed_reward_coef: float = 0.0
     """env: reward per step per unit of forward speed along the track"""
     dead_zone_start: float = -1.0
-    """dead-zone lower edge of the throttle-brake axis at episode 0"""
+    """dead-zone lower edge of the throttle-brake axis at episode 0 (a run from --checkpoint races at the end value)"""
     dead_zone_end: float = -0.5
     """dead-zone lower edge after the schedule (the paper's -0.5)"""
     dead_zone_episodes: int = 200
@@ -212,7 +212,7 @@ class Args:
     """normalisation of the networks (the critic always uses LayerNorm, as in the appendix)"""
 
 
-# --preset cpu: a configuration that learns on a 2-core CPU in hours (docs/learning.md); explicit flags override it.
+# --preset cpu: a configuration that learns on a 2-core CPU in hours (docs/deviations.md); explicit flags override it.
 # Smaller networks and 64 px frames; 2 env steps per decision; 20 random prefill races (they end off the road
 # after ~50 steps); 100 updates per race; the dead-zone schedule within the first 30 races; evaluation every 5;
 # a unit-variance pixel likelihood (log sigma floored at 0: with a learned sigma kl_dyn grew without bound on CPU runs).
@@ -299,7 +299,7 @@ def step_with_repeat(envs, actions: np.ndarray, repeat: int):
 LATENT_MIN_STD = 0.1  # sigma of posterior and prior: softplus(.) + this minimum
 LOG_SIGMA_RANGE = (-5.0, 2.0)  # bounds of the decoder's log sigma (--decoder-min-log-sigma raises the floor)
 HEAD_MIN_STD = 0.1  # sigma of the reward and critic Gaussians
-ACTOR_STD_BOUNDS = (0.1, 1.0)  # soft bounds of the actor's sigma in action space (the paper authors' code)
+ACTOR_STD_BOUNDS = (0.1, 1.0)  # the paper authors' soft bounds of the actor's sigma (0.1 .. 1.34: soft_bounded)
 RETURN_NORM_RATE = 0.01  # --return-norm: EMA rate of the return scale (DreamerV3)
 EVAL_POLICIES = ("deterministic", "mean-action", "stochastic")  # Agent.act's policies (--eval-policy)
 ACTING_PARTS = ("encoder.", "recurrent_input.", "cell.", "representation.")  # the world model's share of acting
@@ -548,7 +548,7 @@ class WorldModel(nn.Module):
 
 def soft_bounded(x: torch.Tensor, low: float, high: float) -> torch.Tensor:
     """low + softplus(high - softplus(high - x) - low): smooth, increasing, ~x in between, above low, and
-    saturating near high + log 2 (the actor's sigma: ~0.1 .. 1.3 for the bounds (0.1, 1))."""
+    saturating at low + softplus(high - low) (the actor's sigma: 0.1 .. 1.34 for the bounds (0.1, 1))."""
     return low + F.softplus(high - F.softplus(high - x) - low)
 
 

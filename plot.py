@@ -18,8 +18,8 @@ Each curve is smoothed with a Gaussian filter (``--sigma`` in logged points, sci
 * ``multi_agent_win_rate.png`` - stage ``race``: win rate
 * ``ghost_return.png``         - stage ``ghost`` and its control (a ``single`` run continued from a checkpoint,
   ``single-continued``): episodic return (when present)
-* ``single_agent_eval_{return,progress}.png`` - stage ``single``: deterministic evaluation on the
-  held-out tracks (when logged)
+* ``single_agent_eval_{return,progress}.png`` - stage ``single``: the evaluation on the held-out tracks
+  (``--eval-policy``, sampled by default; when logged)
 * ``losses.png``               - actor, critic, reconstruction, KL (dyn) for every group against steps
 * ``losses_race.png``          - the same for ``race.py --train`` runs, against races
 * ``head_to_head.png``         - with ``--head-to-head CSV``: the tournaments of ``benchmarks/experiment.py``

@@ -389,8 +389,9 @@ class MultiCarRacing(ParallelEnv):
     Per agent, ``action_mode="throttle_brake"`` (default): ``Box(-1, 1, (2,), float32)``, ``[steer, u]``: ``u > 0``
     is gas ``u``; ``u <= dead_zone`` brakes with strength ``|u|`` (no effect below ``brake_speed_threshold``);
     in between the car coasts. ``"classic"``: CarRacing's ``[steer, gas, brake]`` with its bounds. Finite
-    out-of-range actions are clipped; NaN or infinite values, wrong shapes and unknown or finished agents raise
-    ``ValueError`` naming the agent, before anything in the race changes.
+    out-of-range actions are clipped; NaN or infinite values, non-numeric values, wrong shapes, unknown or finished
+    agents and a racing car without an action raise ``ValueError`` naming the agent, before anything in the race
+    changes.
 
     ## Observation Space
     Per agent ``Box(0, 255, (96, 96, 3), uint8)``: its own camera, following and rotating with its car, the own car
@@ -403,28 +404,32 @@ class MultiCarRacing(ParallelEnv):
     times its forward speed along the track; ``-offroad_penalty`` once when it is eliminated.
 
     ## Starting State
-    Cars start on a staggered two-column grid behind the start line, in a random order; all randomness (track,
-    grid order) comes from the seed of ``reset``.
+    Under race rules two or more cars start on a staggered two-column grid behind the start line, in a random order;
+    a single car, and every car under ``rules="carracing"``, starts at CarRacing's pose on tile 0. All randomness
+    (track, grid order) comes from the seed of ``reset``.
 
     ## Episode End
     A car is terminated when it finishes the lap (all tiles, or 95% and back at the start) or is eliminated: its
     centre leaves the road, it leaves the playfield, or it touches no new tile for ``stall_steps`` steps. The race
-    ends when every car is done; at ``max_steps`` the cars still racing are truncated.
+    ends when every car is done; at ``max_steps`` the cars still racing are truncated. Under race rules a car that
+    is done leaves the world, so the cars still racing cannot hit it.
 
     ## Info
     ``infos[agent]``: ``progress`` (fraction of tiles), ``tiles``, ``tile_reward``, ``lap_finished``,
     ``finish_step`` and ``rank`` (-1 until finished), ``eliminated`` (None, ``"off_road"``, ``"off_playfield"``,
     ``"stalled"``), ``speed``, ``collision_steps``, ``step``; racing a ghost also ``ghost_tiles_ahead``,
-    ``ahead_of_ghost`` and, on the car's last step, ``ghost_beaten``; on the last step of a race reset with a seed,
-    ``trajectory`` (the run as a ``GhostTrajectory``, for ghost racing: ``reset(seed, options={"ghosts": ...})``).
+    ``ahead_of_ghost`` and, on the car's last step, ``ghost_beaten``; on each car's last step of a race reset with
+    a seed, ``trajectory`` (the run as a ``GhostTrajectory``, for ghost racing:
+    ``reset(seed, options={"ghosts": ...})``).
 
     ## Arguments
         num_agents: number of cars, agents ``car_0 .. car_{N-1}``.
         action_mode: ``"throttle_brake"``: ``[steer, u]`` in [-1, 1]^2 with the paper's
             dead zone on ``u``; ``"classic"``: CarRacing's ``[steer, gas, brake]``.
-        rules: ``"race"`` (the paper's rules) or ``"carracing"`` (gymnasium CarRacing-v3:
-            no dead zone or brake threshold, no off-road/stall elimination, no collision or
-            speed terms, the car starts where CarRacing puts it).
+        rules: ``"race"`` (the paper's rules) or ``"carracing"`` (gymnasium CarRacing-v3: no
+            brake threshold, no off-road/stall elimination, no collision or speed terms, cars
+            start where CarRacing puts its car; the dead zone is the action mode's, so only
+            ``action_mode="classic"`` has none).
         dead_zone: lower edge of the throttle-brake dead zone: ``u <= dead_zone`` brakes,
             ``dead_zone < u <= 0`` coasts. Change it between episodes with ``set_dead_zone``.
         brake_speed_threshold: brakes do nothing below this speed (world units per second),
