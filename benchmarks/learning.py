@@ -16,6 +16,7 @@ evaluating every 5 races on the 10 held-out tracks (seeds 10000..10009) and keep
 
 * ``learning_<variant>_seed<S>.csv``: evaluation return and progress against env steps, updates and hours;
 * ``baselines.json``: random actions and the pure-pursuit driver on the same 10 tracks;
+* ``baselines_fresh.json`` (with ``--final``): the same on the 20 fresh tracks 10100..10119;
 * ``learning.png`` and ``learning.md``: every curve, with the baselines;
 * with ``--final``: the run's row of ``learning_final.csv`` (its final and best policies on the 20 fresh tracks
   10100..10119) and, in ``learning_final.md``, the IQM and mean over seeds with stratified-bootstrap intervals
@@ -158,9 +159,13 @@ def eval_curve(run_dir: str) -> list[dict]:
     return [row for i, row in enumerate(rows) if i == 0 or row["env_steps"] != rows[i - 1]["env_steps"]]
 
 
-def baselines(eval_seed: int = 10_000, episodes: int = 10, results_dir: str = RESULTS) -> dict:
-    """Random actions and the pursuit driver on the held-out tracks (the env settings of training)."""
-    path = os.path.join(results_dir, "baselines.json")
+def baselines(
+    eval_seed: int = 10_000, episodes: int = 10, results_dir: str = RESULTS, filename: str = "baselines.json"
+) -> dict:
+    """Random actions and the pursuit driver on the tracks ``eval_seed ..`` (by default the 10 held-out tracks of
+    the evaluations; ``FRESH_TRACKS`` for the final policies' reference), with the env settings of training.
+    Computed once, then read from ``results_dir/filename``."""
+    path = os.path.join(results_dir, filename)
     if os.path.exists(path):
         with open(path) as f:
             return json.load(f)
@@ -423,6 +428,18 @@ def final_summary(path: str = os.path.join(RESULTS, "learning_final.csv"), reps:
     return "\n".join(lines) + "\n"
 
 
+def fresh_reference(results_dir: str = RESULTS) -> str:
+    """One line for learning_final.md: random actions and the pursuit driver on the same fresh tracks."""
+    base = baselines(*FRESH_TRACKS, results_dir=results_dir, filename="baselines_fresh.json")
+    first, count = FRESH_TRACKS
+    rand, pursuit = base["random"], base["pursuit@70"]
+    return (
+        f"\nOn the same {count} tracks ({first}..{first + count - 1}): random actions "
+        f"{rand['eval_return']:.1f} (progress {rand['eval_progress']:.2f}), the pure-pursuit driver at 70 "
+        f"{pursuit['eval_return']:.1f} ({pursuit['eval_progress']:.2f}).\n"
+    )
+
+
 # What to look at when a run falls short: (column, tag of progress.csv), averaged per bucket of updates.
 DIAGNOSTICS = (
     ("training return", "car_0/charts/episodic_return"),
@@ -661,7 +678,7 @@ def main():
             parser.error(str(e))
         write_final_row(row)
         print(json.dumps(row, indent=1))
-        summary = final_summary()
+        summary = final_summary() + fresh_reference()
         with open(os.path.join(RESULTS, "learning_final.md"), "w") as f:
             f.write(summary)
         print(summary)

@@ -276,3 +276,16 @@ def test_final_row_refuses_a_run_short_of_its_updates(tmp_path, monkeypatch):
     monkeypatch.setattr(race, "read_checkpoint", lambda path: (None, {"agents": [{"num_updates": 4300}]}))
     with pytest.raises(ValueError, match="has made 4300 of its 8000 updates"):
         learning.final_row("lstm", 12, runs_dir=str(tmp_path))
+
+
+def test_references_on_other_tracks_are_measured_once_and_kept_apart(tmp_path):
+    base = learning.baselines(10_100, 1, results_dir=str(tmp_path), filename="baselines_fresh.json")
+    assert base["pursuit@70"]["eval_progress"] > 0.95 and base["pursuit@70"]["eval_return"] > 800
+    assert base["random"]["eval_progress"] < 0.2 and base["random"]["eval_return"] < 0
+    assert not (tmp_path / "baselines.json").exists()  # the held-out tracks' reference is another file
+    with open(tmp_path / "baselines_fresh.json", "w") as f:  # read back, not recomputed
+        json.dump({"random": {"eval_return": -1.0, "eval_progress": 0.01},
+                   "pursuit@70": {"eval_return": 2.0, "eval_progress": 1.0}}, f)  # fmt: skip
+    line = learning.fresh_reference(str(tmp_path))
+    assert "20 tracks (10100..10119)" in line and "random actions -1.0 (progress 0.01)" in line
+    assert "driver at 70 2.0 (1.00)" in line
