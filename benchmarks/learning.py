@@ -7,6 +7,7 @@
     python benchmarks/learning.py --variant lstm --seed 11 --diagnose      # sigma, entropy, kl_dyn... per 500 updates
     python benchmarks/learning.py --runs-dir runs/experiment/trials --variant gru --seed 12 --final
     python benchmarks/learning.py --evaluate runs/learning/<run>/checkpoints/latest.pt --first-track 10100 --tracks 20
+    python benchmarks/learning.py --variant lstm --seed 11 --return-norm --screen 3100  # against the default run
     python benchmarks/learning.py --export runs/learning/<run>/checkpoints/latest.pt pretrained/lstm_cpu.pt
 
 Trains `dreamer_<variant>.py --preset cpu` on the single-car race (stage ``single``, one torch thread, so two runs
@@ -18,6 +19,7 @@ evaluating every 5 races on the 10 held-out tracks (seeds 10000..10009) and keep
 * ``baselines.json``: random actions and the pure-pursuit driver on the same 10 tracks;
 * ``baselines_fresh.json`` (with ``--final``): the same on the 20 fresh tracks 10100..10119;
 * ``learning.png`` and ``learning.md``: every curve, with the baselines;
+* with ``--screen``: rows of ``screening/screens.csv``, an ablation and the default run at the same update count;
 * with ``--final``: the run's row of ``learning_final.csv`` (its final and best policies on the 20 fresh tracks
   10100..10119) and, in ``learning_final.md``, the IQM and mean over seeds with stratified-bootstrap intervals
   (rliable) and the parts of the bar each variant fails.
@@ -455,18 +457,26 @@ DIAGNOSTICS = (
 )
 
 
+def progress_rows(run_dir: str) -> list[tuple[int, dict]]:
+    """A run's progress.csv rows, each with the updates made when it was logged (0 before the first update)."""
+    with open(os.path.join(run_dir, "progress.csv"), newline="") as f:
+        rows = list(csv.DictReader(f))
+    updates, out = 0, []
+    for row in rows:
+        if row.get("car_0/perf/updates"):
+            updates = int(float(row["car_0/perf/updates"]))
+        out.append((updates, row))
+    return out
+
+
 def diagnostics(run_dir: str, bucket: int = 500) -> list[dict]:
     """A run's progress.csv in buckets of `bucket` updates: per bucket its training races and the mean of each
     DIAGNOSTICS column over the rows logged in it. A row belongs to the bucket of the updates made when it was
     logged (rows before the first update: bucket 0); empty cells stay out of the means (NaN if all are empty).
     The imagined return is the lambda-return of imagination with its entropy part; the training races are driven
     by the sampled policy; the evaluation uses the run's --eval-policy."""
-    with open(os.path.join(run_dir, "progress.csv"), newline="") as f:
-        rows = list(csv.DictReader(f))
-    updates, table = 0, {}
-    for row in rows:
-        if row.get("car_0/perf/updates"):
-            updates = int(float(row["car_0/perf/updates"]))
+    table = {}
+    for updates, row in progress_rows(run_dir):
         cell = table.setdefault(updates // bucket, {"races": 0, **{name: [] for name, _ in DIAGNOSTICS}})
         cell["races"] += bool(row.get("car_0/charts/episodic_return"))
         for name, tag in DIAGNOSTICS:
@@ -529,6 +539,93 @@ def training_curves(runs_dir: str = RUNS, results_dir: str = RESULTS) -> dict[st
         if name not in curves:
             curves[name] = read(path)
     return curves
+
+
+# A screen: an ablation against the default at the same point of training (same variant, seed and updates).
+SCREEN_POLICIES = ("stochastic", "mean-action")  # the policy as trained, and the steering it means
+SCREEN_WINDOW = 500  # the diagnostics of a screen row: means over the updates (u - SCREEN_WINDOW, u]
+SCREEN_DIAGNOSTICS = {  # column of screens.csv: its DIAGNOSTICS name
+    "training_return": "training return", "actor_sigma": "actor sigma", "entropy": "entropy", "kl_dyn": "kl_dyn",
+    "reward_nll": "reward NLL (real data)", "imagined_return": "imagined return",
+}  # fmt: skip
+SCREEN_COLUMNS = (
+    "exp_name", "variant", "seed", "updates", "policy", "return", "progress", "mean_abs_steer", *SCREEN_DIAGNOSTICS
+)
+
+
+def checkpoint_at(run_dir: str, updates: int) -> str:
+    """The policy `run_dir` kept at exactly `updates` updates: its latest.pt or one of its eval_<race>.pt."""
+    import race
+
+    paths = [os.path.join(run_dir, "checkpoints", "latest.pt")]
+    paths += sorted(glob.glob(os.path.join(run_dir, "checkpoints", "eval_*.pt")), reverse=True)
+    kept = []
+    for path in paths:
+        if not os.path.exists(path):
+            continue
+        done = int(race.read_checkpoint(path)[1]["agents"][0]["num_updates"])
+        if done == updates:
+            return path
+        kept.append(done)
+    raise ValueError(
+        f"{run_dir} kept no policy at {updates} updates (it kept: {', '.join(map(str, sorted(set(kept)))) or 'none'});"
+        " resume the run with --updates to reach it, or screen at an update count both runs kept"
+    )
+
+
+def screen_rows(
+    variant: str, seed: int, updates: int, exp_name: str, runs_dir: str = RUNS, reference_runs_dir: str = RUNS,
+) -> list[dict]:
+    """An ablation (`exp_name`) and the default run (``learning_<variant>``) of the same seed, each at the policy it
+    kept at `updates` updates: one row per run and SCREEN_POLICIES entry, measured on the fresh tracks
+    FRESH_TRACKS, with the run's SCREEN_DIAGNOSTICS averaged over its last SCREEN_WINDOW updates before it."""
+    reference = experiment_name(variant)
+    if exp_name == reference:
+        raise ValueError("a screen compares an ablation with the default run: give the ablated flag(s)")
+    rows = []
+    for name, where in ((reference, reference_runs_dir), (exp_name, runs_dir)):
+        run = find_run(name, seed, where)
+        if run is None:
+            raise ValueError(f"no run of {name} seed {seed} in {where}")
+        path = checkpoint_at(run, updates)
+        window = [row for u, row in progress_rows(run) if updates - SCREEN_WINDOW < u <= updates]
+        tags, means = dict(DIAGNOSTICS), {}
+        for column, diag in SCREEN_DIAGNOSTICS.items():
+            values = [float(row[tags[diag]]) for row in window if row.get(tags[diag])]
+            means[column] = round(float(np.mean(values)), 3) if values else float("nan")
+        for policy in SCREEN_POLICIES:
+            result = evaluate_checkpoint(path, *FRESH_TRACKS, policy)
+            rows.append({
+                "exp_name": name, "variant": variant, "seed": seed, "updates": updates, "policy": policy,
+                "return": round(result["eval_return"], 2), "progress": round(result["eval_progress"], 4),
+                "mean_abs_steer": round(result["mean_abs_steer"], 4), **means,
+            })  # fmt: skip
+    return rows
+
+
+def write_screen_rows(rows: list[dict], path: str = os.path.join(RESULTS, "screening", "screens.csv")) -> str:
+    """Add `rows` to the screens' CSV (a row of the same experiment, seed, updates and policy is replaced) and return
+    the whole table as markdown, the default run of each (variant, seed, updates) first."""
+
+    def key(r: dict) -> tuple:
+        return r["exp_name"], int(r["seed"]), int(r["updates"]), r["policy"]
+
+    def order(r: dict) -> tuple:
+        return r["variant"], int(r["seed"]), int(r["updates"]), r["exp_name"] != experiment_name(r["variant"]), *key(r)
+
+    kept, new = [], set(map(key, rows))
+    if os.path.exists(path):
+        with open(path, newline="") as f:
+            kept = [r for r in csv.DictReader(f) if key(r) not in new]
+    table = sorted(kept + rows, key=order)
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=SCREEN_COLUMNS)
+        writer.writeheader()
+        writer.writerows(table)
+    lines = ["| " + " | ".join(SCREEN_COLUMNS) + " |", "|" + "---|" * len(SCREEN_COLUMNS)]
+    lines += ["| " + " | ".join(str(r[c]) for c in SCREEN_COLUMNS) + " |" for r in table]
+    return "\n".join(lines) + "\n"
 
 
 def report(runs_dir: str = RUNS, results_dir: str = RESULTS) -> None:
@@ -618,6 +715,15 @@ def main():
         "--dead-zone-start", type=float, default=None,
         help="an ablation: the dead zone's first value (-0.5, the final one: no schedule; run named ..._dzstart<v>)",
     )  # fmt: skip
+    parser.add_argument(
+        "--screen", type=int, metavar="UPDATES",
+        help="only compare the ablation given by the flags above with the default run of the same variant and seed "
+        "(in --reference-runs-dir), each at the policy it kept at UPDATES updates, sampled and mean action on the "
+        "fresh tracks, with their diagnostics: rows of benchmarks/results/screening/screens.csv",
+    )  # fmt: skip
+    parser.add_argument(
+        "--reference-runs-dir", default=None, help="--screen: where the default run is (default: --runs-dir)"
+    )
     parser.add_argument("--evaluate", metavar="CHECKPOINT", help="only evaluate this saved agent alone (no training)")
     parser.add_argument(
         "--export", nargs=2, metavar=("CHECKPOINT", "OUT"),
@@ -657,6 +763,16 @@ def main():
         except ValueError as e:  # race.CheckpointError is a ValueError naming the file
             parser.error(str(e))
         print(json.dumps(result, indent=1))
+        return
+    if args.screen is not None:
+        try:
+            rows = screen_rows(
+                args.variant, args.seed, args.screen, experiment_name(args.variant, **ablation), args.runs_dir,
+                args.reference_runs_dir or args.runs_dir,
+            )  # fmt: skip
+        except ValueError as e:
+            parser.error(str(e))
+        print(write_screen_rows(rows))
         return
     if args.diagnose:
         name = experiment_name(args.variant, **ablation)
