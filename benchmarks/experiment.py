@@ -76,6 +76,10 @@ class Spec:
     """evaluation races per tournament (held-out tracks, start positions swapped)"""
     race_train_steps: int = 25
     """updates per agent after every head-to-head race"""
+    eval_policy: Literal["deterministic", "mean-action", "stochastic"] = "stochastic"
+    """the agents' policy in the tournaments and in the fresh-track measurements (race.py --policy): sampled as
+    trained, or the mean action (with a sampled or the posterior-mean latent); head-to-head training races are
+    always sampled"""
     report_every: int = 500
     """updates of a dreamer trial between its reports to Tune"""
     fresh_tracks: int = 20
@@ -235,7 +239,8 @@ def race_trial(config: dict) -> None:
         checkpoints = [os.path.join(run, "checkpoints", f"racer_{i}.pt") for i in (0, 1)]
         if not os.path.exists(done):
             race.main([*checkpoints, "--races", str(spec["tournament_races"]), "--seed", str(TOURNAMENT_SEED),
-                       "--out", tournament + ".tmp", "--no-video", *threads])  # fmt: skip
+                       "--policy", spec["eval_policy"], "--out", tournament + ".tmp", "--no-video",
+                       *threads])  # fmt: skip
             shutil.rmtree(tournament, ignore_errors=True)
             os.replace(tournament + ".tmp", tournament)
         tune.report(tournament_metrics(tournament, trained))
@@ -310,8 +315,13 @@ def runtime_env(spec: Spec) -> dict:
 # What fixes the trials of an experiment: a rerun must ask for the same (Tune restores the trials it saved).
 TRIAL_FIELDS = (
     "variants", "seeds", "preset", "overrides", "single_updates", "ghost_updates", "race_episodes", "tournament_every",
-    "tournament_races", "race_train_steps", "report_every", "torch_threads",
+    "tournament_races", "race_train_steps", "report_every", "torch_threads", "eval_policy",
 )  # fmt: skip
+
+
+def trial_fields(spec: Spec) -> dict:
+    """The TRIAL_FIELDS of `spec` as saved in spec.json (lists for tuples)."""
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(spec).items() if k in TRIAL_FIELDS}
 
 
 def check_spec(spec: Spec) -> None:
@@ -332,11 +342,12 @@ def check_spec(spec: Spec) -> None:
     if "race" in spec.stages and set(spec.variants) != {"lstm", "gru"}:
         raise SystemExit("experiment.py: the race stage pairs an LSTM and a GRU agent: --variants lstm gru")
     path = os.path.join(spec.storage, "spec.json")
-    wanted = {k: list(v) if isinstance(v, tuple) else v for k, v in plain.items() if k in TRIAL_FIELDS}
+    wanted = trial_fields(spec)
     if os.path.exists(path):
         with open(path) as f:
             saved = json.load(f)
-        changed = sorted(k for k in TRIAL_FIELDS if saved.get(k) != wanted[k])
+        defaults = trial_fields(Spec())  # a field the saved spec lacks was added since: that experiment had its default
+        changed = sorted(k for k in TRIAL_FIELDS if saved.get(k, defaults[k]) != wanted[k])
         if changed:
             raise SystemExit(f"experiment.py: {spec.storage} holds an experiment with other {', '.join(changed)}; "
                              "use another --storage (or the same settings)")  # fmt: skip
@@ -380,7 +391,7 @@ def aggregate(spec: Spec) -> str:
 
             def fresh(run: str, name: str) -> float:
                 path = os.path.join(run, "checkpoints", name)
-                return learning.evaluate_checkpoint(path, first, spec.fresh_tracks)["eval_return"]
+                return learning.evaluate_checkpoint(path, first, spec.fresh_tracks, spec.eval_policy)["eval_return"]
 
             single_returns.setdefault(variant, []).append(fresh(runs["single"], "latest.pt"))
             if runs["ghost"] and runs["control"]:

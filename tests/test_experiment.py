@@ -7,6 +7,7 @@ untouched; the same spec run again does nothing; the aggregation matches hand-co
 import csv
 import dataclasses
 import glob
+import json
 import os
 import sys
 
@@ -109,6 +110,17 @@ def test_a_rerun_with_other_trials_or_a_missing_stage_is_refused_before_ray_star
         experiment.check_spec(experiment.Spec(seeds=(1,), stages=("ghost",), storage=str(tmp_path)))
     with pytest.raises(ValueError, match="not name=value"):
         experiment.check_spec(experiment.Spec(overrides=("no_such_flag=1",), storage=str(tmp_path)))
+
+
+def test_a_spec_saved_before_a_field_existed_means_its_default(tmp_path):
+    spec = experiment.Spec(stages=("single",), storage=str(tmp_path))
+    saved = experiment.trial_fields(spec)
+    del saved["eval_policy"]  # an experiment started before the tournaments' policy was a field
+    with open(tmp_path / "spec.json", "w") as f:
+        json.dump(saved, f)
+    experiment.check_spec(spec)  # it ran with the default: the same experiment
+    with pytest.raises(SystemExit, match="holds an experiment with other eval_policy"):
+        experiment.check_spec(dataclasses.replace(spec, eval_policy="mean-action"))
 
 
 def test_the_summary_matches_hand_computed_numbers():
