@@ -220,7 +220,7 @@ def race_trial(config: dict) -> None:
     import race
 
     config = config["trial"]
-    spec, seed = config["spec"], config["seed"]
+    spec, seed = {**dataclasses.asdict(Spec()), **config["spec"]}, config["seed"]  # a restored older trial: defaults
     directory = trial_dir(spec, "race", "lstm_gru", seed)
     checkpoints = [
         os.path.join(run_of(trial_dir(spec, "ghost", variant, seed)), "checkpoints", "latest.pt")
@@ -342,12 +342,9 @@ def check_spec(spec: Spec) -> None:
     if "race" in spec.stages and set(spec.variants) != {"lstm", "gru"}:
         raise SystemExit("experiment.py: the race stage pairs an LSTM and a GRU agent: --variants lstm gru")
     path = os.path.join(spec.storage, "spec.json")
-    wanted = trial_fields(spec)
-    if os.path.exists(path):
-        with open(path) as f:
-            saved = json.load(f)
-        defaults = trial_fields(Spec())  # a field the saved spec lacks was added since: that experiment had its default
-        changed = sorted(k for k in TRIAL_FIELDS if saved.get(k, defaults[k]) != wanted[k])
+    wanted, saved = trial_fields(spec), saved_spec(spec.storage)
+    if saved is not None:
+        changed = sorted(k for k in TRIAL_FIELDS if saved[k] != wanted[k])
         if changed:
             raise SystemExit(f"experiment.py: {spec.storage} holds an experiment with other {', '.join(changed)}; "
                              "use another --storage (or the same settings)")  # fmt: skip
@@ -357,10 +354,32 @@ def check_spec(spec: Spec) -> None:
             json.dump(wanted, f, indent=1)
 
 
+def saved_spec(storage: str) -> dict | None:
+    """The TRIAL_FIELDS of the experiment in `storage` (None: there is none yet). A field its spec.json lacks was
+    added to Spec after it started, so it ran with that field's default; the default is written into its spec.json
+    then, so that a later change of the default cannot change what the experiment was."""
+    path = os.path.join(storage, "spec.json")
+    if not os.path.exists(path):
+        return None
+    with open(path) as f:
+        saved = json.load(f)
+    missing = {k: v for k, v in trial_fields(Spec()).items() if k not in saved}
+    if missing:
+        saved |= missing
+        with open(path + ".tmp", "w") as f:
+            json.dump(saved, f, indent=1)
+        os.replace(path + ".tmp", path)
+    return saved
+
+
 def main(spec: Spec) -> None:
     spec = dataclasses.replace(spec, storage=os.path.abspath(spec.storage))
     if not spec.aggregate_only:
         check_spec(spec)
+    elif (saved := saved_spec(spec.storage)) is not None and saved["eval_policy"] != spec.eval_policy:
+        policy = saved["eval_policy"]
+        raise SystemExit(f"experiment.py: the experiment in {spec.storage} measures its agents with --eval-policy "
+                         f"{policy}; its tables take the same: give --eval-policy {policy}")  # fmt: skip
     if not spec.aggregate_only:
         import ray
 

@@ -7,7 +7,8 @@
     python benchmarks/learning.py --variant lstm --seed 11 --diagnose      # sigma, entropy, kl_dyn... per 500 updates
     python benchmarks/learning.py --runs-dir runs/experiment/trials --variant gru --seed 12 --final
     python benchmarks/learning.py --evaluate runs/learning/<run>/checkpoints/latest.pt --first-track 10100 --tracks 20
-    python benchmarks/learning.py --variant lstm --seed 11 --return-norm --screen 3100  # against the default run
+    python benchmarks/learning.py --variant lstm --seed 11 --return-norm --screen 3100 \\
+        --reference-runs-dir runs/experiment/trials                   # an ablation against the default run
     python benchmarks/learning.py --export runs/learning/<run>/checkpoints/latest.pt pretrained/lstm_cpu.pt
 
 Trains `dreamer_<variant>.py --preset cpu` on the single-car race (stage ``single``, one torch thread, so two runs
@@ -541,7 +542,9 @@ def training_curves(runs_dir: str = RUNS, results_dir: str = RESULTS) -> dict[st
     return curves
 
 
-# A screen: an ablation against the default at the same point of training (same variant, seed and updates).
+# A screen: an ablation against the default at the same point of training (same variant, seed and updates), on
+# tracks of its own, so that what screening picks is not then reported on the tracks it was picked on.
+SCREEN_TRACKS = (10_200, 20)
 SCREEN_POLICIES = ("stochastic", "mean-action")  # the policy as trained, and the steering it means
 SCREEN_WINDOW = 500  # the diagnostics of a screen row: means over the updates (u - SCREEN_WINDOW, u]
 SCREEN_DIAGNOSTICS = {  # column of screens.csv: its DIAGNOSTICS name
@@ -549,8 +552,9 @@ SCREEN_DIAGNOSTICS = {  # column of screens.csv: its DIAGNOSTICS name
     "reward_nll": "reward NLL (real data)", "imagined_return": "imagined return",
 }  # fmt: skip
 SCREEN_COLUMNS = (
-    "exp_name", "variant", "seed", "updates", "policy", "return", "progress", "mean_abs_steer", *SCREEN_DIAGNOSTICS
-)
+    "exp_name", "variant", "seed", "updates", "policy", "return", "progress", "mean_abs_steer", *SCREEN_DIAGNOSTICS,
+    "tracks", "run", "checkpoint",
+)  # fmt: skip
 
 
 def checkpoint_at(run_dir: str, updates: int) -> str:
@@ -567,18 +571,25 @@ def checkpoint_at(run_dir: str, updates: int) -> str:
         if done == updates:
             return path
         kept.append(done)
+    kept = sorted(set(kept))
+    hint = (
+        f"it passed {updates} without keeping a policy there: screen at one of the counts it kept"
+        if kept and kept[-1] > updates
+        else "resume it with --updates to reach them"
+    )
     raise ValueError(
-        f"{run_dir} kept no policy at {updates} updates (it kept: {', '.join(map(str, sorted(set(kept)))) or 'none'});"
-        " resume the run with --updates to reach it, or screen at an update count both runs kept"
+        f"{run_dir} kept no policy at {updates} updates (it kept: {', '.join(map(str, kept)) or 'none'}); {hint}"
     )
 
 
 def screen_rows(
     variant: str, seed: int, updates: int, exp_name: str, runs_dir: str = RUNS, reference_runs_dir: str = RUNS,
+    tracks: tuple[int, int] = SCREEN_TRACKS,
 ) -> list[dict]:
     """An ablation (`exp_name`) and the default run (``learning_<variant>``) of the same seed, each at the policy it
-    kept at `updates` updates: one row per run and SCREEN_POLICIES entry, measured on the fresh tracks
-    FRESH_TRACKS, with the run's SCREEN_DIAGNOSTICS averaged over its last SCREEN_WINDOW updates before it."""
+    kept at `updates` updates: one row per run and SCREEN_POLICIES entry, measured on `tracks` (first seed, count),
+    with the run's SCREEN_DIAGNOSTICS averaged over its last SCREEN_WINDOW updates. Those come from the training
+    races and updates of that window, i.e. from the policies on the way to the screened one."""
     reference = experiment_name(variant)
     if exp_name == reference:
         raise ValueError("a screen compares an ablation with the default run: give the ablated flag(s)")
@@ -594,37 +605,45 @@ def screen_rows(
             values = [float(row[tags[diag]]) for row in window if row.get(tags[diag])]
             means[column] = round(float(np.mean(values)), 3) if values else float("nan")
         for policy in SCREEN_POLICIES:
-            result = evaluate_checkpoint(path, *FRESH_TRACKS, policy)
+            result = evaluate_checkpoint(path, *tracks, policy)
             rows.append({
                 "exp_name": name, "variant": variant, "seed": seed, "updates": updates, "policy": policy,
                 "return": round(result["eval_return"], 2), "progress": round(result["eval_progress"], 4),
-                "mean_abs_steer": round(result["mean_abs_steer"], 4), **means,
+                "mean_abs_steer": round(result["mean_abs_steer"], 4), **means, "tracks": result["tracks"],
+                "run": os.path.basename(run), "checkpoint": os.path.basename(path),
             })  # fmt: skip
     return rows
 
 
 def write_screen_rows(rows: list[dict], path: str = os.path.join(RESULTS, "screening", "screens.csv")) -> str:
-    """Add `rows` to the screens' CSV (a row of the same experiment, seed, updates and policy is replaced) and return
-    the whole table as markdown, the default run of each (variant, seed, updates) first."""
+    """Add `rows` to the screens' CSV and return the whole table as markdown, the default run of each (variant,
+    seed, updates) first. A row of the same run, updates, policy and tracks is replaced (a run measured again).
+    Screens may run side by side: the file is locked for the read and the write, and replaced atomically."""
+    import fcntl
 
     def key(r: dict) -> tuple:
-        return r["exp_name"], int(r["seed"]), int(r["updates"]), r["policy"]
+        return r["run"], int(r["updates"]), r["policy"], r["tracks"]
 
     def order(r: dict) -> tuple:
-        return r["variant"], int(r["seed"]), int(r["updates"]), r["exp_name"] != experiment_name(r["variant"]), *key(r)
+        default_last = r["exp_name"] != experiment_name(r["variant"])
+        return r["variant"], int(r["seed"]), int(r["updates"]), default_last, r["exp_name"], *key(r)
 
-    kept, new = [], set(map(key, rows))
-    if os.path.exists(path):
-        with open(path, newline="") as f:
-            kept = [r for r in csv.DictReader(f) if key(r) not in new]
-    table = sorted(kept + rows, key=order)
     os.makedirs(os.path.dirname(path), exist_ok=True)
-    with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=SCREEN_COLUMNS)
-        writer.writeheader()
-        writer.writerows(table)
-    lines = ["| " + " | ".join(SCREEN_COLUMNS) + " |", "|" + "---|" * len(SCREEN_COLUMNS)]
-    lines += ["| " + " | ".join(str(r[c]) for c in SCREEN_COLUMNS) + " |" for r in table]
+    with open(path + ".lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        kept, new = [], set(map(key, rows))
+        if os.path.exists(path):
+            with open(path, newline="") as f:
+                kept = [r for r in csv.DictReader(f) if key(r) not in new]
+        table = sorted(kept + rows, key=order)
+        with open(path + ".tmp", "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=SCREEN_COLUMNS)
+            writer.writeheader()
+            writer.writerows(table)
+        os.replace(path + ".tmp", path)
+    shown = [c for c in SCREEN_COLUMNS if c not in ("run", "checkpoint")]
+    lines = ["| " + " | ".join(shown) + " |", "|" + "---|" * len(shown)]
+    lines += ["| " + " | ".join(str(r[c]) for c in shown) + " |" for r in table]
     return "\n".join(lines) + "\n"
 
 
@@ -676,13 +695,14 @@ def report(runs_dir: str = RUNS, results_dir: str = RESULTS) -> None:
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    mode = parser.add_mutually_exclusive_group()  # instead of training: one of these, or none
     parser.add_argument("--variant", choices=["lstm", "gru"], default="lstm")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--hours", type=float, default=3.0, help="wall-clock budget of this sitting")
     parser.add_argument("--updates", type=int, default=FINAL_UPDATES, help="the run ends after this many updates")
     parser.add_argument("--resume", action="store_true", help="continue the latest run of this variant and seed")
-    parser.add_argument("--report", action="store_true", help="only write the curves and the table")
-    parser.add_argument(
+    mode.add_argument("--report", action="store_true", help="only write the curves and the table")
+    mode.add_argument(
         "--diagnose", action="store_true",
         help="only the run's diagnostics per 500 updates (returns, sigma, entropy, kl_dyn, reward NLL, imagined "
         "return, evaluations): printed and written to benchmarks/results/<experiment>_seed<S>_diagnostics.md",
@@ -691,7 +711,7 @@ def main():
         "--runs-dir", default=RUNS,
         help="where the runs are, at any depth (e.g. runs/experiment/trials: the experiment's single stage)",
     )  # fmt: skip
-    parser.add_argument(
+    mode.add_argument(
         "--final", action="store_true",
         help="only evaluate the run's final and best policies on the fresh tracks; its row in learning_final.csv",
     )  # fmt: skip
@@ -715,17 +735,17 @@ def main():
         "--dead-zone-start", type=float, default=None,
         help="an ablation: the dead zone's first value (-0.5, the final one: no schedule; run named ..._dzstart<v>)",
     )  # fmt: skip
-    parser.add_argument(
+    mode.add_argument(
         "--screen", type=int, metavar="UPDATES",
         help="only compare the ablation given by the flags above with the default run of the same variant and seed "
         "(in --reference-runs-dir), each at the policy it kept at UPDATES updates, sampled and mean action on the "
-        "fresh tracks, with their diagnostics: rows of benchmarks/results/screening/screens.csv",
+        "20 screening tracks 10200..10219, with their diagnostics: rows of benchmarks/results/screening/screens.csv",
     )  # fmt: skip
     parser.add_argument(
         "--reference-runs-dir", default=None, help="--screen: where the default run is (default: --runs-dir)"
     )
-    parser.add_argument("--evaluate", metavar="CHECKPOINT", help="only evaluate this saved agent alone (no training)")
-    parser.add_argument(
+    mode.add_argument("--evaluate", metavar="CHECKPOINT", help="only evaluate this saved agent alone (no training)")
+    mode.add_argument(
         "--export", nargs=2, metavar=("CHECKPOINT", "OUT"),
         help="only write agent 0 of CHECKPOINT as an acting-only export OUT (e.g. pretrained/lstm_cpu.pt)",
     )  # fmt: skip
@@ -740,6 +760,8 @@ def main():
         "and mean action",
     )  # fmt: skip
     args = parser.parse_args()
+    if args.reference_runs_dir is not None and args.screen is None:
+        parser.error("--reference-runs-dir is the default run's place for --screen; give --screen UPDATES")
     if args.hours <= 0:
         parser.error(f"--hours must be > 0, got {args.hours}")
     if args.updates < 1:

@@ -119,8 +119,12 @@ def test_a_spec_saved_before_a_field_existed_means_its_default(tmp_path):
     with open(tmp_path / "spec.json", "w") as f:
         json.dump(saved, f)
     experiment.check_spec(spec)  # it ran with the default: the same experiment
+    with open(tmp_path / "spec.json") as f:
+        assert json.load(f)["eval_policy"] == "stochastic"  # written down: a later default cannot change it
     with pytest.raises(SystemExit, match="holds an experiment with other eval_policy"):
         experiment.check_spec(dataclasses.replace(spec, eval_policy="mean-action"))
+    with pytest.raises(SystemExit, match="measures its agents with --eval-policy stochastic"):
+        experiment.main(dataclasses.replace(spec, eval_policy="mean-action", aggregate_only=True))
 
 
 def test_the_summary_matches_hand_computed_numbers():

@@ -310,22 +310,23 @@ def fake_run(root, exp_name, seed, kept, progress):
 @pytest.fixture
 def screen_runs(tmp_path, monkeypatch):
     """A default LSTM run (seed 11, in reference/) and its return-norm ablation (in runs/), with fake checkpoints
-    whose update counts are {file: updates} and an evaluation that returns the checkpoint's updates."""
+    ({file: updates}) and an evaluation whose return tells which checkpoint and policy it measured."""
     import race
 
     kept = {"latest.pt": 8000, "eval_000045.pt": 2600, "eval_000050.pt": 3100}
     ablated_kept = {"latest.pt": 3100, "eval_000045.pt": 2600}
-    progress = [(2500, 100.0, 0.9), (2700, 200.0, 0.8), (3000, 300.0, ""), (3100, 400.0, 0.7), (3200, 900.0, 0.1)]
+    progress = [(2500, 100.0, 0.9), (2600, 1000.0, 0.3), (2700, 200.0, 0.8), (3000, 300.0, ""), (3100, 400.0, 0.7),
+                (3200, 900.0, 0.1)]  # fmt: skip
     reference = fake_run(tmp_path / "reference", "learning_lstm", 11, kept, progress)
-    ablated = fake_run(tmp_path / "runs", "learning_lstm_retnorm", 11, ablated_kept, progress[:4])
+    ablated = fake_run(tmp_path / "runs", "learning_lstm_retnorm", 11, ablated_kept, [(3100, -50.0, 0.95)])
     counts = {os.path.join(reference, "checkpoints", k): v for k, v in kept.items()}
     counts |= {os.path.join(ablated, "checkpoints", k): v for k, v in ablated_kept.items()}
     monkeypatch.setattr(race, "read_checkpoint", lambda path: (None, {"agents": [{"num_updates": counts[path]}]}))
 
     def evaluate(path, first_track, tracks, policy):
-        assert (first_track, tracks) == learning.FRESH_TRACKS
-        value = (1.0 if "retnorm" in path else 2.0) * (10.0 if policy == "stochastic" else 20.0)
-        return {"eval_return": value, "eval_progress": value / 100, "mean_abs_steer": value / 1000}
+        value = counts[path] + (0.5 if "retnorm" in path else 0.0) + (0.25 if policy == "mean-action" else 0.0)
+        return {"eval_return": value, "eval_progress": 0.5, "mean_abs_steer": 0.2,
+                "tracks": f"{first_track}..{first_track + tracks - 1}"}  # fmt: skip
 
     monkeypatch.setattr(learning, "evaluate_checkpoint", evaluate)
     return tmp_path, reference, ablated
@@ -335,40 +336,51 @@ def test_a_screen_picks_the_policy_each_run_kept_at_the_same_update_count(screen
     _, reference, ablated = screen_runs
     assert learning.checkpoint_at(str(reference), 3100).endswith("eval_000050.pt")
     assert learning.checkpoint_at(str(ablated), 3100).endswith("latest.pt")
-    with pytest.raises(ValueError, match=r"kept no policy at 3000 updates \(it kept: 2600, 3100, 8000\)"):
+    with pytest.raises(ValueError, match=r"kept no policy at 3000 updates \(it kept: 2600, 3100, 8000\); it passed"):
         learning.checkpoint_at(str(reference), 3000)
+    with pytest.raises(ValueError, match=r"\(it kept: 2600, 3100\); resume it with --updates"):
+        learning.checkpoint_at(str(ablated), 4000)
 
 
-def test_screen_rows_compare_ablation_and_default_on_the_fresh_tracks(screen_runs):
+def test_screen_rows_compare_ablation_and_default_on_the_screening_tracks(screen_runs):
     root, _, _ = screen_runs
     rows = learning.screen_rows(
         "lstm", 11, 3100, "learning_lstm_retnorm", str(root / "runs"), reference_runs_dir=str(root / "reference")
     )
-    assert [(r["exp_name"], r["policy"], r["return"]) for r in rows] == [
-        ("learning_lstm", "stochastic", 20.0), ("learning_lstm", "mean-action", 40.0),
-        ("learning_lstm_retnorm", "stochastic", 10.0), ("learning_lstm_retnorm", "mean-action", 20.0),
+    assert [(r["exp_name"], r["policy"], r["return"], r["checkpoint"]) for r in rows] == [
+        ("learning_lstm", "stochastic", 3100.0, "eval_000050.pt"),
+        ("learning_lstm", "mean-action", 3100.25, "eval_000050.pt"),
+        ("learning_lstm_retnorm", "stochastic", 3100.5, "latest.pt"),
+        ("learning_lstm_retnorm", "mean-action", 3100.75, "latest.pt"),
     ]  # fmt: skip
-    # the last 500 updates before 3100: the rows logged at 2700, 3000 and 3100 (not 2500, not 3200)
-    assert all(r["training_return"] == pytest.approx(300.0) for r in rows)
-    assert all(r["actor_sigma"] == pytest.approx(0.75) for r in rows)  # the empty cell at 3000 stays out
-    assert all(np.isnan(r["kl_dyn"]) for r in rows)  # never logged: NaN, not 0
+    assert {r["tracks"] for r in rows} == {"10200..10219"}  # not the final protocol's fresh tracks 10100..10119
+    default, ablation = rows[0], rows[2]
+    # the default's last 500 updates before 3100: rows logged at 2700, 3000 and 3100 (not 2500, 2600 or 3200)
+    assert default["training_return"] == pytest.approx(300.0)
+    assert default["actor_sigma"] == pytest.approx(0.75)  # the empty cell at 3000 stays out
+    assert np.isnan(default["kl_dyn"])  # never logged: NaN, not 0
+    assert (ablation["training_return"], ablation["actor_sigma"]) == (-50.0, 0.95)  # each run's own log
     with pytest.raises(ValueError, match="give the ablated flag"):
         learning.screen_rows("lstm", 11, 3100, "learning_lstm", str(root / "runs"), str(root / "reference"))
     with pytest.raises(ValueError, match="no run of learning_lstm seed 12 in .*reference"):
         learning.screen_rows("lstm", 12, 3100, "learning_lstm_retnorm", str(root / "runs"), str(root / "reference"))
 
 
-def test_screen_table_replaces_a_remeasured_row_and_lists_the_default_first(screen_runs):
+def test_screen_table_replaces_a_remeasured_row_and_keeps_the_others(screen_runs):
     root, _, _ = screen_runs
     path = str(root / "screens.csv")
-    rows = learning.screen_rows("lstm", 11, 3100, "learning_lstm_retnorm", str(root / "runs"), str(root / "reference"))
-    learning.write_screen_rows(rows[2:], path)  # the ablation first, then both again, one of them changed
-    rows[3] = {**rows[3], "return": -5.0}
+    runs = ("learning_lstm_retnorm", str(root / "runs"), str(root / "reference"))
+    rows, earlier = learning.screen_rows("lstm", 11, 3100, *runs), learning.screen_rows("lstm", 11, 2600, *runs)
+    learning.write_screen_rows(earlier + rows[2:], path)
+    rows[3] = {**rows[3], "return": -5.0}  # the ablation measured again at 3100, and the default for the first time
     table = learning.write_screen_rows(rows, path).splitlines()
     with open(path, newline="") as f:
         saved = list(csv.DictReader(f))
-    assert [(r["exp_name"], r["policy"], float(r["return"])) for r in saved] == [
-        ("learning_lstm", "mean-action", 40.0), ("learning_lstm", "stochastic", 20.0),
-        ("learning_lstm_retnorm", "mean-action", -5.0), ("learning_lstm_retnorm", "stochastic", 10.0),
+    assert [(r["exp_name"], int(r["updates"]), r["policy"], float(r["return"])) for r in saved] == [
+        ("learning_lstm", 2600, "mean-action", 2600.25), ("learning_lstm", 2600, "stochastic", 2600.0),
+        ("learning_lstm_retnorm", 2600, "mean-action", 2600.75), ("learning_lstm_retnorm", 2600, "stochastic", 2600.5),
+        ("learning_lstm", 3100, "mean-action", 3100.25), ("learning_lstm", 3100, "stochastic", 3100.0),
+        ("learning_lstm_retnorm", 3100, "mean-action", -5.0), ("learning_lstm_retnorm", 3100, "stochastic", 3100.5),
     ]  # fmt: skip
-    assert list(saved[0]) == list(learning.SCREEN_COLUMNS) and len(table) == 2 + 4
+    assert list(saved[0]) == list(learning.SCREEN_COLUMNS) and len(table) == 2 + 8
+    assert not os.path.exists(path + ".tmp")
