@@ -40,6 +40,7 @@ import glob
 import importlib
 import json
 import os
+import re
 import sys
 
 import numpy as np
@@ -647,22 +648,48 @@ def write_screen_rows(rows: list[dict], path: str = os.path.join(RESULTS, "scree
     return "\n".join(lines) + "\n"
 
 
+def is_default(name: str) -> bool:
+    """Whether a curve's name (``<experiment>_seed<S>``) is a run of the default method, not an ablation."""
+    return re.fullmatch(r"learning_(lstm|gru)_seed\d+", name) is not None
+
+
 def report(runs_dir: str = RUNS, results_dir: str = RESULTS) -> None:
-    """CSV per run, one PNG of every curve with the baselines and the bar, and a markdown table."""
+    """CSV per run; a PNG of the default runs' curves with the baselines and the bar, and a markdown table of them
+    (learning.png, learning.md); the same of the ablations beside the default runs of their variant and seed in
+    screening/ablations.png and .md."""
+    os.makedirs(results_dir, exist_ok=True)
+    base = baselines(results_dir=results_dir)
+    curves, training = load_curves(runs_dir, results_dir), training_curves(runs_dir, results_dir)
+    default = [name for name in curves | training if is_default(name)]
+    ablations = [name for name in curves | training if not is_default(name)]
+    pages = [(os.path.join(results_dir, "learning"), default)]
+    if ablations:  # each beside the default run of its variant and seed
+        paired = {re.sub(r"^learning_(lstm|gru)_.*_seed", r"learning_\1_seed", name) for name in ablations}
+        pages.append((os.path.join(results_dir, "screening", "ablations"), sorted(paired & set(default)) + ablations))
+    for stem, names in pages:
+        os.makedirs(os.path.dirname(stem), exist_ok=True)
+        plot_curves({n: curves[n] for n in names if n in curves}, {n: training[n] for n in names if n in training},
+                    base, stem + ".png")  # fmt: skip
+        table = summary_table({n: curves[n] for n in names if n in curves}, base)
+        with open(stem + ".md", "w") as f:
+            f.write(table)
+        print(table)
+
+
+def plot_curves(curves: dict[str, list[dict]], training: dict[str, list[dict]], base: dict, path: str) -> None:
+    """One PNG: the training races' returns against updates, and the evaluations' return and progress against env
+    steps with the baselines and the bar."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    os.makedirs(results_dir, exist_ok=True)
-    base = baselines(results_dir=results_dir)
-    curves = load_curves(runs_dir, results_dir)
     fig, axes = plt.subplots(1, 3, figsize=(18, 4))
     panels = (
         (axes[1], "eval_return", "evaluation return (--eval-policy)", BAR_RETURN),
         (axes[2], "eval_progress", "evaluation progress", BAR_PROGRESS),
     )
-    for name, rows in training_curves(runs_dir, results_dir).items():  # the races it trained on: sampled policy
+    for name, rows in training.items():  # the races it trained on: sampled policy
         returns = np.array([r["return"] for r in rows])
         smooth = np.convolve(returns, np.ones(5) / 5, mode="valid") if len(returns) >= 5 else returns
         axes[0].plot(
@@ -685,12 +712,8 @@ def report(runs_dir: str = RUNS, results_dir: str = RESULTS) -> None:
         ax.grid(alpha=0.3)
         ax.legend(fontsize="small")
     fig.tight_layout()
-    fig.savefig(os.path.join(results_dir, "learning.png"), dpi=100)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
-    table = summary_table(curves, base)
-    with open(os.path.join(results_dir, "learning.md"), "w") as f:
-        f.write(table)
-    print(table)
 
 
 def main():

@@ -170,6 +170,22 @@ def test_report_keeps_saved_curves_and_never_shrinks_one(dirs):
     assert "| gru_seed2 | 4000 | 2000 | 1.20 | 40.0 | 0.15 | 40.0 (0.15) | not met |" in table
     assert table[-1] == "| pursuit@70 (baseline) | | | | 909.0 | 1.00 | | |"
     assert os.path.getsize(os.path.join(results, "learning.png")) > 0
+    assert not any(row.startswith("| lstm_alpha0.03_seed3 ") for row in table)  # the default method's page only
+    with open(os.path.join(results, "screening", "ablations.md")) as f:
+        runs_there = [row.split(" | ")[0].removeprefix("| ") for row in f.read().splitlines()[2:]]
+    assert runs_there[:1] == ["lstm_alpha0.03_seed3"] and "random (baseline)" in runs_there  # no default lstm seed 3
+    assert os.path.getsize(os.path.join(results, "screening", "ablations.png")) > 0
+
+
+def test_an_ablation_is_drawn_beside_the_default_run_of_its_variant_and_seed(dirs):
+    runs, results = dirs
+    for name, seed in (("learning_gru", 4), ("learning_gru_retnorm", 4), ("learning_gru", 5), ("learning_lstm", 4)):
+        write_sitting(os.path.join(runs, f"multi_car_racing__{name}__{seed}__1700000000"), [(500, 1.0, 0.1, 0)], 1e6)
+    learning.report(runs, results)
+    with open(os.path.join(results, "screening", "ablations.md")) as f:
+        runs_there = [row.split(" | ")[0].removeprefix("| ") for row in f.read().splitlines()[2:]]
+    assert runs_there[:2] == ["gru_seed4", "gru_retnorm_seed4"]  # not gru seed 5, not lstm seed 4
+    assert runs_there[2:] == ["random (baseline)", "pursuit@70 (baseline)"]
 
 
 def test_ablation_runs_are_named_by_every_changed_flag():
