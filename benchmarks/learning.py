@@ -9,6 +9,7 @@
     python benchmarks/learning.py --evaluate runs/learning/<run>/checkpoints/latest.pt --first-track 10100 --tracks 20
     python benchmarks/learning.py --variant lstm --seed 11 --return-norm --screen 3100 \\
         --reference-runs-dir runs/experiment/trials                   # an ablation against the default run
+    python benchmarks/learning.py --runs-dir runs/experiment/trials --policy-rule   # sampled or mean action?
     python benchmarks/learning.py --export runs/learning/<run>/checkpoints/latest.pt pretrained/lstm_cpu.pt
 
 Trains `dreamer_<variant>.py --preset cpu` on the single-car race (stage ``single``, one torch thread, so two runs
@@ -21,6 +22,8 @@ evaluating every 5 races on the 10 held-out tracks (seeds 10000..10009) and keep
 * ``baselines_fresh.json`` (with ``--final``): the same on the 20 fresh tracks 10100..10119;
 * ``learning.png`` and ``learning.md``: every curve, with the baselines;
 * with ``--screen``: rows of ``screening/screens.csv``, an ablation and the default run at the same update count;
+* with ``--policy-rule``: ``policy_rule.csv`` and ``.md``, the final policies sampled and with their mean action on
+  the screening tracks, and the evaluation policy the rule of docs/learning.md picks from them;
 * with ``--final``: the run's row of ``learning_final.csv`` (its final and best policies on the 20 fresh tracks
   10100..10119) and, in ``learning_final.md``, the IQM and mean over seeds with stratified-bootstrap intervals
   (rliable) and the parts of the bar each variant fails.
@@ -55,6 +58,7 @@ RUNS = os.path.join(ROOT, "runs", "learning")
 # them), every seed's return, the mean |steer|; and each run holds: its last three evaluations average within
 # BAR_HOLD of its best.
 BAR_RETURN, BAR_PROGRESS, BAR_SEED_RETURN, BAR_STEER, BAR_HOLD = 600.0, 0.65, 350.0, 0.3, 150.0
+VARIANTS = ("lstm", "gru")
 FINAL_UPDATES = 8000  # the final protocol: every run trains for this many updates
 FRESH_TRACKS = (10_100, 20)  # first seed and count of the fresh tracks the final policy is measured on
 # What the benchmark adds to the scripts' CPU preset (--preset cpu): one car; decisions evaluated on the 10 held-out
@@ -648,6 +652,99 @@ def write_screen_rows(rows: list[dict], path: str = os.path.join(RESULTS, "scree
     return "\n".join(lines) + "\n"
 
 
+# The rule for the evaluation policy, fixed before seeds 12 and 13 were measured (docs/learning.md): each final policy
+# of the default method, sampled and with its mean action, on the screening tracks; the mean action becomes the
+# evaluation policy only if its paired advantage has a 95% interval above 0 over RULE_SEEDS seeds of each variant.
+RULE_SEEDS = 3
+RULE_COLUMNS = (
+    "variant", "seed", "updates", "stochastic_return", "mean_action_return", "difference", "tracks", "run",
+)  # fmt: skip
+
+
+def policy_rule_rows(
+    runs_dir: str = RUNS, final_csv: str = os.path.join(RESULTS, "learning_final.csv"),
+    path: str = os.path.join(RESULTS, "policy_rule.csv"), tracks: tuple[int, int] = SCREEN_TRACKS,
+) -> list[dict]:
+    """The rule's measurements: for each run of the default method in `final_csv` (a final policy), its latest.pt
+    with both SCREEN_POLICIES on `tracks`. A run already in `path` at the same updates and tracks is not measured
+    again; the rows are saved to `path` (replaced atomically) and returned, sorted by variant and seed."""
+    with open(final_csv, newline="") as f:
+        finals = [r for r in csv.DictReader(f) if r["exp_name"] == experiment_name(r["variant"])]
+    saved = {}
+    if os.path.exists(path):
+        with open(path, newline="") as f:
+            saved = {(r["variant"], int(r["seed"])): r for r in csv.DictReader(f)}
+    name = f"{tracks[0]}..{tracks[0] + tracks[1] - 1}"
+    rows = []
+    for final in finals:
+        variant, seed, updates = final["variant"], int(final["seed"]), int(final["updates"])
+        earlier = saved.get((variant, seed))
+        if earlier and int(earlier["updates"]) == updates and earlier["tracks"] == name:
+            rows.append(earlier)
+            continue
+        run = find_run(final["exp_name"], seed, runs_dir)
+        if run is None:
+            raise ValueError(f"no run of {final['exp_name']} seed {seed} in {runs_dir} (it has a row in {final_csv})")
+        latest = os.path.join(run, "checkpoints", "latest.pt")
+        sampled, mean_action = (evaluate_checkpoint(latest, *tracks, policy) for policy in SCREEN_POLICIES)
+        if sampled["updates"] != updates:
+            raise ValueError(f"{latest} has {sampled['updates']} updates, its row in {final_csv} {updates}")
+        rows.append({
+            "variant": variant, "seed": seed, "updates": updates,
+            "stochastic_return": round(sampled["eval_return"], 2),
+            "mean_action_return": round(mean_action["eval_return"], 2),
+            "difference": round(mean_action["eval_return"] - sampled["eval_return"], 2),
+            "tracks": name, "run": os.path.basename(run),
+        })  # fmt: skip
+    rows.sort(key=lambda r: (r["variant"], int(r["seed"])))
+    with open(path + ".tmp", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=RULE_COLUMNS)
+        writer.writeheader()
+        writer.writerows(rows)
+    os.replace(path + ".tmp", path)
+    return rows
+
+
+def policy_rule(rows: list[dict], seeds: int = RULE_SEEDS, reps: int = 2000) -> dict:
+    """The decision from `rows` (policy_rule_rows): the mean over runs of (mean-action return - sampled return),
+    each variant weighted alike, with a stratified-bootstrap 95% interval (rliable; a variant is a stratum: its
+    first `seeds` seeds are resampled among themselves). ``policy`` is "mean-action" if the interval lies above 0,
+    "stochastic" if it does not, and None while a variant has fewer than `seeds` measured runs."""
+    from stats import interval_estimates
+
+    by_variant = {v: sorted((r for r in rows if r["variant"] == v), key=lambda r: int(r["seed"])) for v in VARIANTS}
+    counts = {v: len(mine) for v, mine in by_variant.items()}
+    if min(counts.values()) < seeds:
+        return {"policy": None, "counts": counts}
+    diffs = np.array([[float(r["difference"]) for r in by_variant[v][:seeds]] for v in VARIANTS]).T  # (seeds, 2)
+    est = interval_estimates({"difference": diffs}, reps=reps)["difference"]
+    return {
+        "policy": "mean-action" if est["mean_ci"][0] > 0 else "stochastic", "counts": counts,
+        "mean": est["mean"], "ci": est["mean_ci"],
+    }  # fmt: skip
+
+
+def policy_rule_table(rows: list[dict], decision: dict) -> str:
+    """Markdown: the rule's rows and its decision."""
+    lines = ["| variant | seed | updates | sampled | mean action | difference |", "|---|---|---|---|---|---|"]
+    lines += [
+        f"| {r['variant']} | {r['seed']} | {r['updates']} | {float(r['stochastic_return']):.1f} "
+        f"| {float(r['mean_action_return']):.1f} | {float(r['difference']):+.1f} |"
+        for r in rows
+    ]
+    tracks = rows[0]["tracks"] if rows else "-"
+    if decision["policy"] is None:
+        waiting = ", ".join(f"{v} {n} of {RULE_SEEDS}" for v, n in decision["counts"].items())
+        verdict = f"No decision yet: the rule waits for {RULE_SEEDS} final policies per variant ({waiting})."
+    else:
+        low, high = decision["ci"]
+        verdict = (
+            f"Mean of (mean action - sampled) over {RULE_SEEDS} seeds per variant: {decision['mean']:+.1f} "
+            f"[{low:+.1f}, {high:+.1f}] (stratified bootstrap, 95%). Evaluation policy: **{decision['policy']}**."
+        )
+    return f"Final policies on the screening tracks {tracks}, both policies.\n\n" + "\n".join(lines) + f"\n\n{verdict}\n"
+
+
 def is_default(name: str) -> bool:
     """Whether a curve's name (``<experiment>_seed<S>``) is a run of the default method, not an ablation."""
     return re.fullmatch(r"learning_(lstm|gru)_seed\d+", name) is not None
@@ -719,7 +816,7 @@ def plot_curves(curves: dict[str, list[dict]], training: dict[str, list[dict]], 
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     mode = parser.add_mutually_exclusive_group()  # instead of training: one of these, or none
-    parser.add_argument("--variant", choices=["lstm", "gru"], default="lstm")
+    parser.add_argument("--variant", choices=VARIANTS, default="lstm")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--hours", type=float, default=3.0, help="wall-clock budget of this sitting")
     parser.add_argument("--updates", type=int, default=FINAL_UPDATES, help="the run ends after this many updates")
@@ -763,6 +860,12 @@ def main():
         help="only compare the ablation given by the flags above with the default run of the same variant and seed "
         "(in --reference-runs-dir), each at the policy it kept at UPDATES updates, sampled and mean action on the "
         "20 screening tracks 10200..10219, with their diagnostics: rows of benchmarks/results/screening/screens.csv",
+    )  # fmt: skip
+    mode.add_argument(
+        "--policy-rule", action="store_true",
+        help="only apply the rule for the evaluation policy: every final policy of learning_final.csv (default "
+        "method) sampled and with its mean action on the screening tracks 10200..10219; rows in "
+        "benchmarks/results/policy_rule.csv, the decision in policy_rule.md",
     )  # fmt: skip
     parser.add_argument(
         "--reference-runs-dir", default=None, help="--screen: where the default run is (default: --runs-dir)"
@@ -818,6 +921,16 @@ def main():
         except ValueError as e:
             parser.error(str(e))
         print(write_screen_rows(rows))
+        return
+    if args.policy_rule:
+        try:
+            rows = policy_rule_rows(args.runs_dir)
+        except ValueError as e:
+            parser.error(str(e))
+        table = policy_rule_table(rows, policy_rule(rows))
+        with open(os.path.join(RESULTS, "policy_rule.md"), "w") as f:
+            f.write(table)
+        print(table)
         return
     if args.diagnose:
         name = experiment_name(args.variant, **ablation)

@@ -400,3 +400,74 @@ def test_screen_table_replaces_a_remeasured_row_and_keeps_the_others(screen_runs
     ]  # fmt: skip
     assert list(saved[0]) == list(learning.SCREEN_COLUMNS) and len(table) == 2 + 8
     assert not os.path.exists(path + ".tmp")
+
+
+@pytest.fixture
+def rule_runs(tmp_path, monkeypatch):
+    """learning_final.csv with final policies of the default method (and an ablation's), their runs, and an
+    evaluation that counts its calls and whose return tells the policy: seed + 100 sampled, seed + 100 + 10 * seed
+    with the mean action (lstm), seed + 100 - 7 (gru)."""
+    final = tmp_path / "learning_final.csv"
+    for variant, seed in [("lstm", 11), ("lstm", 12), ("gru", 11)]:
+        fake_run(tmp_path / "runs", f"learning_{variant}", seed, {"latest.pt": 8000}, [])
+        learning.write_final_row({"exp_name": f"learning_{variant}", "variant": variant, "seed": seed,
+                                  "updates": 8000}, str(final))  # fmt: skip
+    learning.write_final_row({"exp_name": "learning_lstm_retnorm", "variant": "lstm", "seed": 11, "updates": 8000},
+                             str(final))  # fmt: skip
+    calls = []
+
+    def evaluate(path, first_track, tracks, policy):
+        calls.append((path, first_track, tracks, policy))
+        seed = int(path.split("__")[-2])
+        bonus = (10.0 * seed if "lstm" in path else -7.0) if policy == "mean-action" else 0.0
+        return {"eval_return": seed + 100.0 + bonus, "updates": 8000}
+
+    monkeypatch.setattr(learning, "evaluate_checkpoint", evaluate)
+    return tmp_path, final, calls
+
+
+def test_the_policy_rule_measures_each_final_policy_once_on_the_screening_tracks(rule_runs):
+    root, final, calls = rule_runs
+    path = str(root / "policy_rule.csv")
+    rows = learning.policy_rule_rows(str(root / "runs"), str(final), path)
+    assert [(r["variant"], r["seed"], r["stochastic_return"], r["mean_action_return"], r["difference"])
+            for r in rows] == [("gru", 11, 111.0, 104.0, -7.0), ("lstm", 11, 111.0, 221.0, 110.0),
+                               ("lstm", 12, 112.0, 232.0, 120.0)]  # fmt: skip
+    assert len(calls) == 6 and {c[1:3] for c in calls} == {(10_200, 20)}  # not the fresh tracks 10100..10119
+    assert all(c[0].endswith(os.path.join("checkpoints", "latest.pt")) for c in calls)  # the final policy
+    assert not any("retnorm" in c[0] for c in calls)  # an ablation is not the method the rule decides for
+    calls.clear()
+    again = learning.policy_rule_rows(str(root / "runs"), str(final), path)
+    assert calls == [] and [float(r["difference"]) for r in again] == [-7.0, 110.0, 120.0]  # read back, not re-run
+    learning.write_final_row({"exp_name": "learning_gru", "variant": "gru", "seed": 11, "updates": 9000}, str(final))
+    with pytest.raises(ValueError, match="latest.pt has 8000 updates, its row in .* 9000"):
+        learning.policy_rule_rows(str(root / "runs"), str(final), path)  # a stale checkpoint is named, not measured
+    for seed in (11, 13):  # seed 11 back as it was; seed 13 has a row but no run
+        learning.write_final_row({"exp_name": "learning_gru", "variant": "gru", "seed": seed, "updates": 8000},
+                                 str(final))  # fmt: skip
+    with pytest.raises(ValueError, match="no run of learning_gru seed 13 in"):
+        learning.policy_rule_rows(str(root / "runs"), str(final), path)
+
+
+def test_the_policy_rule_decides_on_three_seeds_per_variant_with_variants_as_strata():
+    def rows(lstm, gru):
+        return [{"variant": v, "seed": 11 + i, "updates": 8000, "stochastic_return": 0.0, "mean_action_return": d,
+                 "difference": d, "tracks": "10200..10219"} for v, ds in (("lstm", lstm), ("gru", gru))
+                for i, d in enumerate(ds)]  # fmt: skip
+
+    waiting = learning.policy_rule(rows([10.0, 20.0, 30.0], [5.0, 6.0]), reps=200)
+    assert waiting == {"policy": None, "counts": {"lstm": 3, "gru": 2}}
+    assert "waits for 3 final policies per variant (lstm 3 of 3, gru 2 of 3)" in learning.policy_rule_table([], waiting)
+    # Variants are strata: every resample keeps 3 LSTM and 3 GRU runs, so its mean lies in [(1 + 101) / 2,
+    # (3 + 103) / 2]; pooling the six runs would spread the interval over [1, 103].
+    split = learning.policy_rule(rows([1.0, 2.0, 3.0], [101.0, 102.0, 103.0]), reps=500)
+    assert split["mean"] == pytest.approx(52.0) and 51.0 <= split["ci"][0] <= split["ci"][1] <= 53.0
+    assert split["policy"] == "mean-action"
+    # one variant's large gain does not outvote the other's loss: mean (100 - 300) / 2 = -100 at every resample
+    loss = learning.policy_rule(rows([100.0, 100.0, 100.0, 5000.0], [-300.0, -300.0, -300.0]), reps=200)
+    assert loss["mean"] == pytest.approx(-100.0) and loss["policy"] == "stochastic"  # seed 14 is not in the rule
+    # an interval that reaches below 0 keeps the sampled policy, though the mean difference is positive
+    mixed = learning.policy_rule(rows([-100.0, 0.0, 400.0], [-100.0, 0.0, 400.0]), reps=2000)
+    assert mixed["mean"] == pytest.approx(100.0) and mixed["ci"][0] < 0 and mixed["policy"] == "stochastic"
+    table = learning.policy_rule_table(rows([1.0, 2.0, 3.0], [101.0, 102.0, 103.0]), split)
+    assert "+52.0 [+5" in table and "Evaluation policy: **mean-action**" in table
