@@ -742,7 +742,8 @@ def policy_rule_table(rows: list[dict], decision: dict) -> str:
             f"Mean of (mean action - sampled) over {RULE_SEEDS} seeds per variant: {decision['mean']:+.1f} "
             f"[{low:+.1f}, {high:+.1f}] (stratified bootstrap, 95%). Evaluation policy: **{decision['policy']}**."
         )
-    return f"Final policies on the screening tracks {tracks}, both policies.\n\n" + "\n".join(lines) + f"\n\n{verdict}\n"
+    head = f"Final policies on the screening tracks {tracks}, both policies."
+    return f"{head}\n\n" + "\n".join(lines) + f"\n\n{verdict}\n"
 
 
 def is_default(name: str) -> bool:
