@@ -79,7 +79,7 @@ class Spec:
     eval_policy: Literal["deterministic", "mean-action", "stochastic"] = "stochastic"
     """the agents' policy in the tournaments and in the fresh-track measurements (race.py --policy): sampled as
     trained, or the mean action (with a sampled or the posterior-mean latent); head-to-head training races are
-    always sampled"""
+    always sampled. It may change until the race stage begins (nothing is measured with it before)"""
     report_every: int = 500
     """updates of a dreamer trial between its reports to Tune"""
     fresh_tracks: int = 20
@@ -345,13 +345,25 @@ def check_spec(spec: Spec) -> None:
     wanted, saved = trial_fields(spec), saved_spec(spec.storage)
     if saved is not None:
         changed = sorted(k for k in TRIAL_FIELDS if saved[k] != wanted[k])
-        if changed:
+        if changed == ["eval_policy"] and not race_started(plain):
+            # nothing was measured with it yet (the tournaments are its first use): it may still be chosen
+            print(f"experiment.py: --eval-policy {spec.eval_policy} (was {saved['eval_policy']}) for {spec.storage}")
+            with open(path + ".tmp", "w") as f:
+                json.dump(wanted, f, indent=1)
+            os.replace(path + ".tmp", path)
+        elif changed:
             raise SystemExit(f"experiment.py: {spec.storage} holds an experiment with other {', '.join(changed)}; "
                              "use another --storage (or the same settings)")  # fmt: skip
     else:
         os.makedirs(spec.storage, exist_ok=True)
         with open(path, "w") as f:
             json.dump(wanted, f, indent=1)
+
+
+def race_started(spec: dict) -> bool:
+    """Whether the race stage of the experiment in spec["storage"] has begun (its Tune experiment or a trial)."""
+    tune_dir = os.path.join(spec["storage"], "tune", f"{spec['name']}_race")
+    return os.path.exists(tune_dir) or bool(glob.glob(trial_dir(spec, "race", "*", "*")))
 
 
 def saved_spec(storage: str) -> dict | None:

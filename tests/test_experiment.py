@@ -121,10 +121,24 @@ def test_a_spec_saved_before_a_field_existed_means_its_default(tmp_path):
     experiment.check_spec(spec)  # it ran with the default: the same experiment
     with open(tmp_path / "spec.json") as f:
         assert json.load(f)["eval_policy"] == "stochastic"  # written down: a later default cannot change it
-    with pytest.raises(SystemExit, match="holds an experiment with other eval_policy"):
-        experiment.check_spec(dataclasses.replace(spec, eval_policy="mean-action"))
     with pytest.raises(SystemExit, match="measures its agents with --eval-policy stochastic"):
         experiment.main(dataclasses.replace(spec, eval_policy="mean-action", aggregate_only=True))
+
+
+def test_the_evaluation_policy_may_change_until_the_race_stage_has_begun(tmp_path):
+    spec = experiment.Spec(stages=("single",), storage=str(tmp_path))
+    experiment.check_spec(spec)
+    mean_action = dataclasses.replace(spec, eval_policy="mean-action")
+    experiment.check_spec(mean_action)  # no tournament has used it yet: chosen now, and written down
+    with open(tmp_path / "spec.json") as f:
+        assert json.load(f)["eval_policy"] == "mean-action"
+    with pytest.raises(SystemExit, match="holds an experiment with other eval_policy, single_updates"):
+        experiment.check_spec(dataclasses.replace(spec, single_updates=5))  # with another field: refused as a whole
+    os.makedirs(tmp_path / "trials" / "race_lstm_gru_seed11")  # the race stage has begun
+    with pytest.raises(SystemExit, match="holds an experiment with other eval_policy;"):
+        experiment.check_spec(spec)
+    with open(tmp_path / "spec.json") as f:
+        assert json.load(f)["eval_policy"] == "mean-action"  # unchanged by the refused run
 
 
 def test_the_summary_matches_hand_computed_numbers():
