@@ -30,6 +30,7 @@ import importlib
 import json
 import math
 import os
+import random
 import sys
 import time
 from typing import Annotated, Literal
@@ -431,7 +432,10 @@ def train(args: Args, racers: list, device) -> str:
     env_steps = 0
     # A later sitting continues the schedule of tracks (and the random stream) where the racers' last one stopped.
     done_before = max(int(racers[i].counters.get("race_episodes", 0)) for i in learners)
-    torch.manual_seed(args.seed * 100_003 + done_before)
+    stream = args.seed * 100_003 + done_before  # seeds every random stream of training: actions, replay batches
+    torch.manual_seed(stream)
+    np.random.seed(stream % 2**32)
+    random.seed(stream)
     for episode in range(args.episodes):
         seed, grid = schedule(args.seed, done_before + episode, len(racers))
         recorders = [(lambda obs, r=racers[i]: EpisodeRecorder(r, obs)) if i in learners else None

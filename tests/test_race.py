@@ -195,3 +195,23 @@ def test_train_continues_with_the_replay_saved_beside_the_checkpoint(tiny_checkp
     assert f"continues with the replay in {replay_dir} ({saved_steps:,} steps)" in capsys.readouterr().out
     race.main([*args, "--runs-dir", str(tmp_path / "fresh"), "--fresh-replay"])
     assert "continues with the replay" not in capsys.readouterr().out
+
+
+def test_the_same_train_command_trains_the_same_agents(tiny_checkpoints, tmp_path):
+    """Head-to-head training is reproducible whatever ran before it in the process: the replay batches come from
+    numpy's stream, which train() seeds from the seed and the races done, as it seeds torch's."""
+    import numpy as np
+    import torch
+
+    weights = []
+    for k, noise in enumerate((1, 2)):
+        np.random.seed(noise)  # whatever the process drew before (a Ray worker, an earlier interval)
+        np.random.rand(noise)
+        runs_dir = tmp_path / f"run{k}"
+        race.main([tiny_checkpoints["lstm"], tiny_checkpoints["gru"], "--train", "--episodes", "1",
+                   "--train-steps", "2", "--max-steps", "30", "--runs-dir", str(runs_dir)])  # fmt: skip
+        (run_dir,) = list(runs_dir.iterdir())
+        agent = race.read_checkpoint(str(run_dir / "checkpoints" / "racer_0.pt"))[1]["agents"][0]
+        weights.append(torch.cat([t.flatten().float() for net in ("world_model", "actor", "critic")
+                                  for t in agent[net].values()]))  # fmt: skip
+    assert weights[0].numel() > 1000 and torch.equal(weights[0], weights[1])
