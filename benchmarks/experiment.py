@@ -213,8 +213,10 @@ def latest_metrics(run: str) -> dict:
 
 def race_trial(config: dict) -> None:
     """Seed pair (s, s): the LSTM and GRU ghost-stage agents race and learn (race.py --train) in intervals of
-    tournament_every races; after each, a tournament on held-out tracks, reported to Tune. A finished interval is
-    kept (its tournament's results.json); an interval cut short is raced again from the previous checkpoints."""
+    tournament_every races; before the first and after each, a tournament on held-out tracks, reported to Tune.
+    A finished tournament is kept (its results.json). An interval cut short continues from the newest pair of racer
+    checkpoints it saved after the same race (race.py saves both after every race), so a sitting's end costs at
+    most the race in progress; a trained interval whose tournament was cut short only races the tournament."""
     from ray import tune
 
     import race
@@ -227,16 +229,21 @@ def race_trial(config: dict) -> None:
         for variant in ("lstm", "gru")
     ]
     threads = ["--torch-threads", str(spec["torch_threads"])]
-    for k, trained in enumerate(range(spec["tournament_every"], spec["race_episodes"] + 1, spec["tournament_every"])):
-        interval = os.path.join(directory, f"races_{trained:05d}")
+    for trained in range(0, spec["race_episodes"] + 1, spec["tournament_every"]):
         tournament = os.path.join(directory, f"tournament_{trained:05d}")
         done = os.path.join(tournament, "results.json")
-        if not os.path.exists(done):
-            shutil.rmtree(interval, ignore_errors=True)  # an interval cut short: race it again
-            race.main([*checkpoints, "--train", "--episodes", str(spec["tournament_every"]), "--seed", str(seed),
-                       "--train-steps", str(spec["race_train_steps"]), "--runs-dir", interval, *threads])  # fmt: skip
-        (run,) = glob.glob(os.path.join(interval, "*"))
-        checkpoints = [os.path.join(run, "checkpoints", f"racer_{i}.pt") for i in (0, 1)]
+        if trained > 0:  # (the tournament at 0: the ghost-stage agents before any head-to-head race)
+            interval = os.path.join(directory, f"races_{trained:05d}")
+            found = interval_racers(interval)
+            if found is None or found[1] < trained:
+                start, before = found or (checkpoints, trained - spec["tournament_every"])
+                if found is None:
+                    shutil.rmtree(interval, ignore_errors=True)  # nothing to continue from: race it again
+                race.main([*start, "--train", "--episodes", str(trained - before), "--seed", str(seed),
+                           "--train-steps", str(spec["race_train_steps"]), "--runs-dir", interval,
+                           *threads])  # fmt: skip
+                found = interval_racers(interval)
+            checkpoints = found[0]
         if not os.path.exists(done):
             race.main([*checkpoints, "--races", str(spec["tournament_races"]), "--seed", str(TOURNAMENT_SEED),
                        "--policy", spec["eval_policy"], "--out", tournament + ".tmp", "--no-video",
@@ -246,10 +253,33 @@ def race_trial(config: dict) -> None:
         tune.report(tournament_metrics(tournament, trained))
 
 
+def interval_racers(interval: str) -> tuple[list[str], int] | None:
+    """The newest pair of racer checkpoints (LSTM, GRU) in the run directories of `interval` that were saved after
+    the same race, and the head-to-head races they have done in all; None if there is none. Runs newer than that
+    pair (a kill between the two saves of one race leaves racer 0 a race ahead) are removed: the interval
+    continues from the pair, and their logs would count races twice."""
+    import race
+
+    runs = sorted(path for path in glob.glob(os.path.join(interval, "*")) if os.path.isdir(path))
+    for k in range(len(runs) - 1, -1, -1):
+        paths = [os.path.join(runs[k], "checkpoints", f"racer_{i}.pt") for i in (0, 1)]
+        if not all(os.path.exists(p) for p in paths):
+            continue
+        races = {int(race.read_checkpoint(p)[1]["counters"]["race_episodes"]) for p in paths}
+        if len(races) == 1:
+            for newer in runs[k + 1 :]:
+                shutil.rmtree(newer)
+            return paths, races.pop()
+    return None
+
+
 def tournament_metrics(tournament: str, trained: int) -> dict:
     """The LSTM's (racer 0) and GRU's (racer 1) results of one tournament, with the LSTM's Wilson interval."""
     with open(os.path.join(tournament, "results.json")) as f:
         lstm, gru = json.load(f)[:2]
+    if not (lstm["racer"].startswith("lstm:") and gru["racer"].startswith("gru:")):
+        raise ValueError(f"{tournament}: racer 0 must be the LSTM and racer 1 the GRU, got {lstm['racer']}, "
+                         f"{gru['racer']}")  # fmt: skip
     return {
         "races_trained": trained, "eval_races": lstm["races"], "lstm_wins": lstm["wins"], "gru_wins": gru["wins"],
         "both_out": lstm.get("all_eliminated", 0), "lstm_win_rate": lstm["win_rate"],
@@ -335,10 +365,10 @@ def check_spec(spec: Spec) -> None:
         earlier = needs.get(stage)
         if earlier and earlier not in spec.stages:
             variants = ("lstm", "gru") if stage == "race" else spec.variants
-            missing = [f"{earlier}_{v}_seed{s}" for v in variants for s in spec.seeds
-                       if run_of(trial_dir(plain, earlier, v, s)) is None]  # fmt: skip
+            missing = unfinished(plain, earlier, variants, spec.seeds)
             if missing:
-                raise SystemExit(f"experiment.py: stage {stage} needs the {earlier} trials {', '.join(missing)}")
+                raise SystemExit(f"experiment.py: stage {stage} needs the {earlier} trials finished: "
+                                 f"{', '.join(missing)}")  # fmt: skip
     if "race" in spec.stages and set(spec.variants) != {"lstm", "gru"}:
         raise SystemExit("experiment.py: the race stage pairs an LSTM and a GRU agent: --variants lstm gru")
     path = os.path.join(spec.storage, "spec.json")
@@ -358,6 +388,24 @@ def check_spec(spec: Spec) -> None:
         os.makedirs(spec.storage, exist_ok=True)
         with open(path, "w") as f:
             json.dump(wanted, f, indent=1)
+
+
+def unfinished(spec: dict, stage: str, variants, seeds) -> list[str]:
+    """The trials of a single or ghost stage (ghost: with its controls) that have not made all their updates, each
+    named with how far it got."""
+    names = []
+    for variant in variants:
+        for seed in seeds:
+            for kind in ["single"] if stage == "single" else ["ghost", "control"]:
+                name, run = f"{kind}_{variant}_seed{seed}", run_of(trial_dir(spec, kind, variant, seed))
+                if run is None:
+                    names.append(f"{name} (not started)")
+                    continue
+                script, _, _, target = trial_args(spec, kind, variant, seed)
+                done = updates_of(os.path.join(run, "checkpoints", "latest.pt"), script)
+                if done < target:
+                    names.append(f"{name} ({done} of {target} updates)")
+    return names
 
 
 def race_started(spec: dict) -> bool:
@@ -521,11 +569,13 @@ def claims_table(single_returns: dict[str, list[float]], ghost_rows: list[dict],
             f"the LSTM's Wilson interval above 0.5 in {above} of {len(ends)}",
             mean, ci, digits=2,
         ))  # fmt: skip
-        mean, ci = paired([rate["lstm"](rs[-1]) - rate["lstm"](rs[0]) for rs in ends])
+        # recovery: from the first tournament after head-to-head training began (the one at 0 is before it)
+        firsts = [next((r for r in rs if int(r["races_trained"]) > 0), rs[0]) for rs in ends]
+        mean, ci = paired([rate["lstm"](rs[-1]) - rate["lstm"](first) for rs, first in zip(ends, firsts)])
         lines.append(row(
             "trained against each other, the LSTM recovers (about race 120) and outperforms",
-            f"LSTM win rate at the last tournament - at the first (races {ends[0][0]['races_trained']} to {races}), "
-            f"mean over {len(ends)} seed pairs",
+            f"LSTM win rate at the last tournament - at the first after training began (races "
+            f"{firsts[0]['races_trained']} to {races}), mean over {len(ends)} seed pairs",
             mean, ci, digits=2,
         ))  # fmt: skip
     if ghost_rows:

@@ -69,7 +69,7 @@ def test_every_stage_runs_to_completion_and_writes_the_tables(finished):
         assert latest(spec, "control", variant)[1]["args"]["stage"] == "single"
     with open(os.path.join(spec.results, "head_to_head.csv")) as f:
         rows = list(csv.DictReader(f))
-    assert [int(r["races_trained"]) for r in rows] == [1, 2] and all(r["seed_pair"] == "3,3" for r in rows)
+    assert [int(r["races_trained"]) for r in rows] == [0, 1, 2] and all(r["seed_pair"] == "3,3" for r in rows)
     assert all(int(r["eval_races"]) == 2 and int(r["lstm_wins"]) + int(r["gru_wins"]) <= 2 for r in rows)
     with open(os.path.join(spec.results, "ghost_vs_control.csv")) as f:
         assert [r["variant"] for r in csv.DictReader(f)] == ["lstm", "gru"]
@@ -228,7 +228,8 @@ def test_the_claims_table_answers_each_claim_from_hand_made_results():
                 "lstm_win_rate_ci_low": low}  # fmt: skip
 
     head = [tournament("11,11", 50, 20, 70, 0.13), tournament("11,11", 150, 30, 60, 0.22),
-            tournament("12,12", 50, 40, 50, 0.31), tournament("12,12", 150, 20, 70, 0.13)]  # fmt: skip
+            tournament("12,12", 50, 40, 50, 0.31), tournament("12,12", 150, 20, 70, 0.13),
+            tournament("11,11", 0, 90, 10, 0.8), tournament("12,12", 0, 90, 10, 0.8)]  # (0: before training)
     table = experiment.claims_table(single, ghost, head, reps=300).splitlines()
     solo, versus, recovery, ghost_row = (line.split(" | ") for line in table[2:6])
     assert solo[2].startswith("500.0 [") and solo[3].startswith("supported")
@@ -237,6 +238,136 @@ def test_the_claims_table_answers_each_claim_from_hand_made_results():
     # last tournaments: 0.30 - 0.60 and 0.20 - 0.70 -> mean -0.40, every resample negative
     assert versus[2].startswith("-0.40 [") and versus[3].startswith("contradicted")
     assert "above 0.5 in 0 of 2" in versus[1]
-    # the LSTM's rate: +0.10 and -0.20 -> mean -0.05, the interval spans 0
+    # the LSTM's rate from the first tournament after training began: +0.10 and -0.20 -> mean -0.05, the interval
+    # spans 0 (from the tournaments before training, at 0.90, it would be -0.65)
     assert recovery[2].startswith("-0.05 [") and recovery[3].startswith("not supported")
     assert ghost_row[2] == "50.0 [50.0, 50.0]" and ghost_row[3].startswith("supported")
+
+
+@pytest.fixture
+def fake_race(tmp_path, monkeypatch):
+    """A race trial's world without racing: ghost-stage latest.pt files, and a race.main that 'trains' (writes racer
+    checkpoints whose race count it records; `cut` ({interval: (races, split)}) stops it in that interval after
+    that many races, with racer 0 saved once more if split) or
+    runs a tournament (writes results.json), recording every call."""
+    pytest.importorskip("ray")
+    import race
+    from ray import tune
+
+    spec = experiment.Spec(seeds=(3,), race_episodes=4, tournament_every=2, tournament_races=2, storage=str(tmp_path))
+    plain = dataclasses.asdict(spec)
+    races, calls, cut, stamps = {}, [], {}, iter(range(1_700_000_000, 1_800_000_000))
+    for variant in ("lstm", "gru"):
+        path = os.path.join(experiment.trial_dir(plain, "ghost", variant, 3), "run", "checkpoints", "latest.pt")
+        os.makedirs(os.path.dirname(path))
+        open(path, "w").close()
+        races[path] = 0
+
+    def main(argv):
+        calls.append(argv)
+        value = lambda flag: argv[argv.index(flag) + 1]  # noqa: E731
+        if "--train" in argv:
+            run = os.path.join(value("--runs-dir"), f"multi_car_racing__race__3__{next(stamps)}")
+            os.makedirs(os.path.join(run, "checkpoints"))
+            start, episodes = races[argv[0]], int(value("--episodes"))
+            stop, split = cut.pop(os.path.basename(value("--runs-dir")), (episodes, False))
+            for i in (0, 1):
+                path = os.path.join(run, "checkpoints", f"racer_{i}.pt")
+                open(path, "w").close()
+                races[path] = start + stop + (1 if split and i == 0 else 0)
+            if stop < episodes:
+                raise KeyboardInterrupt  # the sitting ends mid-interval
+        else:
+            os.makedirs(value("--out"))
+            rows = [{"racer": f"{v}:x/racer.pt:0", "races": 2, "wins": 1, "win_rate": 0.5, "win_rate_ci_low": 0.1,
+                     "win_rate_ci_high": 0.9, "mean_progress": 0.5, "eliminations": 0, "collision_steps": 0}
+                    for v in ("lstm", "gru")]  # fmt: skip
+            with open(os.path.join(value("--out"), "results.json"), "w") as f:
+                json.dump(rows, f)
+
+    monkeypatch.setattr(race, "main", main)
+    monkeypatch.setattr(race, "read_checkpoint", lambda p: (None, {"counters": {"race_episodes": races[p]}}))
+    reported = []
+    monkeypatch.setattr(tune, "report", lambda metrics: reported.append(metrics["races_trained"]))
+    config = {"trial": {"spec": plain, "seed": 3}}
+    return plain, config, calls, cut, reported
+
+
+def kinds(calls):
+    """Each race.main call: ('train', episodes, its first checkpoint's trial/interval) or ('tournament', out)."""
+    return [("train", int(c[c.index("--episodes") + 1]), c[0].split(os.sep)[-4]) if "--train" in c
+            else ("tournament", os.path.basename(c[c.index("--out") + 1])) for c in calls]  # fmt: skip
+
+
+def test_a_race_trial_continues_a_cut_interval_and_never_retrains_a_trained_one(fake_race):
+    plain, config, calls, cut, reported = fake_race
+    directory = experiment.trial_dir(plain, "race", "lstm_gru", 3)
+    cut["races_00004"] = (1, False)  # the sitting ends after the first race of the second interval
+    with pytest.raises(KeyboardInterrupt):
+        experiment.race_trial(config)
+    assert kinds(calls) == [
+        ("tournament", "tournament_00000.tmp"),  # the ghost-stage agents, before any head-to-head race
+        ("train", 2, "ghost_lstm_seed3"), ("tournament", "tournament_00002.tmp"),
+        ("train", 2, "races_00002"),  # cut after its first race, both racers saved
+    ]  # fmt: skip
+    calls.clear()
+    experiment.race_trial(config)  # the next sitting: only the race left, from the last pair saved together
+    assert kinds(calls) == [("train", 1, "races_00004"), ("tournament", "tournament_00004.tmp")]
+    runs = sorted(os.listdir(os.path.join(directory, "races_00004")))
+    assert len(runs) == 2  # the cut run and its continuation
+    assert reported == [0, 2, 0, 2, 4]
+    calls.clear()
+    import shutil
+
+    shutil.rmtree(os.path.join(directory, "tournament_00004"))  # a tournament cut short: raced again, alone
+    experiment.race_trial(config)
+    assert kinds(calls) == [("tournament", "tournament_00004.tmp")]
+    calls.clear()
+    experiment.race_trial(config)
+    assert calls == []  # all done: nothing raced again
+
+
+def test_a_race_interval_split_by_a_kill_between_its_saves_continues_from_the_pair_saved_together(fake_race):
+    plain, config, calls, cut, _ = fake_race
+    interval = os.path.join(experiment.trial_dir(plain, "race", "lstm_gru", 3), "races_00002")
+    cut["races_00002"] = (1, True)
+    with pytest.raises(KeyboardInterrupt):
+        experiment.race_trial(config)  # racer 0 at 2 races, racer 1 at 1: the only run cannot continue
+    calls.clear()
+    experiment.race_trial(config)
+    assert kinds(calls)[:2] == [("train", 2, "ghost_lstm_seed3"), ("tournament", "tournament_00002.tmp")]
+    assert len(os.listdir(interval)) == 1  # the split run was removed with its interval, raced again whole
+    (run,) = os.listdir(interval)
+    import race
+
+    extra = os.path.join(interval, "multi_car_racing__race__3__1800000000", "checkpoints")  # a newer, split run
+    os.makedirs(extra)
+    for i in (0, 1):
+        open(os.path.join(extra, f"racer_{i}.pt"), "w").close()
+    table = {os.path.join(extra, "racer_0.pt"): 2, os.path.join(extra, "racer_1.pt"): 1}
+    real = race.read_checkpoint
+    race.read_checkpoint = lambda p: (None, {"counters": {"race_episodes": table[p]}}) if p in table else real(p)
+    try:
+        paths, done = experiment.interval_racers(interval)
+    finally:
+        race.read_checkpoint = real
+    assert done == 2 and os.path.join(interval, run) in paths[0]
+    assert os.listdir(interval) == [run]  # the split newer run is gone: its logs would count races twice
+
+
+def test_a_later_stage_needs_the_earlier_trials_finished(tmp_path, monkeypatch):
+    spec = experiment.Spec(seeds=(3,), stages=("ghost",), storage=str(tmp_path))
+    plain = dataclasses.asdict(spec)
+    done = {"lstm": 8000, "gru": 7500}
+    for variant in ("lstm", "gru"):
+        path = os.path.join(experiment.trial_dir(plain, "single", variant, 3), "run", "checkpoints", "latest.pt")
+        os.makedirs(os.path.dirname(path))
+        open(path, "w").close()
+    monkeypatch.setattr(experiment, "updates_of", lambda path, script: done[script.VARIANT])
+    with pytest.raises(SystemExit, match=r"needs the single trials finished: single_gru_seed3 \(7500 of 8000"):
+        experiment.check_spec(spec)
+    done["gru"] = 8000
+    experiment.check_spec(spec)  # both finished: the ghost stage may start
+    race_spec = dataclasses.replace(spec, stages=("race",))
+    with pytest.raises(SystemExit, match=r"ghost_lstm_seed3 \(not started\), control_lstm_seed3 \(not started\)"):
+        experiment.check_spec(race_spec)
