@@ -78,7 +78,10 @@ class Args:
     resume: str | None = None
     """continue a run: its run directory or a checkpoint file (saved args and counters are used)"""
     checkpoint: str | None = None
-    """start the agents' networks and optimisers from this checkpoint (e.g. a single-stage best.pt for ghost)"""
+    """start the agents' networks and optimisers from this checkpoint (e.g. a single-stage best.pt for ghost), and
+    their replays from the replay saved beside it"""
+    fresh_replay: bool = False
+    """--checkpoint: start with empty replays instead of the one saved beside the checkpoint"""
     stage: Literal["single", "ghost", "race"] = "race"
     """single: one car, evaluation and best.pt; ghost: one car against its best previous run; race: N learning cars"""
 
@@ -1703,9 +1706,16 @@ def setup_run(args: Args, overrides=()) -> Run:
     if resumed is not None:
         restore_run(run, resumed, checkpoint_path)
     elif start is not None:
+        saved = list((start.get("extra") or {}).get("replays") or [])
         for i, agent in enumerate(run.agents):
             source = i % len(start["agents"])
             load_agent_state(agent, start["agents"][source], args.checkpoint, source)
+            directory = replay_dir_of(args.checkpoint, source)
+            if not args.fresh_replay and os.path.isdir(directory):  # the agent keeps learning from all it has seen
+                manifest = saved[source] if source < len(saved) else None
+                restore_replay(run.replays[i], directory, manifest, races=0)
+                print(f"car {i}: continues with the replay in {directory} ({len(run.replays[i]):,} steps)")
+                # (run.manifests stay None: the run's own replay directory holds no save until its first one)
     formats = ("stdout", "csv", "tensorboard") if args.print_table else ("csv", "tensorboard")
     run.logger = configure_logger(run_dir, dataclasses.asdict(args), formats)
     with open(os.path.join(run_dir, "config.json"), "w") as f:  # plot.py groups runs by variant and stage
@@ -1782,6 +1792,13 @@ def _print(run: Run, message: str) -> None:
 def resolve_checkpoint(path: str) -> str:
     """A run directory means its checkpoints/latest.pt."""
     return os.path.join(path, "checkpoints", "latest.pt") if os.path.isdir(path) else path
+
+
+def replay_dir_of(path: str, index: int) -> str:
+    """The replay of agent `index` saved beside a checkpoint: ``<stem>_replay_car_<index>`` (race.py --train) or
+    ``replay_car_<index>`` (a training run's ``checkpoints/``)."""
+    own = f"{os.path.splitext(path)[0]}_replay_car_{index}"
+    return own if os.path.isdir(own) else os.path.join(os.path.dirname(os.path.abspath(path)), f"replay_car_{index}")
 
 
 def restore_replay(replay: Replay, directory: str, manifest: dict | None, races: int) -> dict | None:

@@ -113,14 +113,6 @@ def read_checkpoint(path: str, device="cpu", training: bool = False) -> tuple:
     raise CheckpointError(f"{path}: unknown variant; known: {sorted(VARIANT_SCRIPTS)}")
 
 
-def replay_dir_of(path: str, index: int) -> str:
-    """The replay saved beside a checkpoint: ``<stem>_replay_car_<k>`` (race.py --train) or ``replay_car_<k>`` (a
-    training run's ``checkpoints/``)."""
-    stem = os.path.splitext(path)[0]
-    own = f"{stem}_replay_car_{index}"
-    return own if os.path.isdir(own) else os.path.join(os.path.dirname(os.path.abspath(path)), f"replay_car_{index}")
-
-
 class DreamerRacer:
     """A saved Dreamer agent driving one car; built and loaded by its own script."""
 
@@ -422,7 +414,7 @@ def train(args: Args, racers: list, device) -> str:
     for i in learners:
         r = racers[i]
         replays[i] = r.module.Replay(r.args.replay_capacity, r.args.image_size, r.agent.action_dim)
-        saved = replay_dir_of(r.path, r.index)
+        saved = r.module.replay_dir_of(r.path, r.index)
         if not args.fresh_replay and os.path.isdir(saved):  # the agent keeps learning from all it has seen
             r.module.restore_replay(replays[i], saved, r.replay_manifest, races=0)
             print(f"{r.name}: continues with the replay in {saved} ({len(replays[i]):,} steps)")

@@ -782,6 +782,17 @@ def test_ghost_stage_records_and_races_a_ghost(single_run, tmp_path):
     # race 1 has no ghost yet (no win or loss), race 2 raced against it
     assert len(scalars["car_0/charts/win_rate"]) == 1
     assert checkpoint["args"]["cnn_depth"] == TINY["cnn_depth"]
+    # the agent keeps its memory: the replay saved beside best.pt, then its own races, all in its own directory
+    single = script.Replay(E2E["replay_capacity"], TINY["image_size"])
+    single.load(os.path.join(run_dir, "checkpoints", "replay_car_0"))
+    own = script.Replay(E2E["replay_capacity"], TINY["image_size"])
+    own.load(os.path.join(ghost_dir, "checkpoints", "replay_car_0"), checkpoint["extra"]["replays"][0])
+    races = checkpoint["counters"]["episode"]
+    assert single.episodes >= 1 and own.episodes == single.episodes + races
+    assert np.array_equal(own.obs[: single.size], single.obs[: single.size])  # its first steps are the single run's
+    fresh_dir = script.main(dataclasses.replace(args, fresh_replay=True, runs_dir=str(tmp_path / "fresh")))
+    fresh = torch.load(os.path.join(fresh_dir, "checkpoints", "latest.pt"), weights_only=True)
+    assert fresh["extra"]["replays"][0]["episodes"] == fresh["counters"]["episode"]  # --fresh-replay: its own only
 
 
 def test_race_stage_two_learning_agents(tmp_path, script):

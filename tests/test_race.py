@@ -126,9 +126,9 @@ def test_tiny_train_run_logs_per_agent_win_rates(tiny_checkpoints, tmp_path):
         assert checkpoint["counters"]["episode"] == 2 and script.VARIANT == variant
         # its replay is saved beside it (named by the checkpoint) and a later sitting continues from both
         manifest = checkpoint["extra"]["replays"][0]
-        assert race.replay_dir_of(path, 0) == str(run_dir / "checkpoints" / f"racer_{i}_replay_car_0")
+        assert script.replay_dir_of(path, 0) == str(run_dir / "checkpoints" / f"racer_{i}_replay_car_0")
         replay = script.Replay(manifest["capacity"], 64)
-        replay.load(race.replay_dir_of(path, 0), manifest)
+        replay.load(script.replay_dir_of(path, 0), manifest)
         first = script.Replay(500, 64)
         first.load(os.path.join(os.path.dirname(tiny_checkpoints[variant]), "replay_car_0"))
         assert replay.episodes == first.episodes + 2 and checkpoint["agents"][0]["num_updates"] == 1 + 2
