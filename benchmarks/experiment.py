@@ -469,8 +469,7 @@ def aggregate(spec: Spec) -> str:
                 continue
 
             def fresh(run: str, name: str) -> float:
-                path = os.path.join(run, "checkpoints", name)
-                return learning.evaluate_checkpoint(path, first, spec.fresh_tracks, spec.eval_policy)["eval_return"]
+                return fresh_return(spec, os.path.join(run, "checkpoints", name), first)
 
             single_returns.setdefault(variant, []).append(fresh(runs["single"], "latest.pt"))
             if runs["ghost"] and runs["control"]:
@@ -502,6 +501,26 @@ def aggregate(spec: Spec) -> str:
     with open(os.path.join(spec.results, "experiment.md"), "w") as f:
         f.write(summary)
     return summary
+
+
+def fresh_return(spec: Spec, path: str, first: int) -> float:
+    """The return of the checkpoint at `path` on the fresh tracks (spec.fresh_tracks from `first`, with
+    spec.eval_policy), measured once: kept in <storage>/evaluations.json under the file's path, size and
+    modification time, so a rerun of the aggregation measures only checkpoints that are new or have changed."""
+    cache_path = os.path.join(spec.storage, "evaluations.json")
+    cache = {}
+    if os.path.exists(cache_path):
+        with open(cache_path) as f:
+            cache = json.load(f)
+    stat = os.stat(path)
+    key = f"{os.path.abspath(path)}|{stat.st_size}|{stat.st_mtime_ns}|{spec.eval_policy}|{first}|{spec.fresh_tracks}"
+    if key not in cache:
+        cache[key] = learning.evaluate_checkpoint(path, first, spec.fresh_tracks, spec.eval_policy)["eval_return"]
+        os.makedirs(spec.storage, exist_ok=True)
+        with open(cache_path + ".tmp", "w") as f:
+            json.dump(cache, f, indent=1)
+        os.replace(cache_path + ".tmp", cache_path)
+    return cache[key]
 
 
 def summarize(single_returns: dict[str, list[float]], final_rates: dict[str, list[float]], reps: int = 2000) -> str:

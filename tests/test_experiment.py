@@ -371,3 +371,24 @@ def test_a_later_stage_needs_the_earlier_trials_finished(tmp_path, monkeypatch):
     race_spec = dataclasses.replace(spec, stages=("race",))
     with pytest.raises(SystemExit, match=r"ghost_lstm_seed3 \(not started\), control_lstm_seed3 \(not started\)"):
         experiment.check_spec(race_spec)
+
+
+def test_the_aggregation_measures_each_checkpoint_once(tmp_path, monkeypatch):
+    import learning
+
+    spec = experiment.Spec(storage=str(tmp_path / "storage"), fresh_tracks=3)
+    path = tmp_path / "latest.pt"
+    path.write_bytes(b"one")
+    calls = []
+
+    def evaluate(p, first, tracks, policy):
+        calls.append((p, first, tracks, policy))
+        return {"eval_return": 100.0 + len(calls)}
+
+    monkeypatch.setattr(learning, "evaluate_checkpoint", evaluate)
+    assert experiment.fresh_return(spec, str(path), 10_100) == 101.0
+    assert experiment.fresh_return(spec, str(path), 10_100) == 101.0  # read back, not measured again
+    assert calls == [(str(path), 10_100, 3, "stochastic")]
+    assert experiment.fresh_return(dataclasses.replace(spec, eval_policy="mean-action"), str(path), 10_100) == 102.0
+    path.write_bytes(b"a resumed run's new checkpoint")  # the same path, another file: measured again
+    assert experiment.fresh_return(spec, str(path), 10_100) == 103.0 and len(calls) == 3
