@@ -1275,7 +1275,7 @@ class Run:
 
     def learning_starts(self) -> int:
         """Updates start after the prefill races; a ghost-stage run first races every ghost track once with the
-        starting policy (those runs are the first ghosts and fill the replay)."""
+        starting policy (those runs are the first ghosts)."""
         return self.args.ghost_tracks if self.args.stage == "ghost" else self.args.prefill_episodes
 
 
@@ -1597,6 +1597,8 @@ def validate_args(args: Args) -> None:
                 "checkpoints/latest.pt or a checkpoint file")  # fmt: skip
     elif args.checkpoint is not None:  # (a resumed run has its networks already)
         require(os.path.isfile(args.checkpoint), "checkpoint", "must be a checkpoint file")
+    elif args.fresh_replay:
+        raise UsageError("--fresh-replay applies to a run started from --checkpoint (give one, or drop the flag)")
 
 
 def available_memory() -> tuple[int | None, str]:
@@ -1706,14 +1708,20 @@ def setup_run(args: Args, overrides=()) -> Run:
     if resumed is not None:
         restore_run(run, resumed, checkpoint_path)
     elif start is not None:
-        saved = list((start.get("extra") or {}).get("replays") or [])
         for i, agent in enumerate(run.agents):
             source = i % len(start["agents"])
             load_agent_state(agent, start["agents"][source], args.checkpoint, source)
             directory = replay_dir_of(args.checkpoint, source)
-            if not args.fresh_replay and os.path.isdir(directory):  # the agent keeps learning from all it has seen
-                manifest = saved[source] if source < len(saved) else None
-                restore_replay(run.replays[i], directory, manifest, races=0)
+            if not args.fresh_replay and os.path.isfile(os.path.join(directory, "meta.npz")):
+                # The agent keeps learning from all it has seen: the newest save beside the checkpoint (for a
+                # best.pt, its run's replay at the end, which holds all best.pt had seen and what came after).
+                with np.load(os.path.join(directory, "meta.npz")) as meta:
+                    capacity = int(meta["capacity"])
+                if capacity != args.replay_capacity:
+                    raise UsageError(f"--replay-capacity {args.replay_capacity}: the replay beside --checkpoint "
+                                     f"({directory}) holds {capacity}; give --replay-capacity {capacity}, or "
+                                     "--fresh-replay to start with an empty one")  # fmt: skip
+                restore_replay(run.replays[i], directory, None, races=0)
                 print(f"car {i}: continues with the replay in {directory} ({len(run.replays[i]):,} steps)")
                 # (run.manifests stay None: the run's own replay directory holds no save until its first one)
     formats = ("stdout", "csv", "tensorboard") if args.print_table else ("csv", "tensorboard")

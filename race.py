@@ -450,7 +450,10 @@ def train(args: Args, racers: list, device) -> str:
                 updates_per_s = racer.module.train_agent(racer.agent, replay, train_args[i], logger, prefix)
                 logger.record(f"{prefix}perf/updates_per_s", updates_per_s)
             logger.record(f"{prefix}perf/updates", racer.agent.num_updates)
-            save_racer(racer, replay, os.path.join(checkpoint_dir, f"racer_{i}.pt"), episode + 1, env_steps)
+        for i in learners:  # every racer trained first, then all saved back to back: a kill rarely splits a pair
+            save_racer(racers[i], replays[i], os.path.join(checkpoint_dir, f"racer_{i}.pt"), episode + 1, env_steps)
+        for i in learners:
+            racer = racers[i]
             if racer.agent.nonfinite_in_a_row >= racer.args.max_nonfinite_updates:
                 logger.dump(env_steps)
                 raise SystemExit(f"race.py: {racer.name}: {racer.agent.nonfinite_in_a_row} updates in a row had a "

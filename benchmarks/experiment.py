@@ -39,6 +39,7 @@ import os
 import shutil
 import signal
 import sys
+import tempfile
 from typing import Literal
 
 import numpy as np
@@ -79,7 +80,8 @@ class Spec:
     eval_policy: Literal["deterministic", "mean-action", "stochastic"] = "stochastic"
     """the agents' policy in the tournaments and in the fresh-track measurements (race.py --policy): sampled as
     trained, or the mean action (with a sampled or the posterior-mean latent); head-to-head training races are
-    always sampled. It may change until the race stage begins (nothing is measured with it before)"""
+    always sampled. It may change until the race stage begins (the tables measured before are measured again
+    with the new policy)"""
     report_every: int = 500
     """updates of a dreamer trial between its reports to Tune"""
     fresh_tracks: int = 20
@@ -369,6 +371,9 @@ def check_spec(spec: Spec) -> None:
             if missing:
                 raise SystemExit(f"experiment.py: stage {stage} needs the {earlier} trials finished: "
                                  f"{', '.join(missing)}")  # fmt: skip
+    if spec.tournament_every < 1 or spec.race_episodes % spec.tournament_every:
+        raise SystemExit(f"experiment.py: --race-episodes ({spec.race_episodes}) must be a multiple of "
+                         f"--tournament-every ({spec.tournament_every})")  # fmt: skip
     if "race" in spec.stages and set(spec.variants) != {"lstm", "gru"}:
         raise SystemExit("experiment.py: the race stage pairs an LSTM and a GRU agent: --variants lstm gru")
     path = os.path.join(spec.storage, "spec.json")
@@ -493,7 +498,7 @@ def aggregate(spec: Spec) -> str:
                 "lstm_win_rate_ci_low": round(m["lstm_win_rate_ci_low"], 4),
                 "lstm_win_rate_ci_high": round(m["lstm_win_rate_ci_high"], 4),
             })  # fmt: skip
-        if tournaments:
+        if tournaments and m["races_trained"] > 0:  # (only the tournament before training: nothing to compare)
             final_rates["lstm"].append(m["lstm_wins"] / m["eval_races"])
             final_rates["gru"].append(m["gru_wins"] / m["eval_races"])
     write_csv(os.path.join(spec.results, "head_to_head.csv"), head_rows)
@@ -508,18 +513,20 @@ def fresh_return(spec: Spec, path: str, first: int) -> float:
     spec.eval_policy), measured once: kept in <storage>/evaluations.json under the file's path, size and
     modification time, so a rerun of the aggregation measures only checkpoints that are new or have changed."""
     cache_path = os.path.join(spec.storage, "evaluations.json")
-    cache = {}
-    if os.path.exists(cache_path):
+    try:
         with open(cache_path) as f:
             cache = json.load(f)
+    except (OSError, ValueError):  # none yet (or unreadable): measured again, nothing is lost
+        cache = {}
     stat = os.stat(path)
     key = f"{os.path.abspath(path)}|{stat.st_size}|{stat.st_mtime_ns}|{spec.eval_policy}|{first}|{spec.fresh_tracks}"
     if key not in cache:
         cache[key] = learning.evaluate_checkpoint(path, first, spec.fresh_tracks, spec.eval_policy)["eval_return"]
         os.makedirs(spec.storage, exist_ok=True)
-        with open(cache_path + ".tmp", "w") as f:
+        fd, tmp = tempfile.mkstemp(dir=spec.storage, suffix=".tmp")  # two writers never share a temporary file
+        with os.fdopen(fd, "w") as f:
             json.dump(cache, f, indent=1)
-        os.replace(cache_path + ".tmp", cache_path)
+        os.replace(tmp, cache_path)
     return cache[key]
 
 
@@ -575,6 +582,7 @@ def claims_table(single_returns: dict[str, list[float]], ghost_rows: list[dict],
     pairs: dict[str, list[dict]] = {}
     for r in head_rows:
         pairs.setdefault(r["seed_pair"], []).append(r)
+    pairs = {k: rs for k, rs in pairs.items() if any(int(r["races_trained"]) > 0 for r in rs)}  # training began
     if pairs:
         ends = [sorted(rs, key=lambda r: int(r["races_trained"])) for rs in pairs.values()]
         rate = {"lstm": lambda r: int(r["lstm_wins"]) / int(r["eval_races"]),
@@ -589,7 +597,7 @@ def claims_table(single_returns: dict[str, list[float]], ghost_rows: list[dict],
             mean, ci, digits=2,
         ))  # fmt: skip
         # recovery: from the first tournament after head-to-head training began (the one at 0 is before it)
-        firsts = [next((r for r in rs if int(r["races_trained"]) > 0), rs[0]) for rs in ends]
+        firsts = [next(r for r in rs if int(r["races_trained"]) > 0) for rs in ends]
         mean, ci = paired([rate["lstm"](rs[-1]) - rate["lstm"](first) for rs, first in zip(ends, firsts)])
         lines.append(row(
             "trained against each other, the LSTM recovers (about race 120) and outperforms",

@@ -666,8 +666,8 @@ def policy_rule_rows(
     path: str = os.path.join(RESULTS, "policy_rule.csv"), tracks: tuple[int, int] = SCREEN_TRACKS,
 ) -> list[dict]:
     """The rule's measurements: for each run of the default method in `final_csv` (a final policy), its latest.pt
-    with both SCREEN_POLICIES on `tracks`. A run already in `path` at the same updates and tracks is not measured
-    again; the rows are saved to `path` (replaced atomically) and returned, sorted by variant and seed."""
+    sampled and with its mean action on `tracks`. The same run at the same updates and tracks in `path` is not
+    measured again; the rows are saved to `path` (replaced atomically) and returned, sorted by variant and seed."""
     with open(final_csv, newline="") as f:
         finals = [r for r in csv.DictReader(f) if r["exp_name"] == experiment_name(r["variant"])]
     saved = {}
@@ -678,15 +678,18 @@ def policy_rule_rows(
     rows = []
     for final in finals:
         variant, seed, updates = final["variant"], int(final["seed"]), int(final["updates"])
-        earlier = saved.get((variant, seed))
-        if earlier and int(earlier["updates"]) == updates and earlier["tracks"] == name:
-            rows.append(earlier)
-            continue
         run = find_run(final["exp_name"], seed, runs_dir)
         if run is None:
             raise ValueError(f"no run of {final['exp_name']} seed {seed} in {runs_dir} (it has a row in {final_csv})")
+        earlier = saved.get((variant, seed))
+        if earlier and (int(earlier["updates"]), earlier["tracks"], earlier["run"]) == (
+            updates, name, os.path.basename(run)
+        ):
+            rows.append(earlier)  # this run's final policy, measured before
+            continue
         latest = os.path.join(run, "checkpoints", "latest.pt")
-        sampled, mean_action = (evaluate_checkpoint(latest, *tracks, policy) for policy in SCREEN_POLICIES)
+        sampled = evaluate_checkpoint(latest, *tracks, "stochastic")
+        mean_action = evaluate_checkpoint(latest, *tracks, "mean-action")
         if sampled["updates"] != updates:
             raise ValueError(f"{latest} has {sampled['updates']} updates, its row in {final_csv} {updates}")
         rows.append({

@@ -790,6 +790,10 @@ def test_ghost_stage_records_and_races_a_ghost(single_run, tmp_path):
     races = checkpoint["counters"]["episode"]
     assert single.episodes >= 1 and own.episodes == single.episodes + races
     assert np.array_equal(own.obs[: single.size], single.obs[: single.size])  # its first steps are the single run's
+    with pytest.raises(script.UsageError, match=r"^--replay-capacity 3000: the replay beside --checkpoint .* "
+                       r"holds 2000; give --replay-capacity 2000, or --fresh-replay"):  # fmt: skip
+        script.main(dataclasses.replace(args, replay_capacity=3000, runs_dir=str(tmp_path / "other")))
+    assert not (tmp_path / "other").exists()  # refused before anything was written
     fresh_dir = script.main(dataclasses.replace(args, fresh_replay=True, runs_dir=str(tmp_path / "fresh")))
     fresh = torch.load(os.path.join(fresh_dir, "checkpoints", "latest.pt"), weights_only=True)
     assert fresh["extra"]["replays"][0]["episodes"] == fresh["counters"]["episode"]  # --fresh-replay: its own only

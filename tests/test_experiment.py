@@ -9,6 +9,7 @@ import dataclasses
 import glob
 import json
 import os
+import shutil
 import sys
 
 import numpy as np
@@ -17,6 +18,7 @@ from conftest import TINY
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
 import experiment  # noqa: E402
+import race  # noqa: E402
 
 TINY_FLAGS = {
     **TINY, "batch_size": 2, "imagination_horizon": 3, "max_steps": 30, "train_steps_per_episode": 1,
@@ -229,7 +231,8 @@ def test_the_claims_table_answers_each_claim_from_hand_made_results():
 
     head = [tournament("11,11", 50, 20, 70, 0.13), tournament("11,11", 150, 30, 60, 0.22),
             tournament("12,12", 50, 40, 50, 0.31), tournament("12,12", 150, 20, 70, 0.13),
-            tournament("11,11", 0, 90, 10, 0.8), tournament("12,12", 0, 90, 10, 0.8)]  # (0: before training)
+            tournament("11,11", 0, 90, 10, 0.8), tournament("12,12", 0, 90, 10, 0.8),  # (0: before training)
+            tournament("13,13", 0, 100, 0, 0.95)]  # a pair whose training has not begun: not a result yet
     table = experiment.claims_table(single, ghost, head, reps=300).splitlines()
     solo, versus, recovery, ghost_row = (line.split(" | ") for line in table[2:6])
     assert solo[2].startswith("500.0 [") and solo[3].startswith("supported")
@@ -237,7 +240,7 @@ def test_the_claims_table_answers_each_claim_from_hand_made_results():
     assert 300.0 <= low < 500.0 < high <= 700.0  # within the extremes of the resampled gaps
     # last tournaments: 0.30 - 0.60 and 0.20 - 0.70 -> mean -0.40, every resample negative
     assert versus[2].startswith("-0.40 [") and versus[3].startswith("contradicted")
-    assert "above 0.5 in 0 of 2" in versus[1]
+    assert "above 0.5 in 0 of 2" in versus[1] and "mean over 2 seed pairs" in versus[1]
     # the LSTM's rate from the first tournament after training began: +0.10 and -0.20 -> mean -0.05, the interval
     # spans 0 (from the tournaments before training, at 0.90, it would be -0.65)
     assert recovery[2].startswith("-0.05 [") and recovery[3].startswith("not supported")
@@ -251,7 +254,6 @@ def fake_race(tmp_path, monkeypatch):
     that many races, with racer 0 saved once more if split) or
     runs a tournament (writes results.json), recording every call."""
     pytest.importorskip("ray")
-    import race
     from ray import tune
 
     spec = experiment.Spec(seeds=(3,), race_episodes=4, tournament_every=2, tournament_races=2, storage=str(tmp_path))
@@ -317,8 +319,6 @@ def test_a_race_trial_continues_a_cut_interval_and_never_retrains_a_trained_one(
     assert len(runs) == 2  # the cut run and its continuation
     assert reported == [0, 2, 0, 2, 4]
     calls.clear()
-    import shutil
-
     shutil.rmtree(os.path.join(directory, "tournament_00004"))  # a tournament cut short: raced again, alone
     experiment.race_trial(config)
     assert kinds(calls) == [("tournament", "tournament_00004.tmp")]
@@ -327,7 +327,9 @@ def test_a_race_trial_continues_a_cut_interval_and_never_retrains_a_trained_one(
     assert calls == []  # all done: nothing raced again
 
 
-def test_a_race_interval_split_by_a_kill_between_its_saves_continues_from_the_pair_saved_together(fake_race):
+def test_a_race_interval_split_by_a_kill_between_its_saves_continues_from_the_pair_saved_together(
+    fake_race, monkeypatch
+):
     plain, config, calls, cut, _ = fake_race
     interval = os.path.join(experiment.trial_dir(plain, "race", "lstm_gru", 3), "races_00002")
     cut["races_00002"] = (1, True)
@@ -338,19 +340,15 @@ def test_a_race_interval_split_by_a_kill_between_its_saves_continues_from_the_pa
     assert kinds(calls)[:2] == [("train", 2, "ghost_lstm_seed3"), ("tournament", "tournament_00002.tmp")]
     assert len(os.listdir(interval)) == 1  # the split run was removed with its interval, raced again whole
     (run,) = os.listdir(interval)
-    import race
-
     extra = os.path.join(interval, "multi_car_racing__race__3__1800000000", "checkpoints")  # a newer, split run
     os.makedirs(extra)
     for i in (0, 1):
         open(os.path.join(extra, f"racer_{i}.pt"), "w").close()
     table = {os.path.join(extra, "racer_0.pt"): 2, os.path.join(extra, "racer_1.pt"): 1}
-    real = race.read_checkpoint
-    race.read_checkpoint = lambda p: (None, {"counters": {"race_episodes": table[p]}}) if p in table else real(p)
-    try:
-        paths, done = experiment.interval_racers(interval)
-    finally:
-        race.read_checkpoint = real
+    fake = race.read_checkpoint
+    monkeypatch.setattr(race, "read_checkpoint", lambda p: (None, {"counters": {"race_episodes": table[p]}})
+                        if p in table else fake(p))  # fmt: skip
+    paths, done = experiment.interval_racers(interval)
     assert done == 2 and os.path.join(interval, run) in paths[0]
     assert os.listdir(interval) == [run]  # the split newer run is gone: its logs would count races twice
 
@@ -392,3 +390,8 @@ def test_the_aggregation_measures_each_checkpoint_once(tmp_path, monkeypatch):
     assert experiment.fresh_return(dataclasses.replace(spec, eval_policy="mean-action"), str(path), 10_100) == 102.0
     path.write_bytes(b"a resumed run's new checkpoint")  # the same path, another file: measured again
     assert experiment.fresh_return(spec, str(path), 10_100) == 103.0 and len(calls) == 3
+
+
+def test_a_race_stage_whose_races_do_not_fill_its_tournaments_is_refused(tmp_path):
+    with pytest.raises(SystemExit, match=r"--race-episodes \(140\) must be a multiple of --tournament-every \(50\)"):
+        experiment.check_spec(experiment.Spec(race_episodes=140, storage=str(tmp_path)))

@@ -439,6 +439,10 @@ def test_the_policy_rule_measures_each_final_policy_once_on_the_screening_tracks
     calls.clear()
     again = learning.policy_rule_rows(str(root / "runs"), str(final), path)
     assert calls == [] and [float(r["difference"]) for r in again] == [-7.0, 110.0, 120.0]  # read back, not re-run
+    newer = root / "runs" / "multi_car_racing__learning_lstm__12__1800000000"  # another run of the same name
+    (newer / "checkpoints").mkdir(parents=True)
+    learning.policy_rule_rows(str(root / "runs"), str(final), path)
+    assert [c[0] for c in calls] == [str(newer / "checkpoints" / "latest.pt")] * 2  # it is measured, not reused
     learning.write_final_row({"exp_name": "learning_gru", "variant": "gru", "seed": 11, "updates": 9000}, str(final))
     with pytest.raises(ValueError, match="latest.pt has 8000 updates, its row in .* 9000"):
         learning.policy_rule_rows(str(root / "runs"), str(final), path)  # a stale checkpoint is named, not measured
@@ -463,7 +467,7 @@ def test_the_policy_rule_decides_on_three_seeds_per_variant_with_variants_as_str
     split = learning.policy_rule(rows([1.0, 2.0, 3.0], [101.0, 102.0, 103.0]), reps=500)
     assert split["mean"] == pytest.approx(52.0) and 51.0 <= split["ci"][0] <= split["ci"][1] <= 53.0
     assert split["policy"] == "mean-action"
-    # one variant's large gain does not outvote the other's loss: mean (100 - 300) / 2 = -100 at every resample
+    # only the first 3 seeds of each variant count: mean (100 - 300) / 2 = -100 at every resample
     loss = learning.policy_rule(rows([100.0, 100.0, 100.0, 5000.0], [-300.0, -300.0, -300.0]), reps=200)
     assert loss["mean"] == pytest.approx(-100.0) and loss["policy"] == "stochastic"  # seed 14 is not in the rule
     # an interval that reaches below 0 keeps the sampled policy, though the mean difference is positive

@@ -120,6 +120,7 @@ BAD_ARGUMENTS = [
     (["--seed", "-3"], "--seed must lie in [0, 2**32), got -3"),
     (["--resume", "no/such/run"], "--resume must be a run directory with checkpoints/latest.pt or a checkpoint file"),
     (["--checkpoint", "no/such.pt"], "--checkpoint must be a checkpoint file, got 'no/such.pt'"),
+    (["--fresh-replay"], "--fresh-replay applies to a run started from --checkpoint"),
 ]  # fmt: skip
 
 
