@@ -108,7 +108,7 @@ def test_the_same_spec_again_does_nothing(finished):
 def test_a_rerun_with_other_trials_or_a_missing_stage_is_refused_before_ray_starts(finished, tmp_path):
     with pytest.raises(SystemExit, match="holds an experiment with other single_updates"):
         experiment.check_spec(dataclasses.replace(finished, single_updates=5))
-    with pytest.raises(SystemExit, match="stage ghost needs the single trials single_lstm_seed1"):
+    with pytest.raises(SystemExit, match=r"needs the single trials finished: single_lstm_seed1 \(not started\)"):
         experiment.check_spec(experiment.Spec(seeds=(1,), stages=("ghost",), storage=str(tmp_path)))
     with pytest.raises(ValueError, match="not name=value"):
         experiment.check_spec(experiment.Spec(overrides=("no_such_flag=1",), storage=str(tmp_path)))
