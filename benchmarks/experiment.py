@@ -497,6 +497,7 @@ def aggregate(spec: Spec) -> str:
                 "lstm_wins": m["lstm_wins"], "gru_wins": m["gru_wins"], "both_out": m["both_out"],
                 "lstm_win_rate_ci_low": round(m["lstm_win_rate_ci_low"], 4),
                 "lstm_win_rate_ci_high": round(m["lstm_win_rate_ci_high"], 4),
+                "lstm_progress": round(m["lstm_progress"], 4), "gru_progress": round(m["gru_progress"], 4),
             })  # fmt: skip
         if tournaments and m["races_trained"] > 0:  # (only the tournament before training: nothing to compare)
             final_rates["lstm"].append(m["lstm_wins"] / m["eval_races"])
@@ -598,6 +599,17 @@ def claims_table(single_returns: dict[str, list[float]], ghost_rows: list[dict],
         ))  # fmt: skip
         # recovery: from the first tournament after head-to-head training began (the one at 0 is before it)
         firsts = [next(r for r in rs if int(r["races_trained"]) > 0) for rs in ends]
+        before = [(rs[0], first) for rs, first in zip(ends, firsts) if int(rs[0]["races_trained"]) == 0]
+        if before and all("lstm_progress" in r for r in before[0]):
+            drops = [np.mean([float(r0[f"{v}_progress"]) - float(r1[f"{v}_progress"]) for v in ("lstm", "gru")])
+                     for r0, r1 in before]  # fmt: skip
+            mean, ci = paired(drops)
+            lines.append(row(
+                "head-to-head training first perturbs both agents",
+                f"mean progress of both agents in the tournament before head-to-head training - in the first after "
+                f"it (races 0 to {firsts[0]['races_trained']}), mean over {len(drops)} seed pairs",
+                mean, ci, digits=2,
+            ))  # fmt: skip
         mean, ci = paired([rate["lstm"](rs[-1]) - rate["lstm"](first) for rs, first in zip(ends, firsts)])
         lines.append(row(
             "trained against each other, the LSTM recovers (about race 120) and outperforms",

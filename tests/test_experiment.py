@@ -220,21 +220,26 @@ def test_a_whole_experiment_killed_mid_trial_resumes_on_the_same_command(tmp_pat
 
 def test_the_claims_table_answers_each_claim_from_hand_made_results():
     """Clear-cut numbers, so each verdict is known by hand: the solo gap is large and consistent (supported),
-    head to head the GRU wins every final tournament (contradicted), the LSTM's win rate rises in one pair and
+    head to head the GRU wins every final tournament (contradicted), both agents lose progress when head-to-head
+    training begins (supported), the LSTM's win rate rises in one pair and
     falls in another (not supported), and the ghost helps by exactly 50 in every run (supported, interval 50)."""
     single = {"lstm": [600.0, 700.0, 800.0], "gru": [100.0, 200.0, 300.0]}
     ghost = [{"return_after_ghost": 350.0 + k, "return_after_control": 300.0 + k} for k in range(4)]
 
-    def tournament(pair, races, lstm, gru, low):
+    def tournament(pair, races, lstm, gru, low, progress=(0.5, 0.5)):
         return {"seed_pair": pair, "races_trained": races, "eval_races": 100, "lstm_wins": lstm, "gru_wins": gru,
-                "lstm_win_rate_ci_low": low}  # fmt: skip
+                "lstm_win_rate_ci_low": low, "lstm_progress": progress[0], "gru_progress": progress[1]}  # fmt: skip
 
-    head = [tournament("11,11", 50, 20, 70, 0.13), tournament("11,11", 150, 30, 60, 0.22),
+    head = [tournament("11,11", 50, 20, 70, 0.13, (0.5, 0.6)), tournament("11,11", 150, 30, 60, 0.22),
             tournament("12,12", 50, 40, 50, 0.31), tournament("12,12", 150, 20, 70, 0.13),
-            tournament("11,11", 0, 90, 10, 0.8), tournament("12,12", 0, 90, 10, 0.8),  # (0: before training)
+            tournament("11,11", 0, 90, 10, 0.8, (0.8, 0.7)), tournament("12,12", 0, 90, 10, 0.8, (0.6, 0.6)),
             tournament("13,13", 0, 100, 0, 0.95)]  # a pair whose training has not begun: not a result yet
     table = experiment.claims_table(single, ghost, head, reps=300).splitlines()
-    solo, versus, recovery, ghost_row = (line.split(" | ") for line in table[2:6])
+    solo, versus, perturbed, recovery, ghost_row = (line.split(" | ") for line in table[2:7])
+    # progress drops from race 0 to race 50: pair 11 (0.3 + 0.1) / 2 = 0.2, pair 12 0.1 -> mean 0.15, both > 0
+    assert perturbed[2].startswith("0.15 [") and perturbed[3].startswith("supported")
+    low, high = (float(v) for v in perturbed[2].split("[")[1].rstrip("]").split(","))
+    assert 0.1 <= low <= high <= 0.2 and "(races 0 to 50), mean over 2 seed pairs" in perturbed[1]
     assert solo[2].startswith("500.0 [") and solo[3].startswith("supported")
     low, high = (float(v) for v in solo[2].split("[")[1].rstrip("]").split(","))
     assert 300.0 <= low < 500.0 < high <= 700.0  # within the extremes of the resampled gaps
