@@ -381,7 +381,7 @@ def check_spec(spec: Spec) -> None:
     if saved is not None:
         changed = sorted(k for k in TRIAL_FIELDS if saved[k] != wanted[k])
         if changed == ["eval_policy"] and not race_started(plain):
-            # nothing was measured with it yet (the tournaments are its first use): it may still be chosen
+            # no tournament has used it yet, and the tables are measured again with the new one: it may change
             print(f"experiment.py: --eval-policy {spec.eval_policy} (was {saved['eval_policy']}) for {spec.storage}")
             with open(path + ".tmp", "w") as f:
                 json.dump(wanted, f, indent=1)
