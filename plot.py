@@ -11,7 +11,8 @@ CleanRL run name ``{env_id}__{exp_name}__{seed}__{time}``. Per-agent tags
 
 Each curve is smoothed with a Gaussian filter (``--sigma`` in logged points, scipy's
 ``gaussian_filter1d``), resampled onto a common x grid, and drawn as the mean across seeds
-(and agents) with a band of one standard deviation. Figures (one PNG each):
+(and agents) with a band of one standard deviation, each seed's own curve drawn thin beside it (also where
+it runs longer than the others). Figures (one PNG each):
 
 * ``single_agent_return.png``  - stage ``single``: episodic return
 * ``multi_agent_return.png``   - stage ``race``: episodic return
@@ -221,7 +222,8 @@ def aggregate(curves: list[tuple[np.ndarray, np.ndarray]], sigma: float):
 
 def plot_metric(ax, groups, tag: str, sigma: float, stage: str | tuple[str, ...] | None = None) -> list[str]:
     """Mean and one standard deviation across the seeds of each group (of `stage`, or of any of several stages,
-    or of every stage) that logged `tag`; returns the labels drawn."""
+    or of every stage) that logged `tag`, over the x range they all share, with each seed's own curve drawn thin
+    (unlabelled) beside it; returns the labels drawn."""
     stages = (stage,) if isinstance(stage, str) else stage
     labels, x_labels = [], set()
     for (variant, group_stage), runs in groups.items():
@@ -237,6 +239,8 @@ def plot_metric(ax, groups, tag: str, sigma: float, stage: str | tuple[str, ...]
         label = f"{variant} ({seeds})" if stages and len(stages) == 1 else f"{variant}/{group_stage} ({seeds})"
         (line,) = ax.plot(grid, mean, label=label)
         ax.fill_between(grid, mean - std, mean + std, color=line.get_color(), alpha=0.2)
+        for x, values in curves:  # every seed (and agent) thin and whole, also beyond the range all share
+            ax.plot(x, smooth(values, sigma), color=line.get_color(), lw=0.7, alpha=0.35, label="_seed")
         labels.append(label)
     ax.set_xlabel(x_labels.pop() if len(x_labels) == 1 else "step")
     ax.grid(alpha=0.3)

@@ -86,11 +86,16 @@ def test_figures_have_the_expected_series(logdir, tmp_path):
     for name in figures:
         assert os.path.getsize(tmp_path / name) > 1000
     labels = [line.get_label() for line in figures["single_agent_return.png"].axes[0].lines]
-    assert sorted(labels) == ["gru (3 seeds)", "lstm (3 seeds)"]
+    assert sorted(labels) == ["_seed"] * 6 + ["gru (3 seeds)", "lstm (3 seeds)"]  # each seed drawn thin too
     lines = {line.get_label(): line.get_ydata() for line in figures["single_agent_return.png"].axes[0].lines}
     assert lines["lstm (3 seeds)"][-1] > lines["gru (3 seeds)"][-1]  # lstm's synthetic curve is steeper
     win = figures["multi_agent_win_rate.png"].axes[0].lines[0].get_ydata()
     np.testing.assert_allclose(win, 0.5, atol=1e-6)  # agents at 0.45 and 0.55 average to 0.5
+
+
+def labelled(ax) -> list[str]:
+    """The labels of an axes' labelled lines (the groups), without the thin unlabelled per-seed curves."""
+    return [line.get_label() for line in ax.lines if not line.get_label().startswith("_")]
 
 
 def test_bad_logdir_is_a_clear_error(tmp_path, capsys):
@@ -166,12 +171,12 @@ def test_losses_are_drawn_per_x_unit_and_controls_beside_the_ghost(logdir, tmp_p
     steps = figures["losses.png"].axes[0]
     races = figures["losses_race.png"].axes[0]
     assert steps.get_xlabel() == "step" and races.get_xlabel() == "races"
-    assert "lstm/race (3 seeds)" in [line.get_label() for line in steps.lines]  # the step-counted race runs only
-    assert [line.get_label() for line in races.lines] == ["lstm/race (1 seed)"]
+    assert "lstm/race (3 seeds)" in labelled(steps)  # the step-counted race runs only
+    assert labelled(races) == ["lstm/race (1 seed)"]
     assert max(line.get_xdata().max() for line in races.lines) == 3
-    single = [line.get_label() for line in figures["single_agent_return.png"].axes[0].lines]
+    single = labelled(figures["single_agent_return.png"].axes[0])
     assert sorted(single) == ["gru (3 seeds)", "lstm (3 seeds)"]  # the continued run is no fourth seed
-    ghost = sorted(line.get_label() for line in figures["ghost_return.png"].axes[0].lines)
+    ghost = sorted(labelled(figures["ghost_return.png"].axes[0]))
     assert ghost == ["lstm/ghost (1 seed)", "lstm/single-continued (1 seed)"]
 
 
