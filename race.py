@@ -377,7 +377,7 @@ def evaluate(args, racers) -> list[dict]:
     frames = []
     if args.races % len(racers):
         print(f"note: {args.races} races is not a multiple of {len(racers)} racers: start slots are not balanced")
-    all_out = 0  # races in which every car was eliminated
+    all_out = no_winner = dead_heats = 0  # races in which every car was eliminated / nobody won / several won
     for race in range(args.races):
         seed, grid = schedule(args.seed, race, len(racers))
         filmed = race == 0 and video_env is not None
@@ -386,7 +386,10 @@ def evaluate(args, racers) -> list[dict]:
         for tally, info, won, ret in zip(tallies, result.final_infos, result.winners, result.returns):
             tally.add(info, won, ret)
         all_out += all(info.get("eliminated") is not None for info in result.final_infos)
-    rows = [{**t.row(), "all_eliminated": all_out} for t in tallies]
+        no_winner += not any(result.winners)
+        dead_heats += sum(result.winners) > 1
+    # (race-wide counts, the same on every row: wins + no_winner - dead_heats (for two cars) = races)
+    rows = [{**t.row(), "all_eliminated": all_out, "no_winner": no_winner, "dead_heats": dead_heats} for t in tallies]
     print(format_table(rows))
     out = args.out or os.path.join("races", time.strftime("%Y%m%d-%H%M%S"))
     for path in write_outputs(out, rows, frames):

@@ -284,7 +284,8 @@ def tournament_metrics(tournament: str, trained: int) -> dict:
                          f"{gru['racer']}")  # fmt: skip
     return {
         "races_trained": trained, "eval_races": lstm["races"], "lstm_wins": lstm["wins"], "gru_wins": gru["wins"],
-        "both_out": lstm.get("all_eliminated", 0), "lstm_win_rate": lstm["win_rate"],
+        "both_out": lstm["all_eliminated"], "no_winner": lstm["no_winner"], "dead_heats": lstm["dead_heats"],
+        "lstm_win_rate": lstm["win_rate"],
         "lstm_win_rate_ci_low": lstm["win_rate_ci_low"], "lstm_win_rate_ci_high": lstm["win_rate_ci_high"],
         "lstm_progress": lstm["mean_progress"], "gru_progress": gru["mean_progress"],
         "lstm_eliminations": lstm["eliminations"], "gru_eliminations": gru["eliminations"],
@@ -395,6 +396,14 @@ def check_spec(spec: Spec) -> None:
             json.dump(wanted, f, indent=1)
 
 
+def trial_progress(spec: dict, kind: str, variant: str, seed: int) -> tuple[str | None, int, int]:
+    """A dreamer trial's run directory (None: not started), the updates its latest.pt has made and its target."""
+    run = run_of(trial_dir(spec, kind, variant, seed))
+    script, _, _, target = trial_args(spec, kind, variant, seed)
+    done = updates_of(os.path.join(run, "checkpoints", "latest.pt"), script) if run else 0
+    return run, done, target
+
+
 def unfinished(spec: dict, stage: str, variants, seeds) -> list[str]:
     """The trials of a single or ghost stage (ghost: with its controls) that have not made all their updates, each
     named with how far it got."""
@@ -402,13 +411,11 @@ def unfinished(spec: dict, stage: str, variants, seeds) -> list[str]:
     for variant in variants:
         for seed in seeds:
             for kind in ["single"] if stage == "single" else ["ghost", "control"]:
-                name, run = f"{kind}_{variant}_seed{seed}", run_of(trial_dir(spec, kind, variant, seed))
+                name = f"{kind}_{variant}_seed{seed}"
+                run, done, target = trial_progress(spec, kind, variant, seed)
                 if run is None:
                     names.append(f"{name} (not started)")
-                    continue
-                script, _, _, target = trial_args(spec, kind, variant, seed)
-                done = updates_of(os.path.join(run, "checkpoints", "latest.pt"), script)
-                if done < target:
+                elif done < target:
                     names.append(f"{name} ({done} of {target} updates)")
     return names
 
@@ -441,10 +448,13 @@ def main(spec: Spec) -> None:
     spec = dataclasses.replace(spec, storage=os.path.abspath(spec.storage))
     if not spec.aggregate_only:
         check_spec(spec)
-    elif (saved := saved_spec(spec.storage)) is not None and saved["eval_policy"] != spec.eval_policy:
-        policy = saved["eval_policy"]
-        raise SystemExit(f"experiment.py: the experiment in {spec.storage} measures its agents with --eval-policy "
-                         f"{policy}; its tables take the same: give --eval-policy {policy}")  # fmt: skip
+    elif (saved := saved_spec(spec.storage)) is not None:
+        if saved["eval_policy"] != spec.eval_policy:
+            policy = saved["eval_policy"]
+            raise SystemExit(f"experiment.py: the experiment in {spec.storage} measures its agents with "
+                             f"--eval-policy {policy}; its tables take the same: give --eval-policy {policy}")
+        # the tables are of the experiment as it was run (its seeds, variants and budgets), whatever the flags say
+        spec = dataclasses.replace(spec, **{k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()})
     if not spec.aggregate_only:
         import ray
 
@@ -459,54 +469,81 @@ def main(spec: Spec) -> None:
 
 
 # --- Aggregation -----------------------------------------------------------------------------
-def aggregate(spec: Spec) -> str:
-    """ghost_vs_control.csv, head_to_head.csv and experiment.md from the trials there are; returns the summary."""
-    import learning
+GHOST_COLUMNS = ("variant", "seed", "updates_at_start", "updates", "return_before", "return_after_ghost",
+                 "return_after_control")  # fmt: skip
+HEAD_COLUMNS = ("seed_pair", "races_trained", "eval_races", "lstm_wins", "gru_wins", "both_out", "no_winner",
+                "dead_heats", "lstm_win_rate_ci_low", "lstm_win_rate_ci_high", "lstm_progress", "gru_progress",
+                "lstm_eliminations", "gru_eliminations", "collision_steps")  # fmt: skip
 
+
+def aggregate(spec: Spec) -> str:
+    """ghost_vs_control.csv, head_to_head.csv and experiment.md from the trials there are; returns the summary.
+
+    Only finished trials are results: a single, ghost or control trial that has made all its updates, and a seed
+    pair whose tournament after the last head-to-head race exists. head_to_head.csv lists every tournament held so
+    far; the statistics use the finished pairs, and the summary names what it left out."""
     os.makedirs(spec.results, exist_ok=True)
     plain, first = dataclasses.asdict(spec), 10_100
     single_returns: dict[str, list[float]] = {}
-    ghost_rows = []
+    ghost_rows, left_out = [], []
     for variant in spec.variants:
         for seed in spec.seeds:
-            runs = {k: run_of(trial_dir(plain, k, variant, seed)) for k in ("single", "ghost", "control")}
-            if runs["single"] is None:
+            run, done, target = trial_progress(plain, "single", variant, seed)
+            if run is None or done < target:
+                left_out.append(f"single_{variant}_seed{seed} ({done} of {target} updates)")
                 continue
 
             def fresh(run: str, name: str) -> float:
                 return fresh_return(spec, os.path.join(run, "checkpoints", name), first)
 
-            single_returns.setdefault(variant, []).append(fresh(runs["single"], "latest.pt"))
-            if runs["ghost"] and runs["control"]:
-                best = os.path.join(runs["single"], "checkpoints", "best.pt")
-                updates = updates_of(best, importlib.import_module(f"dreamer_{variant}"))
-                ghost_rows.append({
-                    "variant": variant, "seed": seed, "updates_at_start": updates, "updates": spec.ghost_updates,
-                    "return_before": fresh(runs["single"], "best.pt"),
-                    "return_after_ghost": fresh(runs["ghost"], "latest.pt"),
-                    "return_after_control": fresh(runs["control"], "latest.pt"),
-                })  # fmt: skip
-    write_csv(os.path.join(spec.results, "ghost_vs_control.csv"), ghost_rows)
-    head_rows, final_rates = [], {"lstm": [], "gru": []}
+            single_returns.setdefault(variant, []).append(fresh(run, "latest.pt"))
+            stage = {k: trial_progress(plain, k, variant, seed) for k in ("ghost", "control")}
+            if any(r is None or d < t for r, d, t in stage.values()):
+                left_out += [f"{k}_{variant}_seed{seed} ({d} of {t} updates)" for k, (r, d, t) in stage.items()
+                             if r is not None and d < t]  # fmt: skip
+                continue
+            best = os.path.join(run, "checkpoints", "best.pt")
+            start = updates_of(best, importlib.import_module(f"dreamer_{variant}"))
+            ghost_rows.append({
+                "variant": variant, "seed": seed, "updates_at_start": start, "updates": stage["ghost"][1] - start,
+                "return_before": fresh(run, "best.pt"),
+                "return_after_ghost": fresh(stage["ghost"][0], "latest.pt"),
+                "return_after_control": fresh(stage["control"][0], "latest.pt"),
+            })  # fmt: skip
+    write_csv(os.path.join(spec.results, "ghost_vs_control.csv"), GHOST_COLUMNS, ghost_rows)
+    head_rows = []
     for seed in spec.seeds:
         tournaments = sorted(glob.glob(os.path.join(trial_dir(plain, "race", "lstm_gru", seed), "tournament_*[0-9]")))
         for tournament in tournaments:
             m = tournament_metrics(tournament, int(tournament.rsplit("_", 1)[1]))
-            head_rows.append({
-                "seed_pair": f"{seed},{seed}", "races_trained": m["races_trained"], "eval_races": m["eval_races"],
-                "lstm_wins": m["lstm_wins"], "gru_wins": m["gru_wins"], "both_out": m["both_out"],
-                "lstm_win_rate_ci_low": round(m["lstm_win_rate_ci_low"], 4),
-                "lstm_win_rate_ci_high": round(m["lstm_win_rate_ci_high"], 4),
-                "lstm_progress": round(m["lstm_progress"], 4), "gru_progress": round(m["gru_progress"], 4),
-            })  # fmt: skip
-        if tournaments and m["races_trained"] > 0:  # (only the tournament before training: nothing to compare)
-            final_rates["lstm"].append(m["lstm_wins"] / m["eval_races"])
-            final_rates["gru"].append(m["gru_wins"] / m["eval_races"])
-    write_csv(os.path.join(spec.results, "head_to_head.csv"), head_rows)
-    summary = summarize(single_returns, final_rates) + "\n" + claims_table(single_returns, ghost_rows, head_rows)
+            head_rows.append({"seed_pair": f"{seed},{seed}", **{k: m[k] for k in HEAD_COLUMNS[1:]}})
+    write_csv(os.path.join(spec.results, "head_to_head.csv"), HEAD_COLUMNS, head_rows)
+    pairs = finished_pairs(head_rows, spec.race_episodes)
+    final_rates = {v: [int(rs[-1][f"{v}_wins"]) / int(rs[-1]["eval_races"]) for rs in pairs.values()]
+                   for v in ("lstm", "gru")}  # fmt: skip
+    left_out += [f"race pair {k} (tournaments up to {rs[-1]['races_trained']} of {spec.race_episodes} races)"
+                 for k, rs in group_pairs(head_rows).items() if k not in pairs]  # fmt: skip
+    summary = summarize(single_returns, final_rates)
+    summary += "\n" + claims_table(single_returns, ghost_rows, head_rows, spec.race_episodes)
+    if left_out:
+        summary += "\nNot finished, left out of the statistics: " + "; ".join(left_out) + ".\n"
     with open(os.path.join(spec.results, "experiment.md"), "w") as f:
         f.write(summary)
     return summary
+
+
+def group_pairs(head_rows: list[dict]) -> dict[str, list[dict]]:
+    """The tournaments of each seed pair, in the order of the races trained before them."""
+    pairs: dict[str, list[dict]] = {}
+    for r in head_rows:
+        pairs.setdefault(r["seed_pair"], []).append(r)
+    return {k: sorted(rs, key=lambda r: int(r["races_trained"])) for k, rs in pairs.items()}
+
+
+def finished_pairs(head_rows: list[dict], race_episodes: int) -> dict[str, list[dict]]:
+    """The seed pairs whose head-to-head training is done (a tournament after `race_episodes` races), each with its
+    tournaments in order: pairs at different lengths would not measure the same thing."""
+    return {k: rs for k, rs in group_pairs(head_rows).items() if int(rs[-1]["races_trained"]) == race_episodes}
 
 
 def fresh_return(spec: Spec, path: str, first: int) -> float:
@@ -551,25 +588,32 @@ def summarize(single_returns: dict[str, list[float]], final_rates: dict[str, lis
     return "\n".join(lines) + "\n"
 
 
+MIN_RUNS = 2  # fewer runs than this on a side of a claim: a bootstrap interval has no width, and no verdict
+
+
 def claims_table(single_returns: dict[str, list[float]], ghost_rows: list[dict], head_rows: list[dict],
-                 reps: int = 2000) -> str:  # fmt: skip
+                 race_episodes: int, reps: int = 2000) -> str:  # fmt: skip
     """Markdown: each claim of the paper, what measures it here, the estimate with its 95% interval, and what the
-    interval says (stats.verdict). Solo: LSTM mean - GRU mean of the single-stage final returns (independent runs,
-    stratified bootstrap). Head to head: per seed pair the LSTM's minus the GRU's win rate in the last tournament
-    (the same races: paired), and the LSTM's win rate at the last tournament minus at the first; the mean over
-    pairs with a bootstrap over pairs (with 3 pairs a coarse interval; each pair's Wilson interval is in
-    head_to_head.csv). Ghost: return after the ghost stage minus after its control, per variant and seed."""
+    interval says (stats.verdict; "too few runs" below MIN_RUNS). Solo: LSTM mean - GRU mean of the single-stage
+    final returns (independent runs, stratified bootstrap). Head to head, over the seed pairs that finished
+    `race_episodes` races: per pair the LSTM's minus the GRU's win rate in the last tournament (the same races:
+    paired); each agent's progress in the tournament before head-to-head training minus in the first after it (both
+    must drop: one row per agent); the LSTM's win rate at the last tournament minus at the first after training
+    began; the mean over pairs with a bootstrap over pairs (each pair's Wilson interval is in head_to_head.csv).
+    Ghost: return after the ghost stage minus after its control, per variant and seed. A note under the table says
+    when a paired mean is over so few runs (n <= 3) that its bootstrap 95% interval is their range."""
     from stats import interval_estimates, mean_difference, verdict
 
+    sizes = []
+
     def paired(diffs: list[float]) -> tuple[float, tuple[float, float]]:
+        sizes.append(len(diffs))
         est = interval_estimates({"d": np.asarray(diffs, float)[:, None]}, reps=reps)["d"]
         return est["mean"], est["mean_ci"]
 
-    def row(claim: str, measured: str, estimate: float, ci: tuple[float, float], digits: int = 1) -> str:
-        return (
-            f"| {claim} | {measured} | {estimate:.{digits}f} "
-            f"[{ci[0]:.{digits}f}, {ci[1]:.{digits}f}] | {verdict(ci)} |"
-        )
+    def row(claim: str, measured: str, estimate: float, ci: tuple[float, float], n: int, digits: int = 1) -> str:
+        judged = verdict(ci) if n >= MIN_RUNS else f"too few runs to judge (n = {n})"
+        return f"| {claim} | {measured} | {estimate:.{digits}f} [{ci[0]:.{digits}f}, {ci[1]:.{digits}f}] | {judged} |"
 
     lines = ["| claim of the paper | what we measured | estimate [95% CI] | verdict |", "|---|---|---|---|"]
     lstm, gru = single_returns.get("lstm", []), single_returns.get("gru", [])
@@ -578,44 +622,38 @@ def claims_table(single_returns: dict[str, list[float]], ghost_rows: list[dict],
         lines.append(row(
             "the LSTM-Dreamer beats the GRU-Dreamer as a solo agent",
             f"final single-stage return on the fresh tracks, LSTM mean - GRU mean ({len(lstm)} and {len(gru)} seeds)",
-            d["diff"], d["ci"],
+            d["diff"], d["ci"], min(len(lstm), len(gru)),
         ))  # fmt: skip
-    pairs: dict[str, list[dict]] = {}
-    for r in head_rows:
-        pairs.setdefault(r["seed_pair"], []).append(r)
-    pairs = {k: rs for k, rs in pairs.items() if any(int(r["races_trained"]) > 0 for r in rs)}  # training began
-    if pairs:
-        ends = [sorted(rs, key=lambda r: int(r["races_trained"])) for rs in pairs.values()]
+    ends = list(finished_pairs(head_rows, race_episodes).values())
+    ends = [rs for rs in ends if any(int(r["races_trained"]) > 0 for r in rs)]  # (race_episodes 0: no training)
+    if ends:
         rate = {"lstm": lambda r: int(r["lstm_wins"]) / int(r["eval_races"]),
                 "gru": lambda r: int(r["gru_wins"]) / int(r["eval_races"])}  # fmt: skip
         above = sum(float(rs[-1]["lstm_win_rate_ci_low"]) > 0.5 for rs in ends)
-        races = ", ".join(sorted({str(rs[-1]["races_trained"]) for rs in ends}, key=int))
         mean, ci = paired([rate["lstm"](rs[-1]) - rate["gru"](rs[-1]) for rs in ends])
         lines.append(row(
             "the LSTM-Dreamer beats the GRU-Dreamer head to head",
-            f"last tournament (after {races} races): LSTM win rate - GRU win rate, mean over {len(ends)} seed pairs; "
-            f"the LSTM's Wilson interval above 0.5 in {above} of {len(ends)}",
-            mean, ci, digits=2,
+            f"last tournament (after {race_episodes} races): LSTM win rate - GRU win rate, mean over {len(ends)} seed "
+            f"pairs; the LSTM's Wilson interval above 0.5 in {above} of {len(ends)}",
+            mean, ci, len(ends), digits=2,
         ))  # fmt: skip
-        # recovery: from the first tournament after head-to-head training began (the one at 0 is before it)
+        # the first tournament after head-to-head training began (the one at 0 is before it)
         firsts = [next(r for r in rs if int(r["races_trained"]) > 0) for rs in ends]
         before = [(rs[0], first) for rs, first in zip(ends, firsts) if int(rs[0]["races_trained"]) == 0]
-        if before and all("lstm_progress" in r for r in before[0]):
-            drops = [np.mean([float(r0[f"{v}_progress"]) - float(r1[f"{v}_progress"]) for v in ("lstm", "gru")])
-                     for r0, r1 in before]  # fmt: skip
-            mean, ci = paired(drops)
+        for v, name in (("lstm", "LSTM"), ("gru", "GRU")) if before else ():
+            mean, ci = paired([float(r0[f"{v}_progress"]) - float(r1[f"{v}_progress"]) for r0, r1 in before])
             lines.append(row(
-                "head-to-head training first perturbs both agents",
-                f"mean progress of both agents in the tournament before head-to-head training - in the first after "
-                f"it (races 0 to {firsts[0]['races_trained']}), mean over {len(drops)} seed pairs",
-                mean, ci, digits=2,
+                f"head-to-head training first perturbs both agents: the {name}",
+                f"the {name}'s mean progress in the tournament before head-to-head training - in the first after it "
+                f"(races 0 to {firsts[0]['races_trained']}), mean over {len(before)} seed pairs",
+                mean, ci, len(before), digits=2,
             ))  # fmt: skip
         mean, ci = paired([rate["lstm"](rs[-1]) - rate["lstm"](first) for rs, first in zip(ends, firsts)])
         lines.append(row(
             "trained against each other, the LSTM recovers (about race 120) and outperforms",
             f"LSTM win rate at the last tournament - at the first after training began (races "
-            f"{firsts[0]['races_trained']} to {races}), mean over {len(ends)} seed pairs",
-            mean, ci, digits=2,
+            f"{firsts[0]['races_trained']} to {race_episodes}), mean over {len(ends)} seed pairs",
+            mean, ci, len(ends), digits=2,
         ))  # fmt: skip
     if ghost_rows:
         diffs = [float(r["return_after_ghost"]) - float(r["return_after_control"]) for r in ghost_rows]
@@ -624,16 +662,20 @@ def claims_table(single_returns: dict[str, list[float]], ghost_rows: list[dict],
             "racing a ghost of its best run improves an agent (the curriculum's second stage)",
             f"return on the fresh tracks after the ghost stage - after its control (same start, same updates), "
             f"{len(diffs)} (variant, seed) pairs",
-            mean, ci,
+            mean, ci, len(diffs),
         ))  # fmt: skip
+    if any(MIN_RUNS <= n <= 3 for n in sizes):
+        lines += ["", "A mean over 3 runs or fewer (the paired rows): the bootstrap's 95% interval spans their "
+                      "smallest to their largest value (a resample of one run repeated has probability "
+                      "(1/n)^n > 2.5%), so \"supported\" there means that every run agrees, not a test at the 5% "
+                      "level."]  # fmt: skip
     return "\n".join(lines) + "\n"
 
 
-def write_csv(path: str, rows: list[dict]) -> None:
-    if not rows:
-        return
+def write_csv(path: str, columns: tuple[str, ...], rows: list[dict]) -> None:
+    """The rows under a fixed header (no rows: the header alone, so no table of an earlier experiment survives)."""
     with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer = csv.DictWriter(f, fieldnames=list(columns))
         writer.writeheader()
         writer.writerows(rows)
 

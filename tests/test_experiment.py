@@ -70,11 +70,21 @@ def test_every_stage_runs_to_completion_and_writes_the_tables(finished):
         assert latest(spec, "ghost", variant)[1]["args"]["stage"] == "ghost"
         assert latest(spec, "control", variant)[1]["args"]["stage"] == "single"
     with open(os.path.join(spec.results, "head_to_head.csv")) as f:
-        rows = list(csv.DictReader(f))
+        reader = csv.DictReader(f)
+        rows = list(reader)
+    assert tuple(reader.fieldnames) == experiment.HEAD_COLUMNS
     assert [int(r["races_trained"]) for r in rows] == [0, 1, 2] and all(r["seed_pair"] == "3,3" for r in rows)
-    assert all(int(r["eval_races"]) == 2 and int(r["lstm_wins"]) + int(r["gru_wins"]) <= 2 for r in rows)
+    for r in rows:
+        wins, races = int(r["lstm_wins"]), int(r["eval_races"])
+        assert races == 2 and wins + int(r["gru_wins"]) + int(r["no_winner"]) - int(r["dead_heats"]) == races
+        low, high = race.wilson_interval(wins, races)
+        assert np.isclose(float(r["lstm_win_rate_ci_low"]), low, atol=1e-4)
+        assert np.isclose(float(r["lstm_win_rate_ci_high"]), high, atol=1e-4)
     with open(os.path.join(spec.results, "ghost_vs_control.csv")) as f:
-        assert [r["variant"] for r in csv.DictReader(f)] == ["lstm", "gru"]
+        reader = csv.DictReader(f)
+        ghost = list(reader)
+    assert tuple(reader.fieldnames) == experiment.GHOST_COLUMNS
+    assert [(r["variant"], int(r["updates"])) for r in ghost] == [("lstm", 1), ("gru", 1)]
     summary = open(os.path.join(spec.results, "experiment.md")).read()
     assert "P(LSTM win rate > GRU win rate)" in summary
     assert "| the LSTM-Dreamer beats the GRU-Dreamer head to head | last tournament (after 2 races)" in summary
@@ -218,28 +228,33 @@ def test_a_whole_experiment_killed_mid_trial_resumes_on_the_same_command(tmp_pat
     assert checkpoint["extra"]["replays"][0]["episodes"] == checkpoint["counters"]["episode"]
 
 
+def tournament(pair, races, lstm, gru, low=0.5, progress=(0.5, 0.5)):
+    """A head_to_head.csv row: 100 evaluation races, `lstm` and `gru` wins."""
+    return {"seed_pair": pair, "races_trained": races, "eval_races": 100, "lstm_wins": lstm, "gru_wins": gru,
+            "lstm_win_rate_ci_low": low, "lstm_progress": progress[0], "gru_progress": progress[1]}  # fmt: skip
+
+
 def test_the_claims_table_answers_each_claim_from_hand_made_results():
     """Clear-cut numbers, so each verdict is known by hand: the solo gap is large and consistent (supported),
     head to head the GRU wins every final tournament (contradicted), both agents lose progress when head-to-head
-    training begins (supported), the LSTM's win rate rises in one pair and
-    falls in another (not supported), and the ghost helps by exactly 50 in every run (supported, interval 50)."""
+    training begins (supported for each), the LSTM's win rate rises in one pair and falls in another (not
+    supported), and the ghost helps by exactly 50 in every run (supported, interval 50)."""
     single = {"lstm": [600.0, 700.0, 800.0], "gru": [100.0, 200.0, 300.0]}
     ghost = [{"return_after_ghost": 350.0 + k, "return_after_control": 300.0 + k} for k in range(4)]
-
-    def tournament(pair, races, lstm, gru, low, progress=(0.5, 0.5)):
-        return {"seed_pair": pair, "races_trained": races, "eval_races": 100, "lstm_wins": lstm, "gru_wins": gru,
-                "lstm_win_rate_ci_low": low, "lstm_progress": progress[0], "gru_progress": progress[1]}  # fmt: skip
-
     head = [tournament("11,11", 50, 20, 70, 0.13, (0.5, 0.6)), tournament("11,11", 150, 30, 60, 0.22),
             tournament("12,12", 50, 40, 50, 0.31), tournament("12,12", 150, 20, 70, 0.13),
             tournament("11,11", 0, 90, 10, 0.8, (0.8, 0.7)), tournament("12,12", 0, 90, 10, 0.8, (0.6, 0.6)),
-            tournament("13,13", 0, 100, 0, 0.95)]  # a pair whose training has not begun: not a result yet
-    table = experiment.claims_table(single, ghost, head, reps=300).splitlines()
-    solo, versus, perturbed, recovery, ghost_row = (line.split(" | ") for line in table[2:7])
-    # progress drops from race 0 to race 50: pair 11 (0.3 + 0.1) / 2 = 0.2, pair 12 0.1 -> mean 0.15, both > 0
-    assert perturbed[2].startswith("0.15 [") and perturbed[3].startswith("supported")
-    low, high = (float(v) for v in perturbed[2].split("[")[1].rstrip("]").split(","))
-    assert 0.1 <= low <= high <= 0.2 and "(races 0 to 50), mean over 2 seed pairs" in perturbed[1]
+            tournament("13,13", 0, 100, 0, 0.95),  # a pair whose training has not begun: not a result yet
+            tournament("14,14", 0, 0, 100, 0.0, (0.9, 0.9)), tournament("14,14", 50, 100, 0, 0.95, (0.1, 0.1))]
+    #         (a pair stopped at 50 of 150 races: not a result yet either)
+    table = experiment.claims_table(single, ghost, head, race_episodes=150, reps=300).splitlines()
+    solo, versus, lstm_perturbed, gru_perturbed, recovery, ghost_row = (line.split(" | ") for line in table[2:8])
+    # progress from race 0 to race 50: LSTM 0.3 and 0.1 (mean 0.2), GRU 0.1 and 0.1 -> both drop
+    assert lstm_perturbed[2].startswith("0.20 [") and lstm_perturbed[3].startswith("supported")
+    low, high = (float(v) for v in lstm_perturbed[2].split("[")[1].rstrip("]").split(","))
+    assert 0.1 <= low <= high <= 0.3 and "(races 0 to 50), mean over 2 seed pairs" in lstm_perturbed[1]
+    assert gru_perturbed[2] == "0.10 [0.10, 0.10]" and gru_perturbed[3].startswith("supported")
+    assert "the GRU's mean progress" in gru_perturbed[1]
     assert solo[2].startswith("500.0 [") and solo[3].startswith("supported")
     low, high = (float(v) for v in solo[2].split("[")[1].rstrip("]").split(","))
     assert 300.0 <= low < 500.0 < high <= 700.0  # within the extremes of the resampled gaps
@@ -250,6 +265,90 @@ def test_the_claims_table_answers_each_claim_from_hand_made_results():
     # spans 0 (from the tournaments before training, at 0.90, it would be -0.65)
     assert recovery[2].startswith("-0.05 [") and recovery[3].startswith("not supported")
     assert ghost_row[2] == "50.0 [50.0, 50.0]" and ghost_row[3].startswith("supported")
+    assert "every run agrees, not a test at the 5% level" in table[-1]  # the paired rows are over 2 pairs
+
+
+def test_a_claim_on_one_run_is_not_judged_and_one_agent_gaining_is_not_both_perturbed():
+    head = [tournament("11,11", 0, 50, 50, progress=(0.4, 0.9)),
+            tournament("11,11", 50, 60, 40, progress=(0.6, 0.5))]
+    table = experiment.claims_table({"lstm": [600.0], "gru": [100.0]}, [], head, race_episodes=50, reps=100)
+    solo, versus, lstm_perturbed, gru_perturbed, recovery = (line.split(" | ") for line in table.splitlines()[2:7])
+    for row in (solo, versus, lstm_perturbed, gru_perturbed, recovery):  # one pair, one seed: an interval of no width
+        assert row[3].startswith("too few runs to judge (n = 1)")
+    assert lstm_perturbed[2] == "-0.20 [-0.20, -0.20]" and gru_perturbed[2] == "0.40 [0.40, 0.40]"
+    assert "every run agrees" not in table
+
+
+def results_json(directory, lstm_wins, gru_wins, races=10, progress=(0.5, 0.5)):
+    """A tournament's results.json as race.py writes it: LSTM then GRU."""
+    os.makedirs(directory)
+    shared = {"races": races, "all_eliminated": 1, "no_winner": races - lstm_wins - gru_wins, "dead_heats": 0,
+              "collision_steps": 3}  # fmt: skip
+    rows = [{**shared, "racer": f"{v}:x.pt:0", "wins": w, "win_rate": w / races, "mean_progress": p,
+             "win_rate_ci_low": 0.0, "win_rate_ci_high": 1.0, "eliminations": 1} for v, w, p in (("lstm", lstm_wins, progress[0]), ("gru", gru_wins, progress[1]))]
+    with open(os.path.join(directory, "results.json"), "w") as f:
+        json.dump(rows, f)
+
+
+def test_the_aggregation_counts_finished_trials_only_and_replaces_old_tables(tmp_path, monkeypatch):
+    """Fake trials (their progress and fresh-track returns given): an unfinished single trial, a ghost trial short
+    of its updates and a race pair short of its races are named and left out; the ghost and control returns land in
+    their own columns; tables of an earlier experiment do not survive."""
+    spec = experiment.Spec(seeds=(11, 12), race_episodes=100, tournament_every=50, storage=str(tmp_path / "s"),
+                           results=str(tmp_path / "results"))  # fmt: skip
+    plain = dataclasses.asdict(spec)
+    progress = {("single", "lstm", 11): 8000, ("single", "lstm", 12): 5000, ("single", "gru", 11): 8000,
+                ("single", "gru", 12): 8000, ("ghost", "lstm", 11): 9000, ("control", "lstm", 11): 9000,
+                ("ghost", "gru", 11): 9000, ("control", "gru", 11): 9000, ("ghost", "gru", 12): 7500,
+                ("control", "gru", 12): 9000}  # fmt: skip
+    returns = {"single": 100.0, "ghost": 300.0, "control": 200.0}
+    monkeypatch.setattr(experiment, "trial_progress", lambda spec, kind, variant, seed: (
+        f"/runs/{kind}_{variant}_{seed}" if (kind, variant, seed) in progress else None,
+        progress.get((kind, variant, seed), 0), 8000 if kind == "single" else 9000))  # fmt: skip
+    monkeypatch.setattr(experiment, "updates_of", lambda path, script: 7000)  # every best.pt at 7,000 updates
+    monkeypatch.setattr(experiment, "fresh_return", lambda spec, path, first: returns[path.split("/")[2].split("_")[0]]
+                        + (1.0 if path.endswith("best.pt") else 0.0) + (10.0 if "_gru_" in path else 0.0))  # fmt: skip
+    os.makedirs(spec.results)
+    for name in ("ghost_vs_control.csv", "head_to_head.csv"):
+        with open(os.path.join(spec.results, name), "w") as f:
+            f.write("an,earlier,experiment\n1,2,3\n")
+    pair = lambda seed, races: os.path.join(experiment.trial_dir(plain, "race", "lstm_gru", seed),  # noqa: E731
+                                            f"tournament_{races:05d}")  # fmt: skip
+    results_json(pair(11, 0), 5, 5), results_json(pair(11, 50), 2, 8), results_json(pair(11, 100), 7, 3)
+    results_json(pair(12, 0), 5, 5), results_json(pair(12, 50), 9, 0)  # (pair 12 stops at 50 of 100 races)
+    summary = experiment.aggregate(spec)
+    with open(os.path.join(spec.results, "ghost_vs_control.csv")) as f:
+        ghost = list(csv.DictReader(f))
+    assert [(r["variant"], r["seed"], r["updates_at_start"], r["updates"]) for r in ghost] == [
+        ("lstm", "11", "7000", "2000"), ("gru", "11", "7000", "2000")]  # fmt: skip
+    assert [(float(r["return_before"]), float(r["return_after_ghost"]), float(r["return_after_control"]))
+            for r in ghost] == [(101.0, 300.0, 200.0), (111.0, 310.0, 210.0)]  # fmt: skip
+    with open(os.path.join(spec.results, "head_to_head.csv")) as f:
+        head = list(csv.DictReader(f))
+    assert [(r["seed_pair"], r["races_trained"], r["lstm_wins"], r["no_winner"]) for r in head] == [
+        ("11,11", "0", "5", "0"), ("11,11", "50", "2", "0"), ("11,11", "100", "7", "0"),
+        ("12,12", "0", "5", "0"), ("12,12", "50", "9", "1")]  # fmt: skip
+    assert "| lstm | 1 |" in summary and "| gru | 2 |" in summary  # lstm seed 12 is not finished
+    assert "across 1 seed pair(s)" in summary and "1.00 [1.00, 1.00]" in summary  # pair 11 only: 0.7 > 0.3
+    assert ("Not finished, left out of the statistics: single_lstm_seed12 (5000 of 8000 updates); ghost_gru_seed12 "
+            "(7500 of 9000 updates); race pair 12,12 (tournaments up to 50 of 100 races).") in summary
+    for seed in (11, 12):  # nothing finished any more: the headers alone, no earlier rows
+        shutil.rmtree(experiment.trial_dir(plain, "race", "lstm_gru", seed))
+    progress.clear()
+    experiment.aggregate(spec)
+    tables = {"ghost_vs_control.csv": experiment.GHOST_COLUMNS, "head_to_head.csv": experiment.HEAD_COLUMNS}
+    for name, columns in tables.items():
+        with open(os.path.join(spec.results, name)) as f:
+            assert f.read().splitlines() == [",".join(columns)]
+
+
+def test_the_aggregation_reads_the_experiment_as_it_was_run(tmp_path, monkeypatch):
+    spec = experiment.Spec(seeds=(11, 12, 13), stages=("single",), storage=str(tmp_path))
+    experiment.check_spec(spec)
+    seen = []
+    monkeypatch.setattr(experiment, "aggregate", lambda spec: seen.append(spec.seeds) or "")
+    experiment.main(dataclasses.replace(spec, seeds=(11,), aggregate_only=True))  # the flags' seeds would leave out 2
+    assert seen == [(11, 12, 13)]
 
 
 @pytest.fixture
@@ -287,7 +386,8 @@ def fake_race(tmp_path, monkeypatch):
         else:
             os.makedirs(value("--out"))
             rows = [{"racer": f"{v}:x/racer.pt:0", "races": 2, "wins": 1, "win_rate": 0.5, "win_rate_ci_low": 0.1,
-                     "win_rate_ci_high": 0.9, "mean_progress": 0.5, "eliminations": 0, "collision_steps": 0}
+                     "win_rate_ci_high": 0.9, "mean_progress": 0.5, "eliminations": 0, "collision_steps": 0,
+                     "all_eliminated": 0, "no_winner": 0, "dead_heats": 0}
                     for v in ("lstm", "gru")]  # fmt: skip
             with open(os.path.join(value("--out"), "results.json"), "w") as f:
                 json.dump(rows, f)
