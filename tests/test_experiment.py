@@ -285,7 +285,8 @@ def results_json(directory, lstm_wins, gru_wins, races=10, progress=(0.5, 0.5)):
     shared = {"races": races, "all_eliminated": 1, "no_winner": races - lstm_wins - gru_wins, "dead_heats": 0,
               "collision_steps": 3}  # fmt: skip
     rows = [{**shared, "racer": f"{v}:x.pt:0", "wins": w, "win_rate": w / races, "mean_progress": p,
-             "win_rate_ci_low": 0.0, "win_rate_ci_high": 1.0, "eliminations": 1} for v, w, p in (("lstm", lstm_wins, progress[0]), ("gru", gru_wins, progress[1]))]
+             "win_rate_ci_low": 0.0, "win_rate_ci_high": 1.0, "eliminations": 1}
+            for v, w, p in (("lstm", lstm_wins, progress[0]), ("gru", gru_wins, progress[1]))]
     with open(os.path.join(directory, "results.json"), "w") as f:
         json.dump(rows, f)
 
