@@ -396,12 +396,18 @@ def check_spec(spec: Spec) -> None:
             json.dump(wanted, f, indent=1)
 
 
-def trial_progress(spec: dict, kind: str, variant: str, seed: int) -> tuple[str | None, int, int]:
-    """A dreamer trial's run directory (None: not started), the updates its latest.pt has made and its target."""
+def trial_progress(spec: dict, kind: str, variant: str, seed: int) -> tuple[str | None, int, int | None]:
+    """A dreamer trial's run directory, the updates its latest.pt has made and its target; (None, 0, None) for a
+    trial not started (a ghost or control trial's target depends on the best.pt it will start from)."""
     run = run_of(trial_dir(spec, kind, variant, seed))
+    if run is None:
+        return None, 0, None
     script, _, _, target = trial_args(spec, kind, variant, seed)
-    done = updates_of(os.path.join(run, "checkpoints", "latest.pt"), script) if run else 0
-    return run, done, target
+    return run, updates_of(os.path.join(run, "checkpoints", "latest.pt"), script), target
+
+
+def progress_text(name: str, run: str | None, done: int, target: int | None) -> str:
+    return f"{name} (not started)" if run is None else f"{name} ({done} of {target} updates)"
 
 
 def unfinished(spec: dict, stage: str, variants, seeds) -> list[str]:
@@ -411,12 +417,9 @@ def unfinished(spec: dict, stage: str, variants, seeds) -> list[str]:
     for variant in variants:
         for seed in seeds:
             for kind in ["single"] if stage == "single" else ["ghost", "control"]:
-                name = f"{kind}_{variant}_seed{seed}"
                 run, done, target = trial_progress(spec, kind, variant, seed)
-                if run is None:
-                    names.append(f"{name} (not started)")
-                elif done < target:
-                    names.append(f"{name} ({done} of {target} updates)")
+                if run is None or done < target:
+                    names.append(progress_text(f"{kind}_{variant}_seed{seed}", run, done, target))
     return names
 
 
@@ -490,7 +493,7 @@ def aggregate(spec: Spec) -> str:
         for seed in spec.seeds:
             run, done, target = trial_progress(plain, "single", variant, seed)
             if run is None or done < target:
-                left_out.append(f"single_{variant}_seed{seed} ({done} of {target} updates)")
+                left_out.append(progress_text(f"single_{variant}_seed{seed}", run, done, target))
                 continue
 
             def fresh(run: str, name: str) -> float:
@@ -499,7 +502,7 @@ def aggregate(spec: Spec) -> str:
             single_returns.setdefault(variant, []).append(fresh(run, "latest.pt"))
             stage = {k: trial_progress(plain, k, variant, seed) for k in ("ghost", "control")}
             if any(r is None or d < t for r, d, t in stage.values()):
-                left_out += [f"{k}_{variant}_seed{seed} ({d} of {t} updates)" for k, (r, d, t) in stage.items()
+                left_out += [progress_text(f"{k}_{variant}_seed{seed}", r, d, t) for k, (r, d, t) in stage.items()
                              if r is not None and d < t]  # fmt: skip
                 continue
             best = os.path.join(run, "checkpoints", "best.pt")
@@ -516,7 +519,8 @@ def aggregate(spec: Spec) -> str:
         tournaments = sorted(glob.glob(os.path.join(trial_dir(plain, "race", "lstm_gru", seed), "tournament_*[0-9]")))
         for tournament in tournaments:
             m = tournament_metrics(tournament, int(tournament.rsplit("_", 1)[1]))
-            head_rows.append({"seed_pair": f"{seed},{seed}", **{k: m[k] for k in HEAD_COLUMNS[1:]}})
+            head_rows.append({"seed_pair": f"{seed},{seed}",
+                              **{k: round(m[k], 4) if isinstance(m[k], float) else m[k] for k in HEAD_COLUMNS[1:]}})
     write_csv(os.path.join(spec.results, "head_to_head.csv"), HEAD_COLUMNS, head_rows)
     pairs = finished_pairs(head_rows, spec.race_episodes)
     final_rates = {v: [int(rs[-1][f"{v}_wins"]) / int(rs[-1]["eval_races"]) for rs in pairs.values()]

@@ -120,6 +120,8 @@ def test_a_rerun_with_other_trials_or_a_missing_stage_is_refused_before_ray_star
         experiment.check_spec(dataclasses.replace(finished, single_updates=5))
     with pytest.raises(SystemExit, match=r"needs the single trials finished: single_lstm_seed1 \(not started\)"):
         experiment.check_spec(experiment.Spec(seeds=(1,), stages=("ghost",), storage=str(tmp_path)))
+    with pytest.raises(SystemExit, match=r"needs the ghost trials finished: ghost_lstm_seed1 \(not started\)"):
+        experiment.check_spec(experiment.Spec(seeds=(1,), stages=("race",), storage=str(tmp_path)))  # nothing ran
     with pytest.raises(ValueError, match="not name=value"):
         experiment.check_spec(experiment.Spec(overrides=("no_such_flag=1",), storage=str(tmp_path)))
 
@@ -333,6 +335,8 @@ def test_the_aggregation_counts_finished_trials_only_and_replaces_old_tables(tmp
     assert "across 1 seed pair(s)" in summary and "1.00 [1.00, 1.00]" in summary  # pair 11 only: 0.7 > 0.3
     assert ("Not finished, left out of the statistics: single_lstm_seed12 (5000 of 8000 updates); ghost_gru_seed12 "
             "(7500 of 9000 updates); race pair 12,12 (tournaments up to 50 of 100 races).") in summary
+    progress.pop(("single", "gru", 12))  # a trial not started yet
+    assert "single_gru_seed12 (not started)" in experiment.aggregate(spec)
     for seed in (11, 12):  # nothing finished any more: the headers alone, no earlier rows
         shutil.rmtree(experiment.trial_dir(plain, "race", "lstm_gru", seed))
     progress.clear()
