@@ -453,8 +453,7 @@ def train(args: Args, racers: list, device) -> str:
                 updates_per_s = racer.module.train_agent(racer.agent, replay, train_args[i], logger, prefix)
                 logger.record(f"{prefix}perf/updates_per_s", updates_per_s)
             logger.record(f"{prefix}perf/updates", racer.agent.num_updates)
-        for i in learners:  # every racer trained first, then all saved back to back: a kill rarely splits a pair
-            save_racer(racers[i], replays[i], os.path.join(checkpoint_dir, f"racer_{i}.pt"), episode + 1, env_steps)
+        save_racers({i: (racers[i], replays[i]) for i in learners}, checkpoint_dir, episode + 1, env_steps)
         for i in learners:
             racer = racers[i]
             if racer.agent.nonfinite_in_a_row >= racer.args.max_nonfinite_updates:
@@ -469,15 +468,24 @@ def train(args: Args, racers: list, device) -> str:
     return run_dir
 
 
-def save_racer(racer: DreamerRacer, replay, path: str, races: int, env_steps: int) -> None:
-    """The racer's checkpoint and, beside it, its replay (``<stem>_replay_car_0``): the replay first, then the
-    checkpoint naming that save, so a kill between the two leaves the previous pair."""
-    replay_dir = f"{os.path.splitext(path)[0]}_replay_car_0"
-    manifest = replay.save(replay_dir)
-    before = int(racer.counters.get("race_episodes", 0))  # races of earlier head-to-head sittings
-    counters = {**racer.counters, "episode": races, "race_episodes": before + races, "race_env_steps": env_steps}
-    racer.module.save_checkpoint(path, racer.args, [racer.agent], counters, {"replays": [manifest]})
-    racer.module.Replay.prune(replay_dir, manifest)
+def save_racers(learning: dict, checkpoint_dir: str, races: int, env_steps: int) -> None:
+    """Every learning racer's checkpoint (``racer_<i>.pt``) with its replay beside it (``racer_<i>_replay_car_0``),
+    as one pair: each replay is saved first, then a pending checkpoint naming that save, and only when all are
+    written do the pending checkpoints replace the previous ones, back to back. A kill while saving leaves the
+    previous pair (a later sitting continues from racers saved after the same race) except in the microseconds
+    between those renames; the replay chunks that no checkpoint names any more are deleted last."""
+    pending = {}
+    for i, (racer, replay) in learning.items():
+        path = os.path.join(checkpoint_dir, f"racer_{i}.pt")
+        manifest = replay.save(f"{os.path.splitext(path)[0]}_replay_car_0")
+        before = int(racer.counters.get("race_episodes", 0))  # races of earlier head-to-head sittings
+        counters = {**racer.counters, "episode": races, "race_episodes": before + races, "race_env_steps": env_steps}
+        racer.module.save_checkpoint(path + ".pending", racer.args, [racer.agent], counters, {"replays": [manifest]})
+        pending[i] = (path, manifest)
+    for path, _ in pending.values():
+        os.replace(path + ".pending", path)
+    for i, (path, manifest) in pending.items():
+        learning[i][0].module.Replay.prune(f"{os.path.splitext(path)[0]}_replay_car_0", manifest)
 
 
 def main(argv=None):

@@ -80,8 +80,9 @@ class Spec:
     eval_policy: Literal["deterministic", "mean-action", "stochastic"] = "stochastic"
     """the agents' policy in the tournaments and in the fresh-track measurements (race.py --policy): sampled as
     trained, or the mean action (with a sampled or the posterior-mean latent); head-to-head training races are
-    always sampled. It may change until the race stage begins (the tables measured before are measured again
-    with the new policy)"""
+    always sampled; also the evaluation policy (--eval-policy) of the dreamer trials, which selects their best.pt.
+    It may change until the race stage begins (the tables measured before are measured again with the new
+    policy; a finished stage keeps the best.pt it selected)"""
     report_every: int = 500
     """updates of a dreamer trial between its reports to Tune"""
     fresh_tracks: int = 20
@@ -133,7 +134,8 @@ def trial_args(spec: dict, stage: str, variant: str, seed: int):
     """The dreamer script of a single, ghost or control trial, the Args of its run, the updates it starts from
     (None: from scratch) and the updates it ends at."""
     script = importlib.import_module(f"dreamer_{variant}")
-    settings = {**parse_overrides(script, spec["overrides"]), "torch_threads": spec["torch_threads"], "seed": seed}
+    settings = {**parse_overrides(script, spec["overrides"]), "torch_threads": spec["torch_threads"], "seed": seed,
+                "eval_policy": spec["eval_policy"]}  # fmt: skip
     if stage == "single":
         first, target = None, spec["single_updates"]
         # the learning benchmark's run (benchmarks/learning.py --runs-dir <storage>/trials reads it) unless the
@@ -165,7 +167,8 @@ def dreamer_trial(config: dict) -> None:
     from ray import tune
 
     config = config["trial"]  # (the grid puts each trial's settings under "trial")
-    spec, stage, variant, seed = config["spec"], config["stage"], config["variant"], config["seed"]
+    spec = {**dataclasses.asdict(Spec()), **config["spec"]}  # a restored older trial: defaults
+    stage, variant, seed = config["stage"], config["variant"], config["seed"]
     script, args, first, target = trial_args(spec, stage, variant, seed)
     directory = trial_dir(spec, stage, variant, seed)
     goal = (first or 0) + spec["report_every"]
@@ -178,7 +181,9 @@ def dreamer_trial(config: dict) -> None:
             script.main(script.Args(resume=run, total_updates=min(goal, target)), {"total_updates"})
         run = run_of(directory)
         tune.report(latest_metrics(run))
-        done = latest_metrics(run)["updates"]
+        # latest.pt, not progress.csv, says what is done: a kill between its save and the csv row (the end of a
+        # race) leaves the csv a race behind, and the trial must still end
+        done = updates_of(os.path.join(run, "checkpoints", "latest.pt"), script)
         chaos = spec["chaos_kill_after_updates"]
         marker = os.path.join(directory, "chaos_killed")
         if chaos and stage == "single" and done >= chaos and not os.path.exists(marker):
@@ -258,8 +263,8 @@ def race_trial(config: dict) -> None:
 def interval_racers(interval: str) -> tuple[list[str], int] | None:
     """The newest pair of racer checkpoints (LSTM, GRU) in the run directories of `interval` that were saved after
     the same race, and the head-to-head races they have done in all; None if there is none. Runs newer than that
-    pair (a kill between the two saves of one race leaves racer 0 a race ahead) are removed: the interval
-    continues from the pair, and their logs would count races twice."""
+    pair (a kill in the microseconds between the two renames that end the saves of one race leaves racer 0 a
+    race ahead) are removed: the interval continues from the pair, and their logs would count races twice."""
     import race
 
     runs = sorted(path for path in glob.glob(os.path.join(interval, "*")) if os.path.isdir(path))

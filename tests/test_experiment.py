@@ -505,3 +505,27 @@ def test_the_aggregation_measures_each_checkpoint_once(tmp_path, monkeypatch):
 def test_a_race_stage_whose_races_do_not_fill_its_tournaments_is_refused(tmp_path):
     with pytest.raises(SystemExit, match=r"--race-episodes \(140\) must be a multiple of --tournament-every \(50\)"):
         experiment.check_spec(experiment.Spec(race_episodes=140, storage=str(tmp_path)))
+
+
+def test_a_trial_whose_checkpoint_is_done_ends_though_its_csv_is_a_race_behind(tmp_path, monkeypatch):
+    """A kill between a race's latest.pt and its progress.csv row leaves the csv behind the checkpoint; the
+    retried trial has nothing left to train and must end (its counter is latest.pt's), not report forever."""
+    pytest.importorskip("ray")
+    from ray import tune
+
+    spec = dataclasses.asdict(experiment.Spec(storage=str(tmp_path), single_updates=1000, report_every=500))
+    os.makedirs(os.path.join(experiment.trial_dir(spec, "single", "gru", 12), "run", "checkpoints"))
+    open(os.path.join(experiment.trial_dir(spec, "single", "gru", 12), "run", "checkpoints", "latest.pt"), "w").close()
+    reports = []
+
+    def report(metrics):
+        reports.append(metrics)
+        if len(reports) > 3:
+            raise RuntimeError("the trial did not end")
+
+    monkeypatch.setattr(tune, "report", report)
+    monkeypatch.setattr(experiment, "updates_of", lambda path, script: 1000)  # the checkpoint: done
+    monkeypatch.setattr(experiment, "latest_metrics", lambda run: {"updates": 900})  # its csv: a race behind
+    monkeypatch.setattr(dreamer_lstm_or_gru("gru"), "main", lambda *a: pytest.fail("nothing is left to train"))
+    experiment.dreamer_trial({"trial": {"spec": spec, "stage": "single", "variant": "gru", "seed": 12}})
+    assert reports == [{"updates": 900}]

@@ -4,8 +4,10 @@ import importlib
 import json
 import math
 import os
+import types
 
 import pytest
+import torch
 from conftest import TINY_RUN
 
 import race
@@ -215,3 +217,43 @@ def test_the_same_train_command_trains_the_same_agents(tiny_checkpoints, tmp_pat
         weights.append(torch.cat([t.flatten().float() for net in ("world_model", "actor", "critic")
                                   for t in agent[net].values()]))  # fmt: skip
     assert weights[0].numel() > 1000 and torch.equal(weights[0], weights[1])
+
+
+def test_racers_are_saved_as_a_pair_a_kill_while_saving_leaves_the_previous_pair(tmp_path, monkeypatch):
+    """save_racers writes every racer's replay and a pending checkpoint before it replaces any saved checkpoint,
+    so a kill (here: an exception in place of the first rename) leaves both racers as they were after the same
+    race; a save that completes leaves no pending file and both racers at the new race."""
+    written = []
+
+    class Module:
+        class Replay:
+            @staticmethod
+            def prune(directory, manifest):
+                written.append(("prune", os.path.basename(directory)))
+
+        @staticmethod
+        def save_checkpoint(path, args, agents, counters, extra):
+            torch.save({"counters": counters, "extra": extra}, path)
+            written.append(("checkpoint", os.path.basename(path)))
+
+    class Replay:
+        def save(self, directory):
+            written.append(("replay", os.path.basename(directory)))
+            return {"files": []}
+
+    racer = types.SimpleNamespace(module=Module, args=None, agent=None, counters={"race_episodes": 50})
+    learning = {0: (racer, Replay()), 1: (racer, Replay())}
+    race.save_racers(learning, str(tmp_path), races=1, env_steps=10)
+    saved = [torch.load(tmp_path / f"racer_{i}.pt")["counters"]["race_episodes"] for i in (0, 1)]
+    assert saved == [51, 51] and not list(tmp_path.glob("*.pending"))
+    # every checkpoint is written (after its replay) before any is pruned
+    assert [kind for kind, _ in written] == ["replay", "checkpoint", "replay", "checkpoint", "prune", "prune"]
+
+    def killed(src, dst):
+        raise KeyboardInterrupt("killed")
+
+    monkeypatch.setattr(race.os, "replace", killed)
+    with pytest.raises(KeyboardInterrupt):
+        race.save_racers(learning, str(tmp_path), races=2, env_steps=20)
+    saved = [torch.load(tmp_path / f"racer_{i}.pt")["counters"]["race_episodes"] for i in (0, 1)]
+    assert saved == [51, 51]  # the previous pair, whole
