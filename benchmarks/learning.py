@@ -7,6 +7,7 @@
     python benchmarks/learning.py --variant lstm --seed 11 --diagnose      # sigma, entropy, kl_dyn... per 500 updates
     python benchmarks/learning.py --runs-dir runs/experiment/trials --variant gru --seed 12 --final
     python benchmarks/learning.py --evaluate runs/learning/<run>/checkpoints/latest.pt --first-track 10100 --tracks 20
+    python benchmarks/learning.py --calibrate runs/learning/<run>/checkpoints/latest.pt   # optimistic critic/model?
     python benchmarks/learning.py --variant lstm --seed 11 --return-norm --screen 3100 \\
         --reference-runs-dir runs/experiment/trials                   # an ablation against the default run
     python benchmarks/learning.py --runs-dir runs/experiment/trials --policy-rule   # sampled or mean action?
@@ -24,6 +25,8 @@ evaluating every 5 races on the 10 held-out tracks (seeds 10000..10009) and keep
 * with ``--screen``: rows of ``screening/screens.csv``, an ablation and the default run at the same update count;
 * with ``--policy-rule``: ``policy_rule.csv`` and ``.md``, the final policies sampled and with their mean action on
   the screening tracks, and the evaluation policy the rule of docs/learning.md picks from them;
+* with ``--calibrate``: a row of ``calibration.csv``, the agent's value and imagined return of real states against
+  what the real episodes returned from them;
 * with ``--final``: the run's row of ``learning_final.csv`` (its final and best policies on the 20 fresh tracks
   10100..10119) and, in ``learning_final.md``, the IQM and mean over seeds with stratified-bootstrap intervals
   (rliable) and the parts of the bar each variant fails.
@@ -323,6 +326,137 @@ def evaluate_checkpoint(
     if args.env_id == "multi_car_racing":  # action 0 is the steer there (highway-env: the acceleration)
         result["mean_abs_steer"] = float(abs_steer.mean())
     return result
+
+
+# --- Are the critic and the imagination optimistic on real episodes? ---------------------------------------
+CALIBRATION_COLUMNS = (
+    "checkpoint", "variant", "updates", "tracks", "horizon", "starts", "value", "realised_return",
+    "realised_task_return", "imagined_task_return", "real_task_return", "horizon_starts",
+)  # fmt: skip
+
+
+def realised_returns(rewards: np.ndarray, terminated: np.ndarray, bonus: np.ndarray, last_value: float,
+                     gamma: float) -> np.ndarray:  # fmt: skip
+    """What the critic estimates, realised on one real episode of T+1 frames (index t: frame t; rewards[t] and
+    terminated[t] came with frame t): G_t = r_{t+1} + bonus_t + gamma (1 - terminated_{t+1}) G_{t+1} for t < T, with
+    G_T = last_value (the critic's bootstrap where the episode was truncated; unused where it terminated). This is
+    the lambda-return recursion of the scripts with real rewards, terminations and (bonus = -alpha log pi) actions in
+    place of imagined ones. Returns G_0 .. G_{T-1}."""
+    returns, following = np.zeros(len(rewards) - 1), float(last_value)
+    for t in range(len(rewards) - 2, -1, -1):
+        following = rewards[t + 1] + bonus[t] + gamma * (1.0 - float(terminated[t + 1])) * following
+        returns[t] = following
+    return returns
+
+
+def horizon_task_returns(rewards: np.ndarray, terminated: np.ndarray, gamma: float, horizon: int) -> np.ndarray:
+    """J_t = sum_{k < H} gamma^k r_{t+k+1} of one real episode (the real counterpart of an H-step imagination from
+    frame t, task reward only); NaN where the episode was truncated before t + H (its rewards there are unknown).
+    A terminated episode has no reward after its last frame."""
+    last = len(rewards) - 1
+    returns = np.full(last, np.nan)
+    for t in range(last):
+        if t + horizon <= last or terminated[last]:
+            steps = rewards[t + 1 : t + 1 + horizon]
+            returns[t] = float(np.sum(steps * gamma ** np.arange(len(steps))))
+    return returns
+
+
+def calibrate_checkpoint(path: str, first_track: int = 10_100, tracks: int = 5, horizon: int | None = None) -> dict:
+    """Is the agent's value of real states, and its imagination from them, optimistic? The saved agent (a training
+    checkpoint: it needs its critic and reward head) drives its sampled policy, as trained, on tracks
+    ``first_track ..``; on every frame t of those real episodes (its posterior state, as imagination starts from):
+
+    * ``value``: the critic's V(s_t), against ``realised_return``: G_t, the same quantity realised (real rewards and
+      terminations, the entropy bonus -alpha log pi of a fresh action at s_t), and its task part alone;
+    * ``imagined_task_return``: the world model's H-step discounted reward from s_t, imagining with the actor (H:
+      the agent's imagination horizon), against ``real_task_return``: the H-step discounted reward that followed s_t
+      in the real episode (starts whose episode was truncated before t + H left out: ``horizon_starts``).
+
+    Means over all frames of all tracks. value > realised: the critic is optimistic; imagined > real: the actor
+    gets more reward in the model than on the road (the model is exploited or wrong)."""
+    import torch
+
+    from race import read_checkpoint
+    from utils import make_vec_env
+
+    script, checkpoint = read_checkpoint(path)
+    agent = script.agent_from_checkpoint(path, 0)
+    if agent.acting_only:
+        raise ValueError(f"{path}: an acting-only export has no critic or reward head; give a training checkpoint")
+    args = script.args_from_checkpoint(checkpoint, path, num_agents=1)
+    horizon = horizon or args.imagination_horizon
+    envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
+    torch.manual_seed(first_track)
+    episodes = []
+    try:
+        for seed in range(first_track, first_track + tracks):
+            envs.seed(seed)
+            obs, state = envs.reset(), None
+            episode = script.CarEpisode(script.preprocess_frames(obs, args.image_size)[0], agent.action_dim)
+            while True:
+                action, state = agent.act(script.preprocess_frames(obs, args.image_size), state, None, "stochastic")
+                obs, reward, dones, infos, _ = script.step_with_repeat(envs, action, args.action_repeat)
+                if dones[0]:  # (the vec env has reset: the episode's last frame is the terminal observation)
+                    frame = script.preprocess_frames(infos[0]["terminal_observation"][None], args.image_size)[0]
+                    episode.add(frame, action[0], reward[0], not infos[0]["TimeLimit.truncated"])
+                    break
+                episode.add(script.preprocess_frames(obs, args.image_size)[0], action[0], reward[0], False)
+            episodes.append(episode.arrays())
+    finally:
+        envs.close()
+    sums = dict.fromkeys(("value", "realised_return", "realised_task_return", "imagined", "real"), 0.0)
+    starts = horizon_starts = 0
+    wm, actor, gamma = agent.world_model, agent.actor, args.gamma
+    agent._set_training(False)  # running statistics, as when acting
+    with torch.no_grad():
+        for frames, actions, rewards, terminated in episodes:
+            is_first = torch.zeros(1, len(frames), dtype=torch.bool)
+            is_first[0, 0] = True
+            post = wm.observe(wm.encoder(torch.as_tensor(frames[None])), torch.as_tensor(actions[None]), is_first)
+            features = torch.cat([post["z"], post["h"]], -1)[0]
+            values = agent.critic(features)[0].numpy()
+            mean, std = actor(features)
+            log_pi = script.policy_log_prob(mean + std * torch.randn_like(std), mean, std).numpy()
+            bonus = -args.entropy_coef * log_pi
+            g = realised_returns(rewards, terminated, bonus, values[-1], gamma)
+            g_task = realised_returns(rewards, terminated, np.zeros_like(bonus), values[-1], gamma)
+            state = tuple(s[0, :-1] for s in post["states"])
+            imagined, _, _, _ = script.imagine_rollout(wm, actor, state, post["h"][0, :-1], post["z"][0, :-1], horizon)
+            reward = script.gaussian_params(wm.reward(imagined[1:]), script.HEAD_MIN_STD)[0].squeeze(-1)
+            continues = torch.sigmoid(wm.cont(imagined[1:]).float().squeeze(-1))
+            i_task = (script.discount_weights(continues, gamma) * reward).sum(0).numpy()
+            j_task = horizon_task_returns(rewards, terminated, gamma, horizon)
+            valid = ~np.isnan(j_task)
+            sums["value"] += values[:-1].sum()
+            sums["realised_return"] += g.sum()
+            sums["realised_task_return"] += g_task.sum()
+            sums["imagined"] += i_task[valid].sum()
+            sums["real"] += j_task[valid].sum()
+            starts, horizon_starts = starts + len(g), horizon_starts + int(valid.sum())
+    per_start = {k: v / max(starts, 1) for k, v in sums.items() if k not in ("imagined", "real")}
+    return {
+        "checkpoint": path, "variant": checkpoint["variant"], "updates": int(checkpoint["agents"][0]["num_updates"]),
+        "tracks": f"{first_track}..{first_track + tracks - 1}", "horizon": horizon, "starts": starts,
+        **{k: round(float(v), 2) for k, v in per_start.items()},
+        "imagined_task_return": round(float(sums["imagined"] / max(horizon_starts, 1)), 2),
+        "real_task_return": round(float(sums["real"] / max(horizon_starts, 1)), 2),
+        "horizon_starts": horizon_starts,
+    }  # fmt: skip
+
+
+def write_calibration_row(row: dict, path: str = os.path.join(RESULTS, "calibration.csv")) -> None:
+    """Add `row` to calibration.csv, replacing an earlier row of the same checkpoint, tracks and horizon."""
+    key = ("checkpoint", "tracks", "horizon")
+    rows = []
+    if os.path.exists(path):
+        with open(path, newline="") as f:
+            rows = [r for r in csv.DictReader(f) if tuple(str(r[k]) for k in key) != tuple(str(row[k]) for k in key)]
+    rows.append(row)
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=CALIBRATION_COLUMNS)
+        writer.writeheader()
+        writer.writerows(rows)
 
 
 FINAL_COLUMNS = (
@@ -876,11 +1010,21 @@ def main():
     )
     mode.add_argument("--evaluate", metavar="CHECKPOINT", help="only evaluate this saved agent alone (no training)")
     mode.add_argument(
+        "--calibrate", metavar="CHECKPOINT",
+        help="only measure whether this agent's critic and imagination are optimistic on real episodes (its sampled "
+        "policy on --tracks tracks from --first-track, default 10100); a row of benchmarks/results/calibration.csv",
+    )  # fmt: skip
+    parser.add_argument(
+        "--horizon", type=int, default=None, help="--calibrate: imagination horizon (default: the agent's own)"
+    )
+    mode.add_argument(
         "--export", nargs=2, metavar=("CHECKPOINT", "OUT"),
         help="only write agent 0 of CHECKPOINT as an acting-only export OUT (e.g. pretrained/lstm_cpu.pt)",
     )  # fmt: skip
-    parser.add_argument("--first-track", type=int, default=10_000, help="--evaluate: seed of the first track")
-    parser.add_argument("--tracks", type=int, default=10, help="--evaluate: number of tracks")
+    parser.add_argument(
+        "--first-track", type=int, default=None, help="--evaluate, --calibrate: seed of the first track (10000, 10100)"
+    )
+    parser.add_argument("--tracks", type=int, default=None, help="--evaluate, --calibrate: number of tracks (10, 5)")
     parser.add_argument(
         "--train-tracks", type=int, default=0, help="--evaluate: the last N tracks the run trained on instead",
     )  # fmt: skip
@@ -890,6 +1034,8 @@ def main():
         "and mean action",
     )  # fmt: skip
     args = parser.parse_args()
+    if args.horizon is not None and not args.calibrate:
+        parser.error("--horizon is the imagination horizon of --calibrate; give --calibrate CHECKPOINT")
     if args.reference_runs_dir is not None and args.screen is None:
         parser.error("--reference-runs-dir is the default run's place for --screen; give --screen UPDATES")
     if args.hours <= 0:
@@ -907,6 +1053,20 @@ def main():
         size = script.export_policy(args.export[0], args.export[1])
         print(f"wrote {args.export[1]} ({size / 1e6:.1f} MB)")
         return
+    if args.calibrate:
+        tracks = 5 if args.tracks is None else args.tracks
+        if tracks < 1 or (args.horizon is not None and args.horizon < 1):
+            parser.error(f"--tracks and --horizon must be >= 1, got {tracks} and {args.horizon}")
+        try:
+            first = 10_100 if args.first_track is None else args.first_track
+            row = calibrate_checkpoint(args.calibrate, first, tracks, args.horizon)
+        except ValueError as e:
+            parser.error(str(e))
+        write_calibration_row(row)
+        print(json.dumps(row, indent=1))
+        return
+    args.first_track = 10_000 if args.first_track is None else args.first_track
+    args.tracks = 10 if args.tracks is None else args.tracks
     if args.evaluate:
         if args.tracks < 1 or args.train_tracks < 0:
             parser.error(f"--tracks must be >= 1 and --train-tracks >= 0, got {args.tracks} and {args.train_tracks}")

@@ -14,6 +14,7 @@ from torch.utils.tensorboard import SummaryWriter
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
 import learning  # noqa: E402
+from conftest import TINY_RUN  # noqa: E402
 
 BASELINES = {
     "random": {"eval_return": -76.6, "eval_progress": 0.03},
@@ -475,3 +476,43 @@ def test_the_policy_rule_decides_on_three_seeds_per_variant_with_variants_as_str
     assert mixed["mean"] == pytest.approx(100.0) and mixed["ci"][0] < 0 and mixed["policy"] == "stochastic"
     table = learning.policy_rule_table(rows([1.0, 2.0, 3.0], [101.0, 102.0, 103.0]), split)
     assert "+52.0 [+5" in table and "Evaluation policy: **mean-action**" in table
+
+
+def test_realised_and_horizon_returns_match_their_sums_written_out():
+    """G_t and J_t of --calibrate against the sums they stand for, term by term."""
+    rng = np.random.default_rng(0)
+    rewards, bonus, gamma, last = rng.normal(size=7), rng.normal(size=6), 0.9, 5.0
+    for ended in (False, True):  # truncated (bootstrapped with the last value) or terminated (nothing after)
+        terminated = np.array([False] * 6 + [ended])
+        expected = [
+            sum(gamma**k * (rewards[t + k + 1] + bonus[t + k]) for k in range(6 - t))
+            + (not ended) * gamma ** (6 - t) * last
+            for t in range(6)
+        ]  # fmt: skip
+        np.testing.assert_allclose(learning.realised_returns(rewards, terminated, bonus, last, gamma), expected)
+        horizon = learning.horizon_task_returns(rewards, terminated, gamma, 4)
+        for t in range(6):
+            if t + 4 <= 6 or ended:
+                assert horizon[t] == pytest.approx(sum(gamma**k * rewards[t + 1 + k] for k in range(min(4, 6 - t))))
+            else:  # truncated before t + H: the rewards there are unknown
+                assert np.isnan(horizon[t])
+
+
+def test_calibrate_measures_the_real_episode_the_agent_drives(tmp_path):
+    """With gamma 1 and a horizon as long as the episode, the real task return from the first frame is the race's
+    return, which the evaluation of the same agent with the same sampled actions measures independently; an
+    acting-only export, which has no critic, is refused naming the file."""
+    script = importlib.import_module("dreamer_gru")
+    run_dir = script.main(script.Args(stage="single", runs_dir=str(tmp_path), gamma=1.0, action_repeat=2, **TINY_RUN))
+    latest = os.path.join(run_dir, "checkpoints", "latest.pt")
+    row = learning.calibrate_checkpoint(latest, 10_100, 1)
+    assert row["horizon"] == TINY_RUN["imagination_horizon"] and row["starts"] == 15  # 30 env steps, repeat 2
+    assert row["horizon_starts"] == row["starts"] - row["horizon"] + 1  # truncated: the last starts lack H rewards
+    assert all(np.isfinite(row[k]) for k in ("value", "realised_return", "imagined_task_return", "real_task_return"))
+    whole = learning.calibrate_checkpoint(latest, 10_100, 1, horizon=row["starts"])
+    reference = learning.evaluate_checkpoint(latest, 10_100, 1, "stochastic")
+    assert whole["horizon_starts"] == 1
+    assert whole["real_task_return"] == pytest.approx(reference["eval_return"], abs=0.01)
+    script.export_policy(latest, str(tmp_path / "policy.pt"))
+    with pytest.raises(ValueError, match=r"policy\.pt: an acting-only export has no critic"):
+        learning.calibrate_checkpoint(str(tmp_path / "policy.pt"))
