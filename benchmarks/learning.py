@@ -332,6 +332,7 @@ def evaluate_checkpoint(
 CALIBRATION_COLUMNS = (
     "checkpoint", "variant", "updates", "tracks", "horizon", "starts", "value", "realised_return",
     "realised_task_return", "imagined_task_return", "real_task_return", "horizon_starts",
+    "imagined_task_return_clear", "real_task_return_clear", "clear_starts",
 )  # fmt: skip
 
 
@@ -371,7 +372,10 @@ def calibrate_checkpoint(path: str, first_track: int = 10_100, tracks: int = 5, 
       terminations, the entropy bonus -alpha log pi of a fresh action at s_t), and its task part alone;
     * ``imagined_task_return``: the world model's H-step discounted reward from s_t, imagining with the actor (H:
       the agent's imagination horizon), against ``real_task_return``: the H-step discounted reward that followed s_t
-      in the real episode (starts whose episode was truncated before t + H left out: ``horizon_starts``).
+      in the real episode (starts whose episode was truncated before t + H left out: ``horizon_starts``); and the
+      same over the starts at least H frames before their episode's end (``..._clear``, ``clear_starts``), where
+      no termination falls inside the imagined window, so that a termination the model fails to foresee does not
+      count there.
 
     Means over all frames of all tracks. value > realised: the critic is optimistic; imagined > real: the actor
     gets more reward in the model than on the road (the model is exploited or wrong)."""
@@ -406,7 +410,8 @@ def calibrate_checkpoint(path: str, first_track: int = 10_100, tracks: int = 5, 
     finally:
         envs.close()
     sums = dict.fromkeys(("value", "realised_return", "realised_task_return", "imagined", "real"), 0.0)
-    starts = horizon_starts = 0
+    sums.update(imagined_clear=0.0, real_clear=0.0)
+    starts = horizon_starts = clear_starts = 0
     wm, actor, gamma = agent.world_model, agent.actor, args.gamma
     agent._set_training(False)  # running statistics, as when acting
     with torch.no_grad():
@@ -428,13 +433,17 @@ def calibrate_checkpoint(path: str, first_track: int = 10_100, tracks: int = 5, 
             i_task = (script.discount_weights(continues, gamma) * reward).sum(0).numpy()
             j_task = horizon_task_returns(rewards, terminated, gamma, horizon)
             valid = ~np.isnan(j_task)
+            clear = np.arange(len(j_task)) + horizon <= len(j_task)  # the whole window lies inside the episode
             sums["value"] += values[:-1].sum()
             sums["realised_return"] += g.sum()
             sums["realised_task_return"] += g_task.sum()
             sums["imagined"] += i_task[valid].sum()
             sums["real"] += j_task[valid].sum()
+            sums["imagined_clear"] += i_task[clear].sum()
+            sums["real_clear"] += j_task[clear].sum()
             starts, horizon_starts = starts + len(g), horizon_starts + int(valid.sum())
-    per_start = {k: v / max(starts, 1) for k, v in sums.items() if k not in ("imagined", "real")}
+            clear_starts += int(clear.sum())
+    per_start = {k: sums[k] / max(starts, 1) for k in ("value", "realised_return", "realised_task_return")}
     return {
         "checkpoint": path, "variant": checkpoint["variant"], "updates": int(checkpoint["agents"][0]["num_updates"]),
         "tracks": f"{first_track}..{first_track + tracks - 1}", "horizon": horizon, "starts": starts,
@@ -442,6 +451,9 @@ def calibrate_checkpoint(path: str, first_track: int = 10_100, tracks: int = 5, 
         "imagined_task_return": round(float(sums["imagined"] / max(horizon_starts, 1)), 2),
         "real_task_return": round(float(sums["real"] / max(horizon_starts, 1)), 2),
         "horizon_starts": horizon_starts,
+        "imagined_task_return_clear": round(float(sums["imagined_clear"] / max(clear_starts, 1)), 2),
+        "real_task_return_clear": round(float(sums["real_clear"] / max(clear_starts, 1)), 2),
+        "clear_starts": clear_starts,
     }  # fmt: skip
 
 

@@ -508,6 +508,7 @@ def test_calibrate_measures_the_real_episode_the_agent_drives(tmp_path):
     row = learning.calibrate_checkpoint(latest, 10_100, 1)
     assert row["horizon"] == TINY_RUN["imagination_horizon"] and row["starts"] == 15  # 30 env steps, repeat 2
     assert row["horizon_starts"] == row["starts"] - row["horizon"] + 1  # truncated: the last starts lack H rewards
+    assert row["clear_starts"] == row["horizon_starts"] and row["real_task_return_clear"] == row["real_task_return"]
     assert all(np.isfinite(row[k]) for k in ("value", "realised_return", "imagined_task_return", "real_task_return"))
     whole = learning.calibrate_checkpoint(latest, 10_100, 1, horizon=row["starts"])
     reference = learning.evaluate_checkpoint(latest, 10_100, 1, "stochastic")
