@@ -333,6 +333,7 @@ CALIBRATION_COLUMNS = (
     "checkpoint", "variant", "updates", "tracks", "horizon", "starts", "value", "realised_return",
     "realised_task_return", "imagined_task_return", "real_task_return", "horizon_starts",
     "imagined_task_return_clear", "real_task_return_clear", "clear_starts",
+    "imagined_task_return_ending", "real_task_return_ending", "ending_starts", "terminations",
 )  # fmt: skip
 
 
@@ -363,6 +364,14 @@ def horizon_task_returns(rewards: np.ndarray, terminated: np.ndarray, gamma: flo
     return returns
 
 
+def window_starts(starts: int, horizon: int, terminated: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Which starts t < T of an episode (T = `starts`) have their H-step window inside it (t + H <= T: no
+    termination within it), and which of a terminated episode's have its termination within (t + H > T); a
+    truncated episode has none of those (the rewards after its end are unknown)."""
+    clear = np.arange(starts) + horizon <= starts
+    return clear, ~clear & terminated
+
+
 def calibrate_checkpoint(path: str, first_track: int = 10_100, tracks: int = 5, horizon: int | None = None) -> dict:
     """Is the agent's value of real states, and its imagination from them, optimistic? The saved agent (a training
     checkpoint: it needs its critic and reward head) drives its sampled policy, as trained, on tracks
@@ -374,8 +383,9 @@ def calibrate_checkpoint(path: str, first_track: int = 10_100, tracks: int = 5, 
       the agent's imagination horizon), against ``real_task_return``: the H-step discounted reward that followed s_t
       in the real episode (starts whose episode was truncated before t + H left out: ``horizon_starts``); and the
       same over the starts at least H frames before their episode's end (``..._clear``, ``clear_starts``), where
-      no termination falls inside the imagined window, so that a termination the model fails to foresee does not
-      count there.
+      no termination falls inside the imagined window, and over the others of terminated episodes
+      (``..._ending``, ``ending_starts``): does the model foresee the car leaving the race (``terminations``:
+      episodes that ended so, rather than at the time limit)?
 
     Means over all frames of all tracks. value > realised: the critic is optimistic; imagined > real: the actor
     gets more reward in the model than on the road (the model is exploited or wrong)."""
@@ -410,8 +420,8 @@ def calibrate_checkpoint(path: str, first_track: int = 10_100, tracks: int = 5, 
     finally:
         envs.close()
     sums = dict.fromkeys(("value", "realised_return", "realised_task_return", "imagined", "real"), 0.0)
-    sums.update(imagined_clear=0.0, real_clear=0.0)
-    starts = horizon_starts = clear_starts = 0
+    sums.update(imagined_clear=0.0, real_clear=0.0, imagined_ending=0.0, real_ending=0.0)
+    starts = horizon_starts = clear_starts = ending_starts = terminations = 0
     wm, actor, gamma = agent.world_model, agent.actor, args.gamma
     agent._set_training(False)  # running statistics, as when acting
     with torch.no_grad():
@@ -433,7 +443,7 @@ def calibrate_checkpoint(path: str, first_track: int = 10_100, tracks: int = 5, 
             i_task = (script.discount_weights(continues, gamma) * reward).sum(0).numpy()
             j_task = horizon_task_returns(rewards, terminated, gamma, horizon)
             valid = ~np.isnan(j_task)
-            clear = np.arange(len(j_task)) + horizon <= len(j_task)  # the whole window lies inside the episode
+            clear, ending = window_starts(len(j_task), horizon, bool(terminated[-1]))
             sums["value"] += values[:-1].sum()
             sums["realised_return"] += g.sum()
             sums["realised_task_return"] += g_task.sum()
@@ -442,7 +452,10 @@ def calibrate_checkpoint(path: str, first_track: int = 10_100, tracks: int = 5, 
             sums["imagined_clear"] += i_task[clear].sum()
             sums["real_clear"] += j_task[clear].sum()
             starts, horizon_starts = starts + len(g), horizon_starts + int(valid.sum())
-            clear_starts += int(clear.sum())
+            sums["imagined_ending"] += i_task[ending].sum()
+            sums["real_ending"] += j_task[ending].sum()
+            clear_starts, ending_starts = clear_starts + int(clear.sum()), ending_starts + int(ending.sum())
+            terminations += int(terminated[-1])
     per_start = {k: sums[k] / max(starts, 1) for k in ("value", "realised_return", "realised_task_return")}
     return {
         "checkpoint": path, "variant": checkpoint["variant"], "updates": int(checkpoint["agents"][0]["num_updates"]),
@@ -454,6 +467,9 @@ def calibrate_checkpoint(path: str, first_track: int = 10_100, tracks: int = 5, 
         "imagined_task_return_clear": round(float(sums["imagined_clear"] / max(clear_starts, 1)), 2),
         "real_task_return_clear": round(float(sums["real_clear"] / max(clear_starts, 1)), 2),
         "clear_starts": clear_starts,
+        "imagined_task_return_ending": round(float(sums["imagined_ending"] / max(ending_starts, 1)), 2),
+        "real_task_return_ending": round(float(sums["real_ending"] / max(ending_starts, 1)), 2),
+        "ending_starts": ending_starts, "terminations": terminations,
     }  # fmt: skip
 
 
