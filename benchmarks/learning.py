@@ -334,6 +334,7 @@ CALIBRATION_COLUMNS = (
     "realised_task_return", "imagined_task_return", "real_task_return", "horizon_starts",
     "imagined_task_return_clear", "real_task_return_clear", "clear_starts",
     "imagined_task_return_ending", "real_task_return_ending", "ending_starts", "terminations",
+    "terminal_reward", "terminal_reward_predicted", "terminal_reward_sigma", "terminal_continue", "reward_sigma",
 )  # fmt: skip
 
 
@@ -385,7 +386,9 @@ def calibrate_checkpoint(path: str, first_track: int = 10_100, tracks: int = 5, 
       same over the starts at least H frames before their episode's end (``..._clear``, ``clear_starts``), where
       no termination falls inside the imagined window, and over the others of terminated episodes
       (``..._ending``, ``ending_starts``): does the model foresee the car leaving the race (``terminations``:
-      episodes that ended so, rather than at the time limit)?
+      episodes that ended so, rather than at the time limit)? On the terminal frames themselves: the real reward
+      (the elimination's penalty), the reward head's mean and sigma there and the continue head's probability,
+      against the reward head's median sigma over all frames (``reward_sigma``).
 
     Means over all frames of all tracks. value > realised: the critic is optimistic; imagined > real: the actor
     gets more reward in the model than on the road (the model is exploited or wrong)."""
@@ -422,6 +425,7 @@ def calibrate_checkpoint(path: str, first_track: int = 10_100, tracks: int = 5, 
     sums = dict.fromkeys(("value", "realised_return", "realised_task_return", "imagined", "real"), 0.0)
     sums.update(imagined_clear=0.0, real_clear=0.0, imagined_ending=0.0, real_ending=0.0)
     starts = horizon_starts = clear_starts = ending_starts = terminations = 0
+    terminal, sigmas = [], []  # per terminated episode: real reward, predicted mean, sigma, continue; all sigmas
     wm, actor, gamma = agent.world_model, agent.actor, args.gamma
     agent._set_training(False)  # running statistics, as when acting
     with torch.no_grad():
@@ -431,6 +435,11 @@ def calibrate_checkpoint(path: str, first_track: int = 10_100, tracks: int = 5, 
             post = wm.observe(wm.encoder(torch.as_tensor(frames[None])), torch.as_tensor(actions[None]), is_first)
             features = torch.cat([post["z"], post["h"]], -1)[0]
             values = agent.critic(features)[0].numpy()
+            reward_mean, reward_std = script.gaussian_params(wm.reward(features), script.HEAD_MIN_STD)
+            sigmas.append(reward_std.squeeze(-1).numpy())
+            if terminated[-1]:
+                last_continue = torch.sigmoid(wm.cont(features[-1:]).float()).item()
+                terminal.append((rewards[-1], reward_mean[-1].item(), reward_std[-1].item(), last_continue))
             mean, std = actor(features)
             log_pi = script.policy_log_prob(mean + std * torch.randn_like(std), mean, std).numpy()
             bonus = -args.entropy_coef * log_pi
@@ -470,6 +479,11 @@ def calibrate_checkpoint(path: str, first_track: int = 10_100, tracks: int = 5, 
         "imagined_task_return_ending": round(float(sums["imagined_ending"] / max(ending_starts, 1)), 2),
         "real_task_return_ending": round(float(sums["real_ending"] / max(ending_starts, 1)), 2),
         "ending_starts": ending_starts, "terminations": terminations,
+        **dict(zip(
+            ("terminal_reward", "terminal_reward_predicted", "terminal_reward_sigma", "terminal_continue"),
+            np.round(np.mean(terminal, axis=0), 3) if terminal else [float("nan")] * 4,
+        )),
+        "reward_sigma": round(float(np.median(np.concatenate(sigmas))), 3),
     }  # fmt: skip
 
 

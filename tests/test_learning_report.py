@@ -516,7 +516,8 @@ def test_calibrate_measures_the_real_episode_the_agent_drives(tmp_path):
     assert row["horizon"] == TINY_RUN["imagination_horizon"] and row["starts"] == 15  # 30 env steps, repeat 2
     assert row["horizon_starts"] == row["starts"] - row["horizon"] + 1  # truncated: the last starts lack H rewards
     assert row["clear_starts"] == row["horizon_starts"] and row["real_task_return_clear"] == row["real_task_return"]
-    assert row["ending_starts"] == row["terminations"] == 0
+    assert row["ending_starts"] == row["terminations"] == 0 and np.isnan(row["terminal_reward"])
+    assert row["reward_sigma"] >= 0.1  # (the heads' minimum sigma)
     assert all(np.isfinite(row[k]) for k in ("value", "realised_return", "imagined_task_return", "real_task_return"))
     whole = learning.calibrate_checkpoint(latest, 10_100, 1, horizon=row["starts"])
     reference = learning.evaluate_checkpoint(latest, 10_100, 1, "stochastic")
