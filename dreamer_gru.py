@@ -179,6 +179,11 @@ class Args:
     return_norm: bool = False
     """DreamerV3's return normalisation: scale the task part of the lambda-return by 1 / max(1, S), S an EMA of
     its 95th - 5th percentile range; the entropy part stays unscaled (DreamerV3 pairs it with --entropy-coef 3e-4)"""
+    reward_nll_beta: float = 0.0
+    """beta of the reward head's beta-NLL (Seitzer et al., ICLR 2022): each step's Gaussian NLL weighted by the
+    stop-gradient sigma^(2 beta), so that a rare large reward (an elimination's -100) moves the head's mean and not
+    only its sigma. 0: the paper's Gaussian NLL; 0.5: the value Seitzer et al. recommend; 1: the mean learns as
+    with a squared error"""
     lambda_: Annotated[float, tyro.conf.arg(name="lambda")] = 0.95
     """lambda of the lambda-return"""
     gamma: float = 0.99
@@ -610,6 +615,14 @@ def gaussian_nll(x: torch.Tensor, mean: torch.Tensor, std: torch.Tensor) -> torc
     return 0.5 * ((x - mean) / std).pow(2) + torch.log(std) + 0.5 * math.log(2 * math.pi)
 
 
+def beta_nll(x: torch.Tensor, mean: torch.Tensor, std: torch.Tensor, beta: float) -> torch.Tensor:
+    """gaussian_nll weighted by the stop-gradient std^(2 beta), elementwise: the beta-NLL of Seitzer et al. (ICLR
+    2022). The mean's gradient is (mean - x) / std^(2 - 2 beta): at beta = 0 the Gaussian NLL's, which a large
+    std all but silences; at beta = 1 a squared error's."""
+    nll = gaussian_nll(x, mean, std)
+    return nll if beta == 0 else nll * std.detach().pow(2 * beta)
+
+
 def image_gaussian_nll(x: torch.Tensor, mean: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
     """-log N(x; mean, sigma) summed over the pixels (..., 3, S, S) of each image, with one sigma for all:
     sum((x - mean)^2) / (2 sigma^2) + P (log sigma + log(2 pi) / 2), so only two ops touch every pixel."""
@@ -910,7 +923,8 @@ class Agent:
         # L_pred: -log p(x|s) - log p(r|s) - log p(cont|s); cont = 1 - terminated (truncation is not termination)
         image_nll = image_gaussian_nll(frames_to_input(obs), wm.decoder(features), wm.decoder.sigma())
         reward_mean, reward_std = gaussian_params(wm.reward(features), HEAD_MIN_STD)
-        reward_nll = gaussian_nll(rewards, reward_mean.squeeze(-1), reward_std.squeeze(-1))
+        reward_nll = gaussian_nll(rewards, reward_mean.squeeze(-1), reward_std.squeeze(-1))  # (logged as is)
+        reward_loss = beta_nll(rewards, reward_mean.squeeze(-1), reward_std.squeeze(-1), args.reward_nll_beta)
         cont_logits = wm.cont(features).float().squeeze(-1)
         cont_nll = F.binary_cross_entropy_with_logits(cont_logits, 1.0 - terminated, reduction="none")
         # Stop-gradient sides of the KL terms come from the target networks, computed once per update.
@@ -923,7 +937,7 @@ class Agent:
         kl_dyn = gaussian_kl(sg_post_mean, sg_post_std, prior_mean, prior_std)  # paper eq. L_dyn: trains the prior
         kl_rep = gaussian_kl(post["post_mean"], post["post_std"], sg_prior_mean, sg_prior_std)  # paper eq. L_rep
         loss = (
-            image_nll + reward_nll + cont_nll
+            image_nll + reward_loss + cont_nll
             + args.kl_dyn_scale * kl_free_bits(kl_dyn, args.free_bits)
             + args.kl_rep_scale * kl_free_bits(kl_rep, args.free_bits)
         ).mean()  # fmt: skip
@@ -1576,6 +1590,7 @@ def validate_args(args: Args) -> None:
         require(getattr(args, name) > 0, name, "must be > 0")
     require(0 < args.gamma <= 1, "gamma", "must lie in (0, 1]")
     require(0 <= args.lambda_ <= 1, "lambda_", "must lie in [0, 1]")
+    require(0 <= args.reward_nll_beta <= 1, "reward_nll_beta", "must lie in [0, 1]")
     require(0 < args.tau <= 1, "tau", "must lie in (0, 1]")
     low, high = LOG_SIGMA_RANGE
     require(low <= args.decoder_min_log_sigma <= high, "decoder_min_log_sigma", f"must lie in [{low:g}, {high:g}]")

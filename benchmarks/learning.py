@@ -79,7 +79,7 @@ LEARNING_CONFIG = {
 # Ablations: a flag of the dreamer scripts changed from the preset, and its tag in the run's name.
 ABLATION_TAGS = {
     "entropy_coef": "alpha", "decoder_min_log_sigma": "logsigmamin", "norm": "norm", "return_norm": "retnorm",
-    "dead_zone_start": "dzstart",
+    "dead_zone_start": "dzstart", "reward_nll_beta": "rbeta",
 }  # fmt: skip
 
 
@@ -1031,6 +1031,11 @@ def main():
         "--return-norm", action="store_const", const=True, default=None,
         help="an ablation: DreamerV3's return normalisation (run named ..._retnorm)",
     )
+    parser.add_argument(
+        "--reward-nll-beta", type=float, default=None,
+        help="an ablation: the reward head's beta-NLL with this beta instead of the Gaussian NLL (run named "
+        "..._rbeta<beta>)",
+    )  # fmt: skip
     parser.add_argument(
         "--dead-zone-start", type=float, default=None,
         help="an ablation: the dead zone's first value (-0.5, the final one: no schedule; run named ..._dzstart<v>)",

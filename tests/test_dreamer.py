@@ -282,6 +282,20 @@ def test_lambda_returns_hand_computed(script):
     torch.testing.assert_close(R[:, 2], torch.tensor([5.4375, 7.75, 3.0]))
 
 
+def test_beta_nll_gradients_against_their_closed_forms(script):
+    """beta-NLL (--reward-nll-beta): d/dmean = (mean - x) / std^(2 - 2 beta), the std's weight out of the gradient;
+    beta = 0 is the Gaussian NLL itself. At std = 20 (an elimination the head calls noise) beta = 0.5 gives the
+    mean 20x the Gaussian NLL's gradient."""
+    x, std = torch.tensor([-100.0, 3.0]), torch.tensor([20.0, 2.0])
+    for beta in (0.0, 0.5, 1.0):
+        mean = torch.tensor([-2.0, 1.0], requires_grad=True)
+        script.beta_nll(x, mean, std, beta).sum().backward()
+        torch.testing.assert_close(mean.grad, (mean.detach() - x) / std ** (2 - 2 * beta))
+    mean = torch.tensor([-2.0, 1.0])
+    torch.testing.assert_close(script.beta_nll(x, mean, std, 0.0), script.gaussian_nll(x, mean, std))
+    torch.testing.assert_close(script.beta_nll(x, mean, std, 0.5), script.gaussian_nll(x, mean, std) * std)
+
+
 def test_actor_weights(script):
     c = torch.tensor([1.0, 1.0, 0.0], requires_grad=True)
     w = script.discount_weights(c, gamma=0.5)
