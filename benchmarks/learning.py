@@ -330,10 +330,8 @@ def evaluate_checkpoint(
 
 # --- Are the critic and the imagination optimistic on real episodes? ---------------------------------------
 CALIBRATION_COLUMNS = (
-    "checkpoint", "variant", "updates", "tracks", "horizon", "starts", "value", "realised_return",
-    "realised_task_return", "imagined_task_return", "real_task_return", "horizon_starts",
-    "imagined_task_return_clear", "real_task_return_clear", "clear_starts",
-    "imagined_task_return_ending", "real_task_return_ending", "ending_starts", "terminations",
+    "checkpoint", "variant", "updates", "tracks", "horizon", "starts", "value", "realised_return", "bootstrap_weight",
+    "imagined_task_return", "real_task_return", "horizon_starts", "eliminations", "elimination_reasons",
     "terminal_reward", "terminal_reward_predicted", "terminal_reward_sigma", "terminal_continue", "reward_sigma",
 )  # fmt: skip
 
@@ -365,33 +363,24 @@ def horizon_task_returns(rewards: np.ndarray, terminated: np.ndarray, gamma: flo
     return returns
 
 
-def window_starts(starts: int, horizon: int, terminated: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Which starts t < T of an episode (T = `starts`) have their H-step window inside it (t + H <= T: no
-    termination within it), and which of a terminated episode's have its termination within (t + H > T); a
-    truncated episode has none of those (the rewards after its end are unknown)."""
-    clear = np.arange(starts) + horizon <= starts
-    return clear, ~clear & terminated
-
-
 def calibrate_checkpoint(path: str, first_track: int = 10_100, tracks: int = 5, horizon: int | None = None) -> dict:
     """Is the agent's value of real states, and its imagination from them, optimistic? The saved agent (a training
     checkpoint: it needs its critic and reward head) drives its sampled policy, as trained, on tracks
     ``first_track ..``; on every frame t of those real episodes (its posterior state, as imagination starts from):
 
     * ``value``: the critic's V(s_t), against ``realised_return``: G_t, the same quantity realised (real rewards and
-      terminations, the entropy bonus -alpha log pi of a fresh action at s_t), and its task part alone;
+      terminations, the entropy bonus -alpha log pi of a fresh action at s_t, the critic's own value of the last
+      frame where the episode was truncated: ``bootstrap_weight`` is the mean weight gamma^(T - t) of that value);
     * ``imagined_task_return``: the world model's H-step discounted reward from s_t, imagining with the actor (H:
       the agent's imagination horizon), against ``real_task_return``: the H-step discounted reward that followed s_t
-      in the real episode (starts whose episode was truncated before t + H left out: ``horizon_starts``); and the
-      same over the starts at least H frames before their episode's end (``..._clear``, ``clear_starts``), where
-      no termination falls inside the imagined window, and over the others of terminated episodes
-      (``..._ending``, ``ending_starts``): does the model foresee the car leaving the race (``terminations``:
-      episodes that ended so, rather than at the time limit)? On the terminal frames themselves: the real reward
-      (the elimination's penalty), the reward head's mean and sigma there and the continue head's probability,
-      against the reward head's median sigma over all frames (``reward_sigma``).
+      in the real episode (starts whose episode was truncated before t + H left out: ``horizon_starts``).
 
-    Means over all frames of all tracks. value > realised: the critic is optimistic; imagined > real: the actor
-    gets more reward in the model than on the road (the model is exploited or wrong)."""
+    Means over all frames of all tracks, whatever happened after them (averages over windows picked by their
+    outcome, such as those ending in an elimination, would look optimistic even for a perfect model). value >
+    realised: the critic is optimistic; imagined > real: the actor gets more reward in the model than on the road.
+    And the races that ended in an elimination (``eliminations``, ``elimination_reasons``: the env's reasons), on
+    their terminal frame itself: the real reward (the penalty), the reward head's mean and sigma there and the
+    continue head's probability, against the reward head's median sigma over all frames (``reward_sigma``)."""
     import torch
 
     from race import read_checkpoint
@@ -405,7 +394,7 @@ def calibrate_checkpoint(path: str, first_track: int = 10_100, tracks: int = 5, 
     horizon = horizon or args.imagination_horizon
     envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
     torch.manual_seed(first_track)
-    episodes = []
+    episodes, reasons = [], []
     try:
         for seed in range(first_track, first_track + tracks):
             envs.seed(seed)
@@ -417,19 +406,19 @@ def calibrate_checkpoint(path: str, first_track: int = 10_100, tracks: int = 5, 
                 if dones[0]:  # (the vec env has reset: the episode's last frame is the terminal observation)
                     frame = script.preprocess_frames(infos[0]["terminal_observation"][None], args.image_size)[0]
                     episode.add(frame, action[0], reward[0], not infos[0]["TimeLimit.truncated"])
+                    reasons.append(infos[0].get("eliminated"))  # None: a finished lap or the time limit
                     break
                 episode.add(script.preprocess_frames(obs, args.image_size)[0], action[0], reward[0], False)
             episodes.append(episode.arrays())
     finally:
         envs.close()
-    sums = dict.fromkeys(("value", "realised_return", "realised_task_return", "imagined", "real"), 0.0)
-    sums.update(imagined_clear=0.0, real_clear=0.0, imagined_ending=0.0, real_ending=0.0)
-    starts = horizon_starts = clear_starts = ending_starts = terminations = 0
-    terminal, sigmas = [], []  # per terminated episode: real reward, predicted mean, sigma, continue; all sigmas
+    sums = dict.fromkeys(("value", "realised_return", "bootstrap_weight", "imagined", "real"), 0.0)
+    starts = horizon_starts = 0
+    terminal, sigmas = [], []  # per elimination: real reward, predicted mean, sigma, continue; every frame's sigma
     wm, actor, gamma = agent.world_model, agent.actor, args.gamma
     agent._set_training(False)  # running statistics, as when acting
     with torch.no_grad():
-        for frames, actions, rewards, terminated in episodes:
+        for (frames, actions, rewards, terminated), reason in zip(episodes, reasons):
             is_first = torch.zeros(1, len(frames), dtype=torch.bool)
             is_first[0, 0] = True
             post = wm.observe(wm.encoder(torch.as_tensor(frames[None])), torch.as_tensor(actions[None]), is_first)
@@ -437,14 +426,15 @@ def calibrate_checkpoint(path: str, first_track: int = 10_100, tracks: int = 5, 
             values = agent.critic(features)[0].numpy()
             reward_mean, reward_std = script.gaussian_params(wm.reward(features), script.HEAD_MIN_STD)
             sigmas.append(reward_std.squeeze(-1).numpy())
-            if terminated[-1]:
+            if reason is not None:
                 last_continue = torch.sigmoid(wm.cont(features[-1:]).float()).item()
                 terminal.append((rewards[-1], reward_mean[-1].item(), reward_std[-1].item(), last_continue))
             mean, std = actor(features)
             log_pi = script.policy_log_prob(mean + std * torch.randn_like(std), mean, std).numpy()
-            bonus = -args.entropy_coef * log_pi
-            g = realised_returns(rewards, terminated, bonus, values[-1], gamma)
-            g_task = realised_returns(rewards, terminated, np.zeros_like(bonus), values[-1], gamma)
+            g = realised_returns(rewards, terminated, -args.entropy_coef * log_pi, values[-1], gamma)
+            last = len(frames) - 1
+            if not terminated[-1]:  # truncated: G_t carries gamma^(T - t) V(s_T)
+                sums["bootstrap_weight"] += float(np.sum(gamma ** (last - np.arange(last))))
             state = tuple(s[0, :-1] for s in post["states"])
             imagined, _, _, _ = script.imagine_rollout(wm, actor, state, post["h"][0, :-1], post["z"][0, :-1], horizon)
             reward = script.gaussian_params(wm.reward(imagined[1:]), script.HEAD_MIN_STD)[0].squeeze(-1)
@@ -452,33 +442,21 @@ def calibrate_checkpoint(path: str, first_track: int = 10_100, tracks: int = 5, 
             i_task = (script.discount_weights(continues, gamma) * reward).sum(0).numpy()
             j_task = horizon_task_returns(rewards, terminated, gamma, horizon)
             valid = ~np.isnan(j_task)
-            clear, ending = window_starts(len(j_task), horizon, bool(terminated[-1]))
             sums["value"] += values[:-1].sum()
             sums["realised_return"] += g.sum()
-            sums["realised_task_return"] += g_task.sum()
             sums["imagined"] += i_task[valid].sum()
             sums["real"] += j_task[valid].sum()
-            sums["imagined_clear"] += i_task[clear].sum()
-            sums["real_clear"] += j_task[clear].sum()
             starts, horizon_starts = starts + len(g), horizon_starts + int(valid.sum())
-            sums["imagined_ending"] += i_task[ending].sum()
-            sums["real_ending"] += j_task[ending].sum()
-            clear_starts, ending_starts = clear_starts + int(clear.sum()), ending_starts + int(ending.sum())
-            terminations += int(terminated[-1])
-    per_start = {k: sums[k] / max(starts, 1) for k in ("value", "realised_return", "realised_task_return")}
+    named = sorted({r for r in reasons if r is not None})
     return {
         "checkpoint": path, "variant": checkpoint["variant"], "updates": int(checkpoint["agents"][0]["num_updates"]),
         "tracks": f"{first_track}..{first_track + tracks - 1}", "horizon": horizon, "starts": starts,
-        **{k: round(float(v), 2) for k, v in per_start.items()},
+        **{k: round(float(sums[k] / max(starts, 1)), 3 if k == "bootstrap_weight" else 2)
+           for k in ("value", "realised_return", "bootstrap_weight")},
         "imagined_task_return": round(float(sums["imagined"] / max(horizon_starts, 1)), 2),
         "real_task_return": round(float(sums["real"] / max(horizon_starts, 1)), 2),
-        "horizon_starts": horizon_starts,
-        "imagined_task_return_clear": round(float(sums["imagined_clear"] / max(clear_starts, 1)), 2),
-        "real_task_return_clear": round(float(sums["real_clear"] / max(clear_starts, 1)), 2),
-        "clear_starts": clear_starts,
-        "imagined_task_return_ending": round(float(sums["imagined_ending"] / max(ending_starts, 1)), 2),
-        "real_task_return_ending": round(float(sums["real_ending"] / max(ending_starts, 1)), 2),
-        "ending_starts": ending_starts, "terminations": terminations,
+        "horizon_starts": horizon_starts, "eliminations": len(terminal),
+        "elimination_reasons": " ".join(f"{r}:{reasons.count(r)}" for r in named),
         **dict(zip(
             ("terminal_reward", "terminal_reward_predicted", "terminal_reward_sigma", "terminal_continue"),
             np.round(np.mean(terminal, axis=0), 3) if terminal else [float("nan")] * 4,

@@ -498,13 +498,6 @@ def test_realised_and_horizon_returns_match_their_sums_written_out():
                 assert np.isnan(horizon[t])
 
 
-def test_window_starts_split_an_episode_at_its_last_full_window():
-    clear, ending = learning.window_starts(6, 4, terminated=True)
-    assert clear.tolist() == [True, True, True, False, False, False] and ending.tolist() == [False] * 3 + [True] * 3
-    clear, ending = learning.window_starts(6, 4, terminated=False)
-    assert clear.tolist() == [True, True, True, False, False, False] and not ending.any()
-
-
 def test_calibrate_measures_the_real_episode_the_agent_drives(tmp_path):
     """With gamma 1 and a horizon as long as the episode, the real task return from the first frame is the race's
     return, which the evaluation of the same agent with the same sampled actions measures independently; an
@@ -515,8 +508,8 @@ def test_calibrate_measures_the_real_episode_the_agent_drives(tmp_path):
     row = learning.calibrate_checkpoint(latest, 10_100, 1)
     assert row["horizon"] == TINY_RUN["imagination_horizon"] and row["starts"] == 15  # 30 env steps, repeat 2
     assert row["horizon_starts"] == row["starts"] - row["horizon"] + 1  # truncated: the last starts lack H rewards
-    assert row["clear_starts"] == row["horizon_starts"] and row["real_task_return_clear"] == row["real_task_return"]
-    assert row["ending_starts"] == row["terminations"] == 0 and np.isnan(row["terminal_reward"])
+    assert row["bootstrap_weight"] == 1.0  # truncated at gamma 1: every G_t carries all of V(s_T)
+    assert row["eliminations"] == 0 and row["elimination_reasons"] == "" and np.isnan(row["terminal_reward"])
     assert row["reward_sigma"] >= 0.1  # (the heads' minimum sigma)
     assert all(np.isfinite(row[k]) for k in ("value", "realised_return", "imagined_task_return", "real_task_return"))
     whole = learning.calibrate_checkpoint(latest, 10_100, 1, horizon=row["starts"])
