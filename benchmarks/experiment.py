@@ -82,7 +82,7 @@ class Spec:
     trained, or the mean action (with a sampled or the posterior-mean latent); head-to-head training races are
     always sampled; also the evaluation policy (--eval-policy) of the dreamer trials, which selects their best.pt.
     It may change until the race stage begins (the tables measured before are measured again with the new
-    policy; a finished stage keeps the best.pt it selected)"""
+    policy); a stage already started keeps the policy it started with (its trials and their best.pt)"""
     report_every: int = 500
     """updates of a dreamer trial between its reports to Tune"""
     fresh_tracks: int = 20
@@ -139,9 +139,10 @@ def trial_args(spec: dict, stage: str, variant: str, seed: int):
     if stage == "single":
         first, target = None, spec["single_updates"]
         # the learning benchmark's run (benchmarks/learning.py --runs-dir <storage>/trials reads it) unless the
-        # spec changes the preset, a flag, the updates or the threads
+        # spec changes the preset, a flag, the updates, the threads or the evaluation policy (which picks best.pt)
         plain = spec["preset"] == "cpu" and not spec["overrides"] and spec["single_updates"] == learning.FINAL_UPDATES
         plain = plain and spec["torch_threads"] == learning.LEARNING_CONFIG["torch_threads"]
+        plain = plain and spec["eval_policy"] == "stochastic"
         args = script.preset_args(
             spec["preset"], exp_name=learning.experiment_name(variant) if plain else f"{variant}_single",
             **{**learning.LEARNING_CONFIG, **settings},

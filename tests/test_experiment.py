@@ -183,7 +183,8 @@ def test_the_default_single_stage_is_the_learning_benchmarks_run(tmp_path):
         assert (first, target, reference.total_updates) == (None, 8000, 8000)
         os.makedirs(os.path.join(args.runs_dir, f"multi_car_racing__{args.exp_name}__12__1700000000"))
         assert learning.find_run(learning.experiment_name(variant), 12, str(tmp_path / "trials")) is not None
-    for change in ({"overrides": ("entropy_coef=0.5",)}, {"single_updates": 2000}, {"torch_threads": 2}):
+    for change in ({"overrides": ("entropy_coef=0.5",)}, {"single_updates": 2000}, {"torch_threads": 2},
+                   {"eval_policy": "mean-action"}):  # fmt: skip
         changed = dataclasses.asdict(experiment.Spec(storage=str(tmp_path), **change))
         assert experiment.trial_args(changed, "single", "gru", 12)[1].exp_name == "gru_single"
 
