@@ -132,10 +132,11 @@ class Args:
     """evaluate every this many races (--eval-policy on held-out tracks); best.pt keeps the best"""
     eval_episodes: int = 10
     """races per evaluation"""
-    eval_policy: Literal["deterministic", "mean-action", "stochastic"] = "stochastic"
+    eval_policy: Literal["deterministic", "mean-action", "stochastic"] = "mean-action"
     """evaluation's policy: sampled z and action (the policy that was optimised) / sampled z, mean action /
-    posterior mean z and mean action. The mean action is no summary of this policy: with sigma ~0.8 a mean
-    throttle in the coast zone still gives gas on half the steps, and the mean-action car stalls (docs/learning.md)"""
+    posterior mean z and mean action. The mean action by default: a rule fixed before it was measured found it
+    drives better than the sampled action after 8,000 updates (six runs, paired, 95% interval above 0; early in
+    training the mean-action car can stall where the sampled one drives: docs/learning.md)"""
     eval_checkpoints: bool = False
     """also keep checkpoints/eval_<race>.pt at every evaluation (the policy as evaluated, for later analysis)"""
     eval_seed: int = 10_000

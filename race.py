@@ -56,9 +56,10 @@ class Args:
     """track seeds are derived from it"""
     opponent: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()
     """a scripted pure-pursuit driver to add: pursuit or pursuit:SPEED (default speed 70); repeatable"""
-    policy: Literal["deterministic", "mean-action", "stochastic"] = "stochastic"
-    """how Dreamer racers act: sampled latent and action, as trained (the default: docs/learning.md says why) /
-    sampled latent, mean action / posterior mean and mean action (--train always samples)"""
+    policy: Literal["deterministic", "mean-action", "stochastic"] = "mean-action"
+    """how Dreamer racers act: sampled latent and action, as trained / sampled latent, mean action (the default:
+    the trained agents drive better with it, docs/learning.md) / posterior mean and mean action (--train always
+    samples)"""
     out: str | None = None
     """directory of results.csv/json and race.mp4 (default races/<time>)"""
     video: bool = True

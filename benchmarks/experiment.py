@@ -77,12 +77,13 @@ class Spec:
     """evaluation races per tournament (held-out tracks, start positions swapped)"""
     race_train_steps: int = 25
     """updates per agent after every head-to-head race"""
-    eval_policy: Literal["deterministic", "mean-action", "stochastic"] = "stochastic"
-    """the agents' policy in the tournaments and in the fresh-track measurements (race.py --policy): sampled as
-    trained, or the mean action (with a sampled or the posterior-mean latent); head-to-head training races are
-    always sampled; also the evaluation policy (--eval-policy) of the dreamer trials, which selects their best.pt.
-    It may change until the race stage begins (the tables measured before are measured again with the new
-    policy); a stage already started keeps the policy it started with (its trials and their best.pt)"""
+    eval_policy: Literal["deterministic", "mean-action", "stochastic"] = "mean-action"
+    """the agents' policy in the tournaments and in the fresh-track measurements (race.py --policy): the mean
+    action from a sampled latent (the default, as in race.py and the dreamer scripts), sampled as trained, or the
+    mean action from the posterior-mean latent; head-to-head training races are always sampled; also the
+    evaluation policy (--eval-policy) of the dreamer trials, which selects their best.pt. It may change until the
+    race stage begins (the tables measured before are measured again with the new policy); a stage already
+    started keeps the policy it started with (its trials and their best.pt)"""
     report_every: int = 500
     """updates of a dreamer trial between its reports to Tune"""
     fresh_tracks: int = 20
@@ -142,7 +143,7 @@ def trial_args(spec: dict, stage: str, variant: str, seed: int):
         # spec changes the preset, a flag, the updates, the threads or the evaluation policy (which picks best.pt)
         plain = spec["preset"] == "cpu" and not spec["overrides"] and spec["single_updates"] == learning.FINAL_UPDATES
         plain = plain and spec["torch_threads"] == learning.LEARNING_CONFIG["torch_threads"]
-        plain = plain and spec["eval_policy"] == "stochastic"
+        plain = plain and spec["eval_policy"] == script.Args().eval_policy
         args = script.preset_args(
             spec["preset"], exp_name=learning.experiment_name(variant) if plain else f"{variant}_single",
             **{**learning.LEARNING_CONFIG, **settings},
@@ -435,16 +436,22 @@ def race_started(spec: dict) -> bool:
     return os.path.exists(tune_dir) or bool(glob.glob(trial_dir(spec, "race", "*", "*")))
 
 
+# The value of a trial field whose default changed after it was added: what an experiment whose spec.json predates
+# the field ran with (the evaluation policy was sampled until the rule of docs/learning.md chose the mean action).
+FIELD_ORIGINS = {"eval_policy": "stochastic"}
+
+
 def saved_spec(storage: str) -> dict | None:
     """The TRIAL_FIELDS of the experiment in `storage` (None: there is none yet). A field its spec.json lacks was
-    added to Spec after it started, so it ran with that field's default; the default is written into its spec.json
-    then, so that a later change of the default cannot change what the experiment was."""
+    added to Spec after it started, so it ran with the value that field had then (FIELD_ORIGINS, else its
+    default); that value is written into its spec.json, so that a later change of the default cannot change what
+    the experiment was."""
     path = os.path.join(storage, "spec.json")
     if not os.path.exists(path):
         return None
     with open(path) as f:
         saved = json.load(f)
-    missing = {k: v for k, v in trial_fields(Spec()).items() if k not in saved}
+    missing = {k: FIELD_ORIGINS.get(k, v) for k, v in trial_fields(Spec()).items() if k not in saved}
     if missing:
         saved |= missing
         with open(path + ".tmp", "w") as f:

@@ -524,8 +524,15 @@ def final_row(
     }  # fmt: skip
 
 
-def bar_verdict(rows: list[dict]) -> dict[str, bool]:
-    """Each part of the bar for the rows of one variant (its seeds): mean final return >= BAR_RETURN, every seed
+# learning_final.csv's columns of the final policy, by how it acts: sampled (as trained) or its mean action
+FINAL_POLICY_COLUMNS = {
+    "stochastic": ("final_return", "final_progress"), "mean-action": ("mean_action_return", "mean_action_progress"),
+}  # fmt: skip
+
+
+def bar_verdict(rows: list[dict], policy: str = "stochastic") -> dict[str, bool]:
+    """Each part of the bar for the rows of one variant (its seeds), the final policy acting with `policy`
+    (FINAL_POLICY_COLUMNS): mean final return >= BAR_RETURN, every seed
     >= BAR_SEED_RETURN, mean progress >= BAR_PROGRESS, mean |steer| of the final policy's mean action <= BAR_STEER,
     and every run holds (its last three evaluations average within BAR_HOLD of its best).
 
@@ -536,10 +543,11 @@ def bar_verdict(rows: list[dict]) -> dict[str, bool]:
     def values(key: str) -> np.ndarray:
         return np.array([float(r[key]) for r in rows])
 
+    returns, progress = FINAL_POLICY_COLUMNS[policy]
     return {
-        "return": values("final_return").mean() >= BAR_RETURN,
-        "every seed": values("final_return").min() >= BAR_SEED_RETURN,
-        "progress": values("final_progress").mean() >= BAR_PROGRESS,
+        "return": values(returns).mean() >= BAR_RETURN,
+        "every seed": values(returns).min() >= BAR_SEED_RETURN,
+        "progress": values(progress).mean() >= BAR_PROGRESS,
         "steer": values("mean_action_abs_steer").mean() <= BAR_STEER,
         "holds": bool(np.all(values("best_eval_return") - values("last3_eval_return") <= BAR_HOLD)),
     }
@@ -560,29 +568,35 @@ def write_final_row(row: dict, path: str = os.path.join(RESULTS, "learning_final
         writer.writerows(rows)
 
 
-def final_summary(path: str = os.path.join(RESULTS, "learning_final.csv"), reps: int = 2000) -> str:
-    """Markdown: per variant the IQM and mean of the final return with stratified-bootstrap 95% intervals (rliable),
-    the bar's numbers, and which parts of the bar (bar_verdict) fail."""
+def final_summary(
+    path: str = os.path.join(RESULTS, "learning_final.csv"), reps: int = 2000, policy: str = "stochastic"
+) -> str:
+    """Markdown: per variant the IQM and mean of the final return, the final policy acting with `policy`, with
+    stratified-bootstrap 95% intervals (rliable), the bar's numbers, and which parts of the bar (bar_verdict)
+    fail."""
     from stats import interval_estimates
 
     with open(path, newline="") as f:
         rows = list(csv.DictReader(f))
+    return_key, progress_key = FINAL_POLICY_COLUMNS[policy]
     lines = [
+        f"The final policy {'sampled, as trained' if policy == 'stochastic' else 'driving its mean action'}:",
+        "",
         "| experiment | seeds | IQM final return [95% CI] | mean final return [95% CI] | min seed | mean progress "
         "| mean \\|steer\\|: mean action (sampled) | runs that hold | bar |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for variant in sorted({r["exp_name"] for r in rows}):  # each experiment (a variant, or an ablation of it)
         mine = [r for r in rows if r["exp_name"] == variant]
-        returns = np.array([float(r["final_return"]) for r in mine])
+        returns = np.array([float(r[return_key]) for r in mine])
         est = interval_estimates({variant: returns[:, None]}, reps=reps)[variant]
-        verdict = bar_verdict(mine)
+        verdict = bar_verdict(mine, policy)
         holds = sum(float(r["best_eval_return"]) - float(r["last3_eval_return"]) <= BAR_HOLD for r in mine)
         failed = [part for part, ok in verdict.items() if not ok]
         lines.append(
             f"| {variant} | {len(mine)} | {est['iqm']:.1f} [{est['iqm_ci'][0]:.1f}, {est['iqm_ci'][1]:.1f}] "
             f"| {est['mean']:.1f} [{est['mean_ci'][0]:.1f}, {est['mean_ci'][1]:.1f}] | {returns.min():.1f} "
-            f"| {np.mean([float(r['final_progress']) for r in mine]):.2f} "
+            f"| {np.mean([float(r[progress_key]) for r in mine]):.2f} "
             f"| {np.mean([float(r['mean_action_abs_steer']) for r in mine]):.2f} "
             f"({np.mean([float(r['final_mean_abs_steer']) for r in mine]):.2f}) | {holds} of {len(mine)} "
             f"| {'met' if not failed else 'not met: ' + ', '.join(failed)} |"
@@ -1054,9 +1068,10 @@ def main():
         "--train-tracks", type=int, default=0, help="--evaluate: the last N tracks the run trained on instead",
     )  # fmt: skip
     parser.add_argument(
-        "--policy", choices=["deterministic", "mean-action", "stochastic"], default="stochastic",
-        help="--evaluate, --final: both sampled, as trained (default) / sampled z, mean action / posterior mean z "
-        "and mean action",
+        "--policy", choices=["deterministic", "mean-action", "stochastic"], default=None,
+        help="--evaluate: sampled z, mean action (default, the scripts' --eval-policy) / both sampled, as trained / "
+        "posterior mean z and mean action; --final: the policy of learning_final.csv's final and best columns "
+        "(default: sampled, as trained; the mean action has its own columns)",
     )  # fmt: skip
     args = parser.parse_args()
     if args.horizon is not None and not args.calibrate:
@@ -1096,7 +1111,9 @@ def main():
         if args.tracks < 1 or args.train_tracks < 0:
             parser.error(f"--tracks must be >= 1 and --train-tracks >= 0, got {args.tracks} and {args.train_tracks}")
         try:
-            result = evaluate_checkpoint(args.evaluate, args.first_track, args.tracks, args.policy, args.train_tracks)
+            result = evaluate_checkpoint(
+                args.evaluate, args.first_track, args.tracks, args.policy or "mean-action", args.train_tracks
+            )  # fmt: skip
         except ValueError as e:  # race.CheckpointError is a ValueError naming the file
             parser.error(str(e))
         print(json.dumps(result, indent=1))
@@ -1134,14 +1151,16 @@ def main():
     if args.final:
         try:
             row = final_row(
-                args.variant, args.seed, experiment_name(args.variant, **ablation), args.policy, args.runs_dir,
+                args.variant, args.seed, experiment_name(args.variant, **ablation), args.policy or "stochastic",
+                args.runs_dir,
                 args.updates,
             )
         except ValueError as e:
             parser.error(str(e))
         write_final_row(row)
         print(json.dumps(row, indent=1))
-        summary = final_summary() + fresh_reference()
+        # the evaluation policy of the rule in docs/learning.md first (the mean action), then the policy as trained
+        summary = final_summary(policy="mean-action") + "\n" + final_summary(policy="stochastic") + fresh_reference()
         with open(os.path.join(RESULTS, "learning_final.md"), "w") as f:
             f.write(summary)
         print(summary)

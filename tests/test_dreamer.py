@@ -36,7 +36,7 @@ DEFAULTS = {
         # the appendix's widths and the scripts' other flags
         "cnn_depth": 32, "deter_size": 512, "hidden_size": 1024, "mlp_size": 512, "latent_size": 60, "norm": "batch",
         "num_agents": 2, "stage": "race", "env_id": "multi_car_racing", "seed": 1, "cuda": True, "preset": "paper",
-        "return_norm": False, "eval_policy": "stochastic",
+        "return_norm": False, "eval_policy": "mean-action",
     },
 }  # fmt: skip
 DEFAULTS["gru"] = {**DEFAULTS["lstm"], "batch_size": 50, "imagination_horizon": 15}

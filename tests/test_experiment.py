@@ -126,13 +126,14 @@ def test_a_rerun_with_other_trials_or_a_missing_stage_is_refused_before_ray_star
         experiment.check_spec(experiment.Spec(overrides=("no_such_flag=1",), storage=str(tmp_path)))
 
 
-def test_a_spec_saved_before_a_field_existed_means_its_default(tmp_path):
-    spec = experiment.Spec(stages=("single",), storage=str(tmp_path))
+def test_a_spec_saved_before_a_field_existed_means_the_value_it_ran_with(tmp_path):
+    assert experiment.Spec().eval_policy == "mean-action"  # today's default, not what older experiments ran with
+    spec = experiment.Spec(stages=("single",), storage=str(tmp_path), eval_policy="stochastic")
     saved = experiment.trial_fields(spec)
     del saved["eval_policy"]  # an experiment started before the tournaments' policy was a field
     with open(tmp_path / "spec.json", "w") as f:
         json.dump(saved, f)
-    experiment.check_spec(spec)  # it ran with the default: the same experiment
+    experiment.check_spec(spec)  # it ran with the sampled policy: the same experiment
     with open(tmp_path / "spec.json") as f:
         assert json.load(f)["eval_policy"] == "stochastic"  # written down: a later default cannot change it
     with pytest.raises(SystemExit, match="measures its agents with --eval-policy stochastic"):
@@ -140,7 +141,7 @@ def test_a_spec_saved_before_a_field_existed_means_its_default(tmp_path):
 
 
 def test_the_evaluation_policy_may_change_until_the_race_stage_has_begun(tmp_path):
-    spec = experiment.Spec(stages=("single",), storage=str(tmp_path))
+    spec = experiment.Spec(stages=("single",), storage=str(tmp_path), eval_policy="stochastic")
     experiment.check_spec(spec)
     mean_action = dataclasses.replace(spec, eval_policy="mean-action")
     experiment.check_spec(mean_action)  # no tournament has used it yet: chosen now, and written down
@@ -184,7 +185,7 @@ def test_the_default_single_stage_is_the_learning_benchmarks_run(tmp_path):
         os.makedirs(os.path.join(args.runs_dir, f"multi_car_racing__{args.exp_name}__12__1700000000"))
         assert learning.find_run(learning.experiment_name(variant), 12, str(tmp_path / "trials")) is not None
     for change in ({"overrides": ("entropy_coef=0.5",)}, {"single_updates": 2000}, {"torch_threads": 2},
-                   {"eval_policy": "mean-action"}):  # fmt: skip
+                   {"eval_policy": "stochastic"}):  # fmt: skip
         changed = dataclasses.asdict(experiment.Spec(storage=str(tmp_path), **change))
         assert experiment.trial_args(changed, "single", "gru", 12)[1].exp_name == "gru_single"
 
@@ -485,7 +486,7 @@ def test_a_later_stage_needs_the_earlier_trials_finished(tmp_path, monkeypatch):
 def test_the_aggregation_measures_each_checkpoint_once(tmp_path, monkeypatch):
     import learning
 
-    spec = experiment.Spec(storage=str(tmp_path / "storage"), fresh_tracks=3)
+    spec = experiment.Spec(storage=str(tmp_path / "storage"), fresh_tracks=3, eval_policy="stochastic")
     path = tmp_path / "latest.pt"
     path.write_bytes(b"one")
     calls = []

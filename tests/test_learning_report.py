@@ -103,6 +103,13 @@ def test_final_table_rows_replace_their_run_and_the_summary_matches_hand_compute
     assert gru[8].strip() == "4 of 4" and gru[9].strip() == "not met: return, every seed, progress"
     low, high = (float(x) for x in gru[4].split("[")[1].rstrip("] ").split(","))
     assert 1.0 <= low < 4.0 < high <= 10.0  # a bootstrap interval of the mean lies within the scores
+    # driving its mean action (the rule's evaluation policy): that policy's columns, 0.0 and progress 0 in every row
+    mean_action = learning.final_summary(path, reps=500, policy="mean-action").splitlines()
+    assert mean_action[0] == "The final policy driving its mean action:"
+    assert table[0].startswith("The final policy sampled")
+    lstm = next(line for line in mean_action if line.startswith("| learning_lstm |")).split("|")
+    assert lstm[4].strip().startswith("0.0 [") and lstm[5].strip() == "0.0" and lstm[6].strip() == "0.00"
+    assert lstm[9].strip() == "not met: return, every seed, progress, holds"  # 0.0 everywhere: below each bar
 
 
 def test_the_bar_is_met_only_when_every_part_is(tmp_path):
