@@ -20,7 +20,7 @@ it runs longer than the others). Figures (one PNG each):
 * ``ghost_return.png``         - stage ``ghost`` and its control (a ``single`` run continued from a checkpoint,
   ``single-continued``): episodic return (when present)
 * ``single_agent_eval_{return,progress}.png`` - stage ``single``: the evaluation on the held-out tracks
-  (``--eval-policy``, sampled by default; when logged)
+  (``--eval-policy``: the mean action by default, sampled in runs begun before; when logged)
 * ``losses.png``               - actor, critic, reconstruction, KL (dyn) for every group against steps
 * ``losses_race.png``          - the same for ``race.py --train`` runs, against races
 * ``head_to_head.png``         - with ``--head-to-head CSV``: the tournaments of ``benchmarks/experiment.py``

@@ -11,7 +11,8 @@ checkpoint. A path may end in ``:k`` to pick agent ``k`` of a multi-agent checkp
 Races run on seeded tracks: track ``j`` is raced once per car with the start grid rotated, so every car starts from
 every grid slot equally often. Each Dreamer racer decides at the rate it was trained at: a new action every
 ``action_repeat`` env steps of its own, held in between (its recorded transitions sum the rewards of the held
-steps), with ``--policy`` (default: sampled, as trained; torch is seeded with ``--seed``). The table per racer
+steps), with ``--policy`` (default: the mean action from a sampled latent; ``--train`` always samples; torch is
+seeded with ``--seed``). The table per racer
 (also as CSV and JSON in ``--out``): wins, win rate with a Wilson 95% interval, mean finish time of finished races,
 mean progress, eliminations, collision steps; plus an mp4 of the first race (``--video``).
 

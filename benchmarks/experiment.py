@@ -169,7 +169,7 @@ def dreamer_trial(config: dict) -> None:
     from ray import tune
 
     config = config["trial"]  # (the grid puts each trial's settings under "trial")
-    spec = {**dataclasses.asdict(Spec()), **config["spec"]}  # a restored older trial: defaults
+    spec = restored_spec(config["spec"])
     stage, variant, seed = config["stage"], config["variant"], config["seed"]
     script, args, first, target = trial_args(spec, stage, variant, seed)
     directory = trial_dir(spec, stage, variant, seed)
@@ -231,7 +231,7 @@ def race_trial(config: dict) -> None:
     import race
 
     config = config["trial"]
-    spec, seed = {**dataclasses.asdict(Spec()), **config["spec"]}, config["seed"]  # a restored older trial: defaults
+    spec, seed = restored_spec(config["spec"]), config["seed"]
     directory = trial_dir(spec, "race", "lstm_gru", seed)
     checkpoints = [
         os.path.join(run_of(trial_dir(spec, "ghost", variant, seed)), "checkpoints", "latest.pt")
@@ -439,6 +439,12 @@ def race_started(spec: dict) -> bool:
 # The value of a trial field whose default changed after it was added: what an experiment whose spec.json predates
 # the field ran with (the evaluation policy was sampled until the rule of docs/learning.md chose the mean action).
 FIELD_ORIGINS = {"eval_policy": "stochastic"}
+
+
+def restored_spec(saved: dict) -> dict:
+    """The spec of a trial as Tune restores it: a field its saved config lacks was added to Spec after the trial's
+    experiment began, so it takes the value that field had then (FIELD_ORIGINS), else its default."""
+    return {**dataclasses.asdict(Spec()), **FIELD_ORIGINS, **saved}
 
 
 def saved_spec(storage: str) -> dict | None:

@@ -534,7 +534,8 @@ def bar_verdict(rows: list[dict], policy: str = "stochastic") -> dict[str, bool]
     """Each part of the bar for the rows of one variant (its seeds), the final policy acting with `policy`
     (FINAL_POLICY_COLUMNS): mean final return >= BAR_RETURN, every seed
     >= BAR_SEED_RETURN, mean progress >= BAR_PROGRESS, mean |steer| of the final policy's mean action <= BAR_STEER,
-    and every run holds (its last three evaluations average within BAR_HOLD of its best).
+    and every run holds (its last three evaluations average within BAR_HOLD of its best: the run's own evaluations,
+    with its --eval-policy, whatever `policy` is; sampled for the runs begun before the mean action's rule).
 
     Smoothness is judged on the mean action, the steering the policy means: the sampled policy's |steer| carries
     its exploration noise (sigma ~0.8 puts it near 0.6 even for a mean of 0), and the bang-bang agents this gauge
@@ -1149,6 +1150,9 @@ def main():
         print(table)
         return
     if args.final:
+        if args.policy not in (None, "stochastic"):
+            parser.error("--final measures the sampled policy in learning_final.csv's final and best columns; the "
+                         "mean action has its own columns (--policy applies to --evaluate)")  # fmt: skip
         try:
             row = final_row(
                 args.variant, args.seed, experiment_name(args.variant, **ablation), args.policy or "stochastic",

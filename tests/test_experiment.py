@@ -140,6 +140,14 @@ def test_a_spec_saved_before_a_field_existed_means_the_value_it_ran_with(tmp_pat
         experiment.main(dataclasses.replace(spec, eval_policy="mean-action", aggregate_only=True))
 
 
+def test_a_restored_trial_that_predates_a_field_takes_the_value_it_ran_with():
+    saved = experiment.trial_fields(experiment.Spec())
+    del saved["eval_policy"]  # a Tune trial created before the field existed ran with the sampled policy
+    assert experiment.restored_spec(saved)["eval_policy"] == "stochastic" != experiment.Spec().eval_policy
+    assert experiment.restored_spec({**saved, "eval_policy": "mean-action"})["eval_policy"] == "mean-action"
+    assert experiment.restored_spec(saved)["ghost_updates"] == experiment.Spec().ghost_updates  # others: defaults
+
+
 def test_the_evaluation_policy_may_change_until_the_race_stage_has_begun(tmp_path):
     spec = experiment.Spec(stages=("single",), storage=str(tmp_path), eval_policy="stochastic")
     experiment.check_spec(spec)
