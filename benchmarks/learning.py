@@ -1155,8 +1155,7 @@ def main():
                          "mean action has its own columns (--policy applies to --evaluate)")  # fmt: skip
         try:
             row = final_row(
-                args.variant, args.seed, experiment_name(args.variant, **ablation), args.policy or "stochastic",
-                args.runs_dir,
+                args.variant, args.seed, experiment_name(args.variant, **ablation), "stochastic", args.runs_dir,
                 args.updates,
             )
         except ValueError as e:

@@ -140,6 +140,16 @@ def test_a_spec_saved_before_a_field_existed_means_the_value_it_ran_with(tmp_pat
         experiment.main(dataclasses.replace(spec, eval_policy="mean-action", aggregate_only=True))
 
 
+def test_every_entry_point_evaluates_with_the_same_policy_by_default():
+    import dreamer_gru
+    import dreamer_lstm
+
+    # the rule of docs/learning.md chose one evaluation policy: the scripts, race.py and the experiment agree on it
+    defaults = [dreamer_lstm.Args().eval_policy, dreamer_gru.Args().eval_policy, race.Args().policy,
+                experiment.Spec().eval_policy]  # fmt: skip
+    assert defaults == ["mean-action"] * 4
+
+
 def test_a_restored_trial_that_predates_a_field_takes_the_value_it_ran_with():
     saved = experiment.trial_fields(experiment.Spec())
     del saved["eval_policy"]  # a Tune trial created before the field existed ran with the sampled policy
