@@ -617,6 +617,58 @@ def fresh_reference(results_dir: str = RESULTS) -> str:
     )
 
 
+def peer_summary(
+    final_path: str = os.path.join(RESULTS, "learning_final.csv"),
+    peer_path: str = os.path.join(RESULTS, "ppo_peer.csv"), reps: int = 2000,
+) -> str:
+    """Markdown for learning_final.md: SB3 PPO (benchmarks/ppo_peer.py, its deterministic policy) over its seeds,
+    and each variant's final policy driving its mean action minus PPO on the same fresh tracks: the difference of
+    the means of independent runs with its stratified-bootstrap 95% interval, and what that interval says. The
+    variants' defaults only (an ablation is not the method); "" while ppo_peer.csv has no row."""
+    from stats import interval_estimates, mean_difference, verdict
+
+    if not os.path.exists(peer_path):
+        return ""
+    with open(peer_path, newline="") as f:
+        ppo = np.array([float(r["final_return"]) for r in csv.DictReader(f)])
+    if ppo.size == 0:
+        return ""
+    with open(final_path, newline="") as f:
+        rows = [r for r in csv.DictReader(f) if r["exp_name"] == experiment_name(r["variant"])]
+    est = interval_estimates({"ppo": ppo[:, None]}, reps=reps)["ppo"]
+    lines = [
+        "",
+        f"SB3 PPO at the same CPU time (benchmarks/ppo_peer.py), {ppo.size} seed{'s' * (ppo.size > 1)}, its "
+        f"deterministic policy: mean {est['mean']:.1f} [{est['mean_ci'][0]:.1f}, {est['mean_ci'][1]:.1f}] "
+        f"(seeds: {', '.join(f'{x:.1f}' for x in ppo)}).",
+        "",
+        "| variant (mean action) - PPO | difference of means [95% CI] | the variant beats PPO |",
+        "|---|---|---|",
+    ]
+    for variant in sorted({r["variant"] for r in rows}):
+        mine = np.array([float(r[FINAL_POLICY_COLUMNS["mean-action"][0]]) for r in rows if r["variant"] == variant])
+        diff = mean_difference(mine[:, None], ppo[:, None], reps=reps)
+        lines.append(
+            f"| {variant} - ppo | {diff['diff']:+.1f} [{diff['ci'][0]:+.1f}, {diff['ci'][1]:+.1f}] "
+            f"| {verdict(diff['ci'])} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def write_final_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
+    """(Re)write learning_final.md from learning_final.csv (and ppo_peer.csv when present): the evaluation policy
+    of the rule in docs/learning.md first (the mean action), then the policy as trained, the references on the same
+    tracks, and the PPO peer. Returns the text."""
+    final_path = os.path.join(results_dir, "learning_final.csv")
+    text = (
+        final_summary(final_path, reps, policy="mean-action") + "\n" + final_summary(final_path, reps)
+        + fresh_reference(results_dir) + peer_summary(final_path, os.path.join(results_dir, "ppo_peer.csv"), reps)
+    )  # fmt: skip
+    with open(os.path.join(results_dir, "learning_final.md"), "w") as f:
+        f.write(text)
+    return text
+
+
 # What to look at when a run falls short: (column, tag of progress.csv), averaged per bucket of updates.
 DIAGNOSTICS = (
     ("training return", "car_0/charts/episodic_return"),
@@ -1162,11 +1214,7 @@ def main():
             parser.error(str(e))
         write_final_row(row)
         print(json.dumps(row, indent=1))
-        # the evaluation policy of the rule in docs/learning.md first (the mean action), then the policy as trained
-        summary = final_summary(policy="mean-action") + "\n" + final_summary(policy="stochastic") + fresh_reference()
-        with open(os.path.join(RESULTS, "learning_final.md"), "w") as f:
-            f.write(summary)
-        print(summary)
+        print(write_final_report())
         return
     if not args.report:
         script, script_args, overrides = run_args(

@@ -112,6 +112,45 @@ def test_final_table_rows_replace_their_run_and_the_summary_matches_hand_compute
     assert lstm[9].strip() == "not met: return, every seed, progress, holds"  # 0.0 everywhere: below each bar
 
 
+def test_the_ppo_peer_is_compared_with_each_variants_mean_action_over_seeds(tmp_path):
+    results = tmp_path / "results"
+    results.mkdir()
+    with open(results / "baselines_fresh.json", "w") as f:
+        json.dump(BASELINES, f)
+    base = {"updates": 8000, "env_steps": 40000, "hours": 2.5, "best_return": 0.0, "best_progress": 0.0,
+            "final_progress": 0.5, "final_mean_abs_steer": 0.6, "mean_action_abs_steer": 0.2,
+            "mean_action_progress": 0.8, "best_eval_return": 600.0, "last3_eval_return": 550.0}  # fmt: skip
+    for exp_name, variant, seed, mean_action, sampled in [
+        ("learning_lstm", "lstm", 11, 600.0, 1.0), ("learning_lstm", "lstm", 12, 700.0, 1.0),
+        ("learning_lstm", "lstm", 13, 800.0, 1.0), ("learning_gru", "gru", 11, 500.0, 1.0),
+        ("learning_gru", "gru", 12, 500.0, 1.0), ("learning_gru", "gru", 13, 500.0, 1.0),
+        ("learning_gru_alpha0.1", "gru", 11, 5000.0, 1.0),  # an ablation is not the method: left out
+    ]:  # fmt: skip
+        learning.write_final_row(
+            {"exp_name": exp_name, "variant": variant, "seed": seed, "mean_action_return": mean_action,
+             "final_return": sampled, **base}, str(results / "learning_final.csv"),
+        )  # fmt: skip
+    peer = str(results / "ppo_peer.csv")
+    assert learning.peer_summary(str(results / "learning_final.csv"), peer) == ""  # no PPO row yet: nothing
+    with open(peer, "w", newline="") as f:
+        f.write("variant,seed,final_return\nppo,11,550.0\nppo,12,650.0\n")
+    text = learning.write_final_report(str(results), reps=500)
+    with open(results / "learning_final.md") as f:
+        assert f.read() == text
+    # PPO: mean 600; lstm 700 - 600 = +100, its bootstrap means lie in [600, 800] - [550, 650]; gru 500 - 600 = -100
+    # with an interval of PPO's resampling alone: [500 - 650, 500 - 550]
+    assert "2 seeds, its deterministic policy: mean 600.0 [" in text and "(seeds: 550.0, 650.0)" in text
+    rows = {line.split("|")[1].strip(): line.split("|") for line in text.splitlines() if " - ppo |" in line}
+    assert set(rows) == {"lstm - ppo", "gru - ppo"}
+    for name, diff, lowest, highest in [("lstm - ppo", 100.0, -50.0, 250.0), ("gru - ppo", -100.0, -150.0, -50.0)]:
+        point, interval = rows[name][2].split("[")
+        low, high = (float(x) for x in interval.rstrip("] ").split(","))
+        assert float(point) == diff and lowest <= low < diff < high <= highest
+    assert rows["gru - ppo"][3].strip() == "contradicted (the opposite holds)"
+    assert rows["lstm - ppo"][3].strip() == "not supported (the interval includes 0)"
+    assert text.index("driving its mean action") < text.index("sampled, as trained") < text.index("SB3 PPO")
+
+
 def test_the_bar_is_met_only_when_every_part_is(tmp_path):
     def row(ret, progress=0.7, steer=0.2, best=700.0, last3=600.0, sampled_steer=0.6):
         return {"final_return": ret, "final_progress": progress, "final_mean_abs_steer": sampled_steer,
