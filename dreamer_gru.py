@@ -133,8 +133,8 @@ class Args:
     eval_episodes: int = 10
     """races per evaluation"""
     eval_policy: Literal["deterministic", "mean-action", "stochastic"] = "mean-action"
-    """evaluation's policy: sampled z and action (the policy that was optimised) / sampled z, mean action /
-    posterior mean z and mean action. The mean action by default: a rule fixed before it was measured found it
+    """evaluation's policy: deterministic = posterior mean z and mean action; mean-action = sampled z, mean action;
+    stochastic = sampled z and action (the policy that was optimised). The mean action by default: a rule fixed before it was measured found it
     drives better than the sampled action after 8,000 updates (six runs, paired, 95% interval above 0; early in
     training the mean-action car can stall where the sampled one drives: docs/learning.md)"""
     eval_checkpoints: bool = False

@@ -58,9 +58,9 @@ class Args:
     opponent: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()
     """a scripted pure-pursuit driver to add: pursuit or pursuit:SPEED (default speed 70); repeatable"""
     policy: Literal["deterministic", "mean-action", "stochastic"] = "mean-action"
-    """how Dreamer racers act: sampled latent and action, as trained / sampled latent, mean action (the default:
-    the trained agents drive better with it, docs/learning.md) / posterior mean and mean action (--train always
-    samples)"""
+    """how Dreamer racers act: deterministic = posterior-mean latent and mean action; mean-action = sampled latent,
+    mean action (the default: the trained agents drive better with it, docs/learning.md); stochastic = sampled
+    latent and action, as trained (--train always samples)"""
     out: str | None = None
     """directory of results.csv/json and race.mp4 (default races/<time>)"""
     video: bool = True

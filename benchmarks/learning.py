@@ -1122,8 +1122,8 @@ def main():
     )  # fmt: skip
     parser.add_argument(
         "--policy", choices=["deterministic", "mean-action", "stochastic"], default=None,
-        help="--evaluate: sampled z, mean action (default, the scripts' --eval-policy) / both sampled, as trained / "
-        "posterior mean z and mean action; --final: the policy of learning_final.csv's final and best columns "
+        help="--evaluate: deterministic = posterior mean z and mean action; mean-action = sampled z, mean action "
+        "(default, the scripts' --eval-policy); stochastic = both sampled, as trained; --final: the policy of learning_final.csv's final and best columns "
         "(default: sampled, as trained; the mean action has its own columns)",
     )  # fmt: skip
     args = parser.parse_args()
