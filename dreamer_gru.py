@@ -134,9 +134,10 @@ class Args:
     """races per evaluation"""
     eval_policy: Literal["deterministic", "mean-action", "stochastic"] = "mean-action"
     """evaluation's policy: deterministic = posterior mean z and mean action; mean-action = sampled z, mean action;
-    stochastic = sampled z and action (the policy that was optimised). The mean action by default: a rule fixed before it was measured found it
-    drives better than the sampled action after 8,000 updates (six runs, paired, 95% interval above 0; early in
-    training the mean-action car can stall where the sampled one drives: docs/learning.md)"""
+    stochastic = sampled z and action (the policy that was optimised). The mean action by default: a rule fixed
+    before it was measured found it drives better than the sampled action after 8,000 updates (six runs, paired,
+    95% interval above 0; early in training the mean-action car can stall where the sampled one drives:
+    docs/learning.md)"""
     eval_checkpoints: bool = False
     """also keep checkpoints/eval_<race>.pt at every evaluation (the policy as evaluated, for later analysis)"""
     eval_seed: int = 10_000

@@ -1123,8 +1123,9 @@ def main():
     parser.add_argument(
         "--policy", choices=["deterministic", "mean-action", "stochastic"], default=None,
         help="--evaluate: deterministic = posterior mean z and mean action; mean-action = sampled z, mean action "
-        "(default, the scripts' --eval-policy); stochastic = both sampled, as trained; --final: the policy of learning_final.csv's final and best columns "
-        "(default: sampled, as trained; the mean action has its own columns)",
+        "(default, the scripts' --eval-policy); stochastic = both sampled, as trained; --final: the policy of "
+        "learning_final.csv's final and best columns (default: sampled, as trained; the mean action has its own "
+        "columns)",
     )  # fmt: skip
     args = parser.parse_args()
     if args.horizon is not None and not args.calibrate:
