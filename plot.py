@@ -18,7 +18,9 @@ it runs longer than the others). Figures (one PNG each):
 * ``multi_agent_return.png``   - stage ``race``: episodic return
 * ``multi_agent_win_rate.png`` - stage ``race``: win rate
 * ``ghost_return.png``         - stage ``ghost`` and its control (a ``single`` run continued from a checkpoint,
-  ``single-continued``): episodic return (when present)
+  ``single-continued``): the training races' return (when present). Not comparable between the two: racing its
+  ghost, a car that follows it is paid the follower's half of each tile the ghost reached first
+* ``ghost_eval_return.png``    - the same two: the evaluation on the held-out tracks, each car alone, comparable
 * ``single_agent_eval_{return,progress}.png`` - stage ``single``: the evaluation on the held-out tracks
   (``--eval-policy``: the mean action by default, sampled in runs begun before; when logged)
 * ``losses.png``               - actor, critic, reconstruction, KL (dyn) for every group against steps
@@ -58,7 +60,12 @@ FIGURES = {
     "single_agent_return.png": ("single", "charts/episodic_return", "episodic return"),
     "multi_agent_return.png": ("race", "charts/episodic_return", "episodic return"),
     "multi_agent_win_rate.png": ("race", "charts/win_rate", "win rate"),
-    "ghost_return.png": (("ghost", "single-continued"), "charts/episodic_return", "episodic return"),
+    "ghost_return.png": (
+        ("ghost", "single-continued"), "charts/episodic_return", "training return (tiles the ghost took pay half)"
+    ),
+    "ghost_eval_return.png": (
+        ("ghost", "single-continued"), "eval/episodic_return", "evaluation return (held-out tracks, alone)"
+    ),
     "single_agent_eval_return.png": ("single", "eval/episodic_return", "evaluation return (held-out tracks)"),
     "single_agent_eval_progress.png": ("single", "eval/progress", "evaluation progress (held-out tracks)"),
 }

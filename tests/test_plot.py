@@ -166,7 +166,12 @@ def test_losses_are_drawn_per_x_unit_and_controls_beside_the_ghost(logdir, tmp_p
     control = write_run(str(root), "lstm", "single", 9, agents=1)
     with open(os.path.join(control, "config.json"), "w") as f:
         json.dump({"variant": "lstm", "stage": "single", "seed": 9, "checkpoint": "runs/x/checkpoints/best.pt"}, f)
-    write_run(str(root), "lstm", "ghost", 9, agents=1)
+    ghost_run = write_run(str(root), "lstm", "ghost", 9, agents=1)
+    for run_dir, values in ((ghost_run, [100.0, 300.0]), (control, [200.0, 250.0])):  # evaluations, car alone
+        writer = SummaryWriter(run_dir, filename_suffix=".eval")
+        for step, value in zip((10, 20), values):
+            writer.add_scalar("car_0/eval/episodic_return", value, step)
+        writer.close()
     figures = plot.make_figures(str(root), str(tmp_path / "f"), sigma=0.0)
     steps = figures["losses.png"].axes[0]
     races = figures["losses_race.png"].axes[0]
@@ -178,6 +183,11 @@ def test_losses_are_drawn_per_x_unit_and_controls_beside_the_ghost(logdir, tmp_p
     assert sorted(single) == ["gru (3 seeds)", "lstm (3 seeds)"]  # the continued run is no fourth seed
     ghost = sorted(labelled(figures["ghost_return.png"].axes[0]))
     assert ghost == ["lstm/ghost (1 seed)", "lstm/single-continued (1 seed)"]
+    evaluations = figures["ghost_eval_return.png"].axes[0]  # the comparable one: each car alone, held-out tracks
+    for label, values in (("lstm/ghost (1 seed)", [100.0, 300.0]), ("lstm/single-continued (1 seed)", [200.0, 250.0])):
+        line = next(line for line in evaluations.lines if line.get_label() == label)
+        np.testing.assert_allclose(line.get_ydata()[[0, -1]], values, atol=1e-6)
+    assert "single_agent_eval_return.png" not in figures  # the continued run's evaluations are no single seed's
 
 
 def test_head_to_head_figure_from_the_tournaments_csv(logdir, tmp_path, capsys):
