@@ -611,13 +611,10 @@ def summarize(single_returns: dict[str, list[float]], final_rates: dict[str, lis
     return "\n".join(lines) + "\n"
 
 
-MIN_RUNS = 2  # fewer runs than this on a side of a claim: a bootstrap interval has no width, and no verdict
-
-
 def claims_table(single_returns: dict[str, list[float]], ghost_rows: list[dict], head_rows: list[dict],
                  race_episodes: int, reps: int = 2000) -> str:  # fmt: skip
     """Markdown: each claim of the paper, what measures it here, the estimate with its 95% interval, and what the
-    interval says (stats.verdict; "too few runs" below MIN_RUNS). Solo: LSTM mean - GRU mean of the single-stage
+    interval says (stats.judge: "too few runs" below stats.MIN_RUNS). Solo: LSTM mean - GRU mean of the single-stage
     final returns (independent runs, stratified bootstrap). Head to head, over the seed pairs that finished
     `race_episodes` races: per pair the LSTM's minus the GRU's win rate in the last tournament (the same races:
     paired); each agent's progress in the tournament before head-to-head training minus in the first after it (both
@@ -625,7 +622,7 @@ def claims_table(single_returns: dict[str, list[float]], ghost_rows: list[dict],
     began; the mean over pairs with a bootstrap over pairs (each pair's Wilson interval is in head_to_head.csv).
     Ghost: return after the ghost stage minus after its control, per variant and seed. A note under the table says
     when a paired mean is over so few runs (n <= 3) that its bootstrap 95% interval is their range."""
-    from stats import interval_estimates, mean_difference, verdict
+    from stats import MIN_RUNS, SMALL_SAMPLE_NOTE, interval_estimates, judge, mean_difference
 
     sizes = []
 
@@ -635,7 +632,7 @@ def claims_table(single_returns: dict[str, list[float]], ghost_rows: list[dict],
         return est["mean"], est["mean_ci"]
 
     def row(claim: str, measured: str, estimate: float, ci: tuple[float, float], n: int, digits: int = 1) -> str:
-        judged = verdict(ci) if n >= MIN_RUNS else f"too few runs to judge (n = {n})"
+        judged = judge(ci, n)
         return f"| {claim} | {measured} | {estimate:.{digits}f} [{ci[0]:.{digits}f}, {ci[1]:.{digits}f}] | {judged} |"
 
     lines = ["| claim of the paper | what we measured | estimate [95% CI] | verdict |", "|---|---|---|---|"]
@@ -688,10 +685,7 @@ def claims_table(single_returns: dict[str, list[float]], ghost_rows: list[dict],
             mean, ci, len(diffs),
         ))  # fmt: skip
     if any(MIN_RUNS <= n <= 3 for n in sizes):
-        lines += ["", "A mean over 3 runs or fewer (the paired rows): the bootstrap's 95% interval spans their "
-                      "smallest to their largest value (a resample of one run repeated has probability "
-                      "(1/n)^n > 2.5%), so \"supported\" there means that every run agrees, not a test at the 5% "
-                      "level."]  # fmt: skip
+        lines += ["", f"{SMALL_SAMPLE_NOTE} (The paired rows.)"]
     return "\n".join(lines) + "\n"
 
 

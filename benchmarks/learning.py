@@ -6,6 +6,7 @@
     python benchmarks/learning.py --report                                 # curves + table only
     python benchmarks/learning.py --variant lstm --seed 11 --diagnose      # sigma, entropy, kl_dyn... per 500 updates
     python benchmarks/learning.py --runs-dir runs/experiment/trials --variant gru --seed 12 --final
+    python benchmarks/learning.py --final-report                           # learning_final.md from the CSVs
     python benchmarks/learning.py --evaluate runs/learning/<run>/checkpoints/latest.pt --first-track 10100 --tracks 20
     python benchmarks/learning.py --calibrate runs/learning/<run>/checkpoints/latest.pt   # optimistic critic/model?
     python benchmarks/learning.py --variant lstm --seed 11 --return-norm --screen 3100 \\
@@ -29,7 +30,8 @@ evaluating every 5 races on the 10 held-out tracks (seeds 10000..10009) and keep
   what the real episodes returned from them;
 * with ``--final``: the run's row of ``learning_final.csv`` (its final and best policies on the 20 fresh tracks
   10100..10119) and, in ``learning_final.md``, the IQM and mean over seeds with stratified-bootstrap intervals
-  (rliable) and the parts of the bar each variant fails.
+  (rliable), the parts of the bar each variant fails, and each variant minus the SB3 PPO peer (``ppo_peer.csv``);
+  ``--final-report`` rewrites ``learning_final.md`` alone.
 
 The bar, per variant over 3 seeds: final-policy mean return >= 600 with every seed >= 350, mean progress >= 0.65,
 mean |steer| <= 0.3, and each run's last three evaluations within 150 of its best (docs/learning.md).
@@ -622,25 +624,32 @@ def peer_summary(
     peer_path: str = os.path.join(RESULTS, "ppo_peer.csv"), reps: int = 2000,
 ) -> str:
     """Markdown for learning_final.md: SB3 PPO (benchmarks/ppo_peer.py, its deterministic policy) over its seeds,
-    and each variant's final policy driving its mean action minus PPO on the same fresh tracks: the difference of
-    the means of independent runs with its stratified-bootstrap 95% interval, and what that interval says. The
+    each with the CPU time it had, and each variant's final policy driving its mean action minus PPO on the same
+    fresh tracks: the difference of the means of independent runs with its stratified-bootstrap 95% interval, and
+    what that interval says (stats.judge: no verdict while a side has fewer than stats.MIN_RUNS runs). The
     variants' defaults only (an ablation is not the method); "" while ppo_peer.csv has no row."""
-    from stats import interval_estimates, mean_difference, verdict
+    from stats import MIN_RUNS, interval_estimates, judge, mean_difference
 
     if not os.path.exists(peer_path):
         return ""
     with open(peer_path, newline="") as f:
-        ppo = np.array([float(r["final_return"]) for r in csv.DictReader(f)])
-    if ppo.size == 0:
+        peer = list(csv.DictReader(f))
+    if not peer:
         return ""
+    ppo = np.array([float(r["final_return"]) for r in peer])
     with open(final_path, newline="") as f:
         rows = [r for r in csv.DictReader(f) if r["exp_name"] == experiment_name(r["variant"])]
-    est = interval_estimates({"ppo": ppo[:, None]}, reps=reps)["ppo"]
+    budget = {r["seed"]: f" at {float(r['cpu_hours']):.2f} CPU-h" if r.get("cpu_hours") else "" for r in peer}
+    seeds = ", ".join(f"{r['seed']}: {float(r['final_return']):.1f}{budget[r['seed']]}" for r in peer)
+    if ppo.size >= MIN_RUNS:
+        est = interval_estimates({"ppo": ppo[:, None]}, reps=reps)["ppo"]
+        mean = f"mean {est['mean']:.1f} [{est['mean_ci'][0]:.1f}, {est['mean_ci'][1]:.1f}]"
+    else:
+        mean = f"{ppo.mean():.1f} (one seed: no interval)"
     lines = [
         "",
         f"SB3 PPO at the same CPU time (benchmarks/ppo_peer.py), {ppo.size} seed{'s' * (ppo.size > 1)}, its "
-        f"deterministic policy: mean {est['mean']:.1f} [{est['mean_ci'][0]:.1f}, {est['mean_ci'][1]:.1f}] "
-        f"(seeds: {', '.join(f'{x:.1f}' for x in ppo)}).",
+        f"deterministic policy: {mean} (seed {seeds}).",
         "",
         "| variant (mean action) - PPO | difference of means [95% CI] | the variant beats PPO |",
         "|---|---|---|",
@@ -650,19 +659,20 @@ def peer_summary(
         diff = mean_difference(mine[:, None], ppo[:, None], reps=reps)
         lines.append(
             f"| {variant} - ppo | {diff['diff']:+.1f} [{diff['ci'][0]:+.1f}, {diff['ci'][1]:+.1f}] "
-            f"| {verdict(diff['ci'])} |"
+            f"| {judge(diff['ci'], min(mine.size, ppo.size))} |"
         )
     return "\n".join(lines) + "\n"
 
 
-def write_final_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
-    """(Re)write learning_final.md from learning_final.csv (and ppo_peer.csv when present): the evaluation policy
-    of the rule in docs/learning.md first (the mean action), then the policy as trained, the references on the same
-    tracks, and the PPO peer. Returns the text."""
+def write_final_report(results_dir: str = RESULTS, reps: int = 2000, peer_path: str | None = None) -> str:
+    """(Re)write learning_final.md from learning_final.csv (and the PPO peer's csv, by default ppo_peer.csv beside
+    it, when present): the evaluation policy of the rule in docs/learning.md first (the mean action), then the
+    policy as trained, the references on the same tracks, and the PPO peer. Returns the text."""
     final_path = os.path.join(results_dir, "learning_final.csv")
+    peer_path = peer_path or os.path.join(results_dir, "ppo_peer.csv")
     text = (
         final_summary(final_path, reps, policy="mean-action") + "\n" + final_summary(final_path, reps)
-        + fresh_reference(results_dir) + peer_summary(final_path, os.path.join(results_dir, "ppo_peer.csv"), reps)
+        + fresh_reference(results_dir) + peer_summary(final_path, peer_path, reps)
     )  # fmt: skip
     with open(os.path.join(results_dir, "learning_final.md"), "w") as f:
         f.write(text)
@@ -1060,6 +1070,10 @@ def main():
         "--final", action="store_true",
         help="only evaluate the run's final and best policies on the fresh tracks; its row in learning_final.csv",
     )  # fmt: skip
+    mode.add_argument(
+        "--final-report", action="store_true",
+        help="only rewrite learning_final.md from learning_final.csv and ppo_peer.csv (no evaluation)",
+    )  # fmt: skip
     parser.add_argument(
         "--entropy-coef", type=float, default=None,
         help="an ablation: this alpha instead of the preset's (the run is named learning_<variant>_alpha<coef>)",
@@ -1123,9 +1137,8 @@ def main():
     parser.add_argument(
         "--policy", choices=["deterministic", "mean-action", "stochastic"], default=None,
         help="--evaluate: deterministic = posterior mean z and mean action; mean-action = sampled z, mean action "
-        "(default, the scripts' --eval-policy); stochastic = both sampled, as trained; --final: the policy of "
-        "learning_final.csv's final and best columns (default: sampled, as trained; the mean action has its own "
-        "columns)",
+        "(default, the scripts' --eval-policy); stochastic = both sampled, as trained. (--final always samples, "
+        "for learning_final.csv's final and best columns, and measures the mean action into its own columns)",
     )  # fmt: skip
     args = parser.parse_args()
     if args.horizon is not None and not args.calibrate:
@@ -1201,6 +1214,9 @@ def main():
         with open(os.path.join(RESULTS, f"{name}_seed{args.seed}_diagnostics.md"), "w") as f:
             f.write(f"{os.path.basename(run)}\n\n{table}")
         print(table)
+        return
+    if args.final_report:
+        print(write_final_report())
         return
     if args.final:
         if args.policy not in (None, "stochastic"):

@@ -243,7 +243,7 @@ def main(argv=None) -> dict:
         sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
         import learning
 
-        print(learning.write_final_report(results_dir))  # learning_final.md, with PPO's row and the differences
+        print(learning.write_final_report(results_dir, peer_path=args.results))  # with PPO and the differences
     return row
 
 

@@ -3,7 +3,9 @@
 * ``interval_estimates``: IQM and mean of each method's scores with stratified-bootstrap 95% intervals;
 * ``probability_of_improvement``: P(X > Y) across runs, with its stratified-bootstrap interval;
 * ``mean_difference``: mean(X) - mean(Y) of independent runs, with its stratified-bootstrap interval;
-* ``verdict``: what an interval of a difference says of the claim that it is positive.
+* ``verdict``: what an interval of a difference says of the claim that it is positive; ``judge``: the same, or
+  "too few runs" when a side has fewer than ``MIN_RUNS``; ``SMALL_SAMPLE_NOTE``: what an interval over 3 runs or
+  fewer is.
 
 Scores are arrays of shape (runs, tasks), rliable's layout; one task is a column of one.
 """
@@ -70,3 +72,16 @@ def verdict(ci: tuple[float, float]) -> str:
     if high < 0:
         return "contradicted (the opposite holds)"
     return "not supported (the interval includes 0)"
+
+
+MIN_RUNS = 2  # fewer runs than this on a side of a claim: its bootstrap interval has no width, and no verdict
+SMALL_SAMPLE_NOTE = (
+    "A mean over 3 runs or fewer: the bootstrap's 95% interval spans their smallest to their largest value (a "
+    "resample of one run repeated has probability (1/n)^n > 2.5%), so \"supported\" there means that every run "
+    "agrees, not a test at the 5% level."
+)
+
+
+def judge(ci: tuple[float, float], n: int) -> str:
+    """``verdict(ci)`` when the smaller side of the comparison has `n` >= MIN_RUNS runs, else "too few runs"."""
+    return verdict(ci) if n >= MIN_RUNS else f"too few runs to judge (n = {n})"

@@ -131,15 +131,25 @@ def test_the_ppo_peer_is_compared_with_each_variants_mean_action_over_seeds(tmp_
              "final_return": sampled, **base}, str(results / "learning_final.csv"),
         )  # fmt: skip
     peer = str(results / "ppo_peer.csv")
-    assert learning.peer_summary(str(results / "learning_final.csv"), peer) == ""  # no PPO row yet: nothing
+    final = str(results / "learning_final.csv")
+    assert learning.peer_summary(final, peer) == ""  # no file yet: nothing
     with open(peer, "w", newline="") as f:
-        f.write("variant,seed,final_return\nppo,11,550.0\nppo,12,650.0\n")
+        f.write("variant,seed,cpu_hours,final_return\n")
+    assert learning.peer_summary(final, peer) == ""  # the header alone: nothing
+    with open(peer, "a", newline="") as f:
+        f.write("ppo,11,3.1,550.0\n")
+    one = learning.peer_summary(final, peer, reps=500)  # one PPO seed: no interval of its own, no verdict
+    assert "550.0 (one seed: no interval)" in one and "(seed 11: 550.0 at 3.10 CPU-h)" in one
+    assert one.count("too few runs to judge (n = 1)") == 2 and "supported" not in one
+    with open(peer, "a", newline="") as f:
+        f.write("ppo,12,3.1,650.0\n")
     text = learning.write_final_report(str(results), reps=500)
     with open(results / "learning_final.md") as f:
         assert f.read() == text
     # PPO: mean 600; lstm 700 - 600 = +100, its bootstrap means lie in [600, 800] - [550, 650]; gru 500 - 600 = -100
     # with an interval of PPO's resampling alone: [500 - 650, 500 - 550]
-    assert "2 seeds, its deterministic policy: mean 600.0 [" in text and "(seeds: 550.0, 650.0)" in text
+    assert "2 seeds, its deterministic policy: mean 600.0 [" in text
+    assert "(seed 11: 550.0 at 3.10 CPU-h, 12: 650.0 at 3.10 CPU-h)" in text
     rows = {line.split("|")[1].strip(): line.split("|") for line in text.splitlines() if " - ppo |" in line}
     assert set(rows) == {"lstm - ppo", "gru - ppo"}
     for name, diff, lowest, highest in [("lstm - ppo", 100.0, -50.0, 250.0), ("gru - ppo", -100.0, -150.0, -50.0)]:
