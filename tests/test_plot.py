@@ -38,6 +38,13 @@ def write_run(root, variant, stage, seed, agents, with_config=True):
     return run_dir
 
 
+@pytest.fixture(autouse=True)
+def close_figures():
+    """make_figures returns its figures open (for the tests to read): close them after each test."""
+    yield
+    plot.plt.close("all")
+
+
 @pytest.fixture(scope="module")
 def logdir(tmp_path_factory):
     root = str(tmp_path_factory.mktemp("runs"))
