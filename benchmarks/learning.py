@@ -133,22 +133,33 @@ def run_args(
     return script, args, set()
 
 
+def sittings(run_dir: str):
+    """(event accumulator, scalar tags, first and last logged wall time) of each sitting's event file of a run
+    with anything logged, in the order the sittings ran."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    for events_file in sorted(glob.glob(os.path.join(run_dir, "events.out.tfevents.*"))):
+        acc = EventAccumulator(events_file, size_guidance={"scalars": 0})
+        acc.Reload()
+        tags = acc.Tags()["scalars"]
+        if tags:
+            wall_times = [e.wall_time for tag in tags for e in acc.Scalars(tag)]
+            yield acc, tags, min(wall_times), max(wall_times)
+
+
+def training_hours(run_dir: str) -> float:
+    """A run's training time in hours up to its last logged scalar: each sitting from its first logged scalar to its
+    last, added up (the time between sittings does not count), as ``eval_curve``'s hours."""
+    return round(sum(end - start for _, _, start, end in sittings(run_dir)) / 3600, 4)
+
+
 def eval_curve(run_dir: str) -> list[dict]:
     """Evaluation points of a run, with the update count and the training hours at each.
 
     A resumed run writes one event file per sitting; hours add up the sittings (each from its first
     logged scalar to its last), so the time between sittings does not count."""
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-
     rows, hours_before = [], 0.0
-    for events_file in sorted(glob.glob(os.path.join(run_dir, "events.out.tfevents.*"))):
-        acc = EventAccumulator(events_file, size_guidance={"scalars": 0})
-        acc.Reload()
-        tags = acc.Tags()["scalars"]
-        if not tags:
-            continue
-        wall_times = [e.wall_time for tag in tags for e in acc.Scalars(tag)]
-        start, end = min(wall_times), max(wall_times)
+    for acc, tags, start, end in sittings(run_dir):
         if "car_0/eval/episodic_return" in tags:
             progress = (
                 {e.step: e.value for e in acc.Scalars("car_0/eval/progress")} if "car_0/eval/progress" in tags else {}
@@ -503,7 +514,8 @@ def final_row(
         raise ValueError(f"no run of {exp_name or experiment_name(variant)} seed {seed} in {runs_dir}")
     import race
 
-    done = int(race.read_checkpoint(os.path.join(run, "checkpoints", "latest.pt"))[1]["agents"][0]["num_updates"])
+    checkpoint = race.read_checkpoint(os.path.join(run, "checkpoints", "latest.pt"))[1]
+    done = int(checkpoint["agents"][0]["num_updates"])
     if done < updates:
         raise ValueError(f"{run} has made {done} of its {updates} updates (--updates): not a final policy yet")
     curve = eval_curve(run)
@@ -514,7 +526,8 @@ def final_row(
     evals = [r["eval_return"] for r in curve]
     return {
         "exp_name": exp_name or experiment_name(variant), "variant": variant, "seed": seed, "updates": final["updates"],
-        "env_steps": curve[-1]["env_steps"] if curve else 0, "hours": curve[-1]["wall_hours"] if curve else 0.0,
+        # the whole run's, to its last update (not its last evaluation's)
+        "env_steps": int(checkpoint["counters"]["global_step"]), "hours": training_hours(run),
         "final_return": round(final["eval_return"], 2), "final_progress": round(final["eval_progress"], 4),
         "final_mean_abs_steer": round(final["mean_abs_steer"], 4),
         "best_return": round(best["eval_return"], 2), "best_progress": round(best["eval_progress"], 4),

@@ -40,6 +40,9 @@ ZOO = dict(
     clip_range=0.2,
 )  # fmt: skip
 
+# SB3's PPO counts an epoch over a rollout as one update; each is this many minibatch gradient steps
+PPO_MINIBATCHES = ZOO["n_steps"] * ZOO["n_envs"] // ZOO["batch_size"]
+
 
 class FrameSkip(gymnasium.Wrapper):
     """Repeat each action `skip` env steps and sum the rewards (rl-zoo's FrameSkip); stops at the episode's end."""
@@ -104,7 +107,8 @@ def train(seed: int, hours: float, budget_steps: int, run_dir: str, save_every: 
     """Train until the run has used `hours` of CPU time in all (time.process_time: every thread of this process, the
     envs included; or until `budget_steps` PPO steps), saving model, normaliser and
     record every `save_every` rollouts and at the end (atomic renames); a later sitting continues from them, with
-    the learning rate still decaying over the whole budget. Returns the record (env steps, gradient steps, hours)."""
+    the learning rate still decaying over the whole budget. Returns the record: env steps, updates (SB3's
+    ``_n_updates``, epochs over a rollout of PPO_MINIBATCHES gradient steps each) and CPU hours."""
     import json
 
     from stable_baselines3 import PPO
@@ -142,7 +146,9 @@ def train(seed: int, hours: float, budget_steps: int, run_dir: str, save_every: 
         with open(paths["record.json"] + ".tmp", "w") as f:
             json.dump(record, f)
         os.replace(paths["record.json"] + ".tmp", paths["record.json"])
-        print(f"{record['env_steps']} env steps, {record['updates']} gradient steps, {record['cpu_hours']:.2f} CPU-h")
+        steps = record["updates"] * PPO_MINIBATCHES
+        print(f"{record['env_steps']} env steps, {record['updates']} epochs ({steps} gradient steps), "
+              f"{record['cpu_hours']:.2f} CPU-h")  # fmt: skip
 
     class Budget(BaseCallback):
         """Stop at the sitting's CPU-time budget; save every `save_every` rollouts."""

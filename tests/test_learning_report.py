@@ -351,6 +351,28 @@ def test_final_row_refuses_a_run_short_of_its_updates(tmp_path, monkeypatch):
         learning.final_row("lstm", 12, runs_dir=str(tmp_path))
 
 
+def test_final_row_counts_the_steps_and_hours_after_the_last_evaluation(tmp_path, monkeypatch):
+    """The row's env steps and hours are the whole run's (latest.pt's counter, the last logged scalar of each
+    sitting), not those of its last evaluation, which can lie hundreds of updates before the end."""
+    run = tmp_path / "multi_car_racing__learning_lstm__12__1700000000"
+    (run / "checkpoints").mkdir(parents=True)
+    write_sitting(str(run), [(500, -80.0, 0.02, 100), (1000, 50.0, 0.2, 300)], wall_start=1_000_000.0)
+    writer = SummaryWriter(str(run), filename_suffix=".2")  # a later sitting: training only, no evaluation
+    writer.add_scalar("car_0/perf/updates", 350, 1100, walltime=2_000_000.0)
+    writer.add_scalar("car_0/perf/updates", 400, 1234, walltime=2_000_000.0 + 1800.0)
+    writer.close()
+    import race
+
+    checkpoint = {"agents": [{"num_updates": 400}], "counters": {"global_step": 1234}}
+    monkeypatch.setattr(race, "read_checkpoint", lambda path: (None, checkpoint))
+    measured = {"eval_return": 1.0, "eval_progress": 0.5, "mean_abs_steer": 0.1, "updates": 400}
+    monkeypatch.setattr(learning, "evaluate_checkpoint", lambda *args: measured)
+    row = learning.final_row("lstm", 12, runs_dir=str(tmp_path), updates=400)
+    assert row["env_steps"] == 1234  # not the last evaluation's 1000
+    assert row["hours"] == pytest.approx((1000 + 1800) / 3600, abs=1e-4)  # 1000 s, then 1800 s; not the gap
+    assert row["best_eval_return"] == 50.0 and row["last3_eval_return"] == pytest.approx(-15.0)
+
+
 def test_references_on_other_tracks_are_measured_once_and_kept_apart(tmp_path):
     base = learning.baselines(10_100, 1, results_dir=str(tmp_path), filename="baselines_fresh.json")
     assert base["pursuit@70"]["eval_progress"] > 0.95 and base["pursuit@70"]["eval_return"] > 800
