@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import importlib
+import math
 
+import numpy as np
 import pytest
+import torch
 
 SCRIPTS = ["dreamer_lstm", "dreamer_gru"]
 
@@ -25,3 +28,24 @@ TINY_RUN = dict(
 def script(request):
     """The module of each agent script in turn (the same test runs on both variants)."""
     return importlib.import_module(request.param)
+
+
+def assert_same(a, b, where="") -> None:
+    """Bit-exact equality of nested dicts, lists and tuples (of the same type) of tensors, arrays, numbers and
+    strings; NaN equals NaN. `where` names the first difference."""
+    if isinstance(a, dict):
+        assert isinstance(b, dict) and a.keys() == b.keys(), f"{where}: keys {sorted(a)} != {sorted(b)}"
+        for key in a:
+            assert_same(a[key], b[key], f"{where}/{key}")
+    elif isinstance(a, (tuple, list)):
+        assert type(a) is type(b) and len(a) == len(b), f"{where}: {a!r} != {b!r}"
+        for i, (x, y) in enumerate(zip(a, b)):
+            assert_same(x, y, f"{where}[{i}]")
+    elif isinstance(a, torch.Tensor):
+        torch.testing.assert_close(a, b, rtol=0, atol=0, equal_nan=True, msg=where)
+    elif isinstance(a, np.ndarray):
+        np.testing.assert_array_equal(a, b, err_msg=where)
+    elif isinstance(a, float) and math.isnan(a):
+        assert isinstance(b, float) and math.isnan(b), where
+    else:
+        assert a == b, f"{where}: {a!r} != {b!r}"

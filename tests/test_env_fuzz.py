@@ -13,25 +13,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from conftest import assert_same
 from envs import MultiCarRacing
-
-
-def assert_same(a, b, where="") -> None:
-    """Deep equality of step outputs: dicts, arrays (bit-exact), numbers, strings, ghost trajectories."""
-    if isinstance(a, dict):
-        assert isinstance(b, dict) and a.keys() == b.keys(), f"{where}: keys {sorted(a)} != {sorted(b)}"
-        for key in a:
-            assert_same(a[key], b[key], f"{where}/{key}")
-    elif isinstance(a, (tuple, list)):
-        assert type(a) is type(b) and len(a) == len(b), f"{where}: {a!r} != {b!r}"
-        for i, (x, y) in enumerate(zip(a, b)):
-            assert_same(x, y, f"{where}[{i}]")
-    elif isinstance(a, np.ndarray):
-        np.testing.assert_array_equal(a, b, err_msg=where)
-    elif isinstance(a, float) and np.isnan(a):
-        assert isinstance(b, float) and np.isnan(b), where
-    else:
-        assert a == b, f"{where}: {a!r} != {b!r}"
 
 
 # --- bad actions for one agent (each must be refused) ------------------------------------------

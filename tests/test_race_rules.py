@@ -103,8 +103,10 @@ def test_collision_penalty_paid_by_both_cars():
         order = sorted(env.agents, key=lambda a: -starts[a] % env.num_tiles)  # grid slots 0, 1, 2
         if len(set(starts.values())) == 3:
             break
+    else:
+        pytest.fail("no track of seeds 0..19 put the three cars on distinct start tiles")
     front, rear = order[0], order[2]  # slots 0 and 2 share the left column
-    contact_steps = {front: 0, rear: 0}
+    contact_steps, checked = {front: 0, rear: 0}, {front: 0, rear: 0}
     for _ in range(120):
         actions = {a: np.array([0.0, 0.0]) for a in env.agents}
         actions[rear] = np.array([0.0, 1.0])
@@ -116,6 +118,8 @@ def test_collision_penalty_paid_by_both_cars():
             new_tiles = (env.first_touch_step[env._index[a]] >= 0) & (before[a] < 0)
             if in_contact and not new_tiles.any():
                 assert rewards[a] == pytest.approx(-0.15, abs=1e-9)
+                checked[a] += 1
+    assert checked[front] > 0 and checked[rear] > 0  # the penalty was checked on both cars
     assert contact_steps[front] > 0 and contact_steps[rear] > 0
     assert contact_steps[front] == contact_steps[rear]
 

@@ -23,7 +23,7 @@ import sys
 import numpy as np
 import pytest
 import torch
-from conftest import SCRIPTS, TINY
+from conftest import SCRIPTS, TINY, assert_same
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 RUN = dict(
@@ -63,24 +63,11 @@ def random_batch(seed=0, batch=3, length=8, size=64):
     }
 
 
-def assert_same(a, b, where=""):
-    """Bit-exact equality of nested dicts/lists of tensors, arrays and numbers."""
-    if isinstance(a, dict):
-        assert a.keys() == b.keys(), where
-        for key in a:
-            assert_same(a[key], b[key], f"{where}/{key}")
-    elif isinstance(a, (list, tuple)):
-        assert len(a) == len(b), where
-        for i, (x, y) in enumerate(zip(a, b)):
-            assert_same(x, y, f"{where}[{i}]")
-    elif isinstance(a, torch.Tensor):
-        torch.testing.assert_close(a, b, rtol=0, atol=0, equal_nan=True, msg=where)
-    elif isinstance(a, np.ndarray):
-        np.testing.assert_array_equal(a, b, err_msg=where)
-    elif isinstance(a, float) and math.isnan(a):
-        assert math.isnan(b), where
-    else:
-        assert a == b, f"{where}: {a!r} != {b!r}"
+def assert_same_replays(a, b) -> None:
+    """Two replay buffers hold the same episodes, step for step."""
+    assert a.manifest() == b.manifest()
+    for key in ("obs", "action", "reward", "is_first", "terminated"):
+        np.testing.assert_array_equal(getattr(a, key), getattr(b, key), err_msg=key)
 
 
 def exit_message(script, argv) -> str:
@@ -317,9 +304,8 @@ def test_a_run_killed_mid_race_resumes_exactly(script, tmp_path, monkeypatch, ca
             named = script.load_checkpoint(f"{run}/checkpoints/latest.pt")["extra"]["replays"][j]["files"]
             files = sorted(os.listdir(f"{run}/checkpoints/replay_car_{j}"))  # pruned: only what latest.pt names
             assert files == sorted([*named, "meta.npz"])
-        assert replays[0].manifest() == replays[1].manifest() and replays[0].episodes == 3
-        for key in ("obs", "action", "reward", "is_first", "terminated"):
-            np.testing.assert_array_equal(getattr(replays[0], key), getattr(replays[1], key))
+        assert_same_replays(*replays)
+        assert replays[0].episodes == 3
     row_a, row_b = last_row(whole), last_row(killed)
     losses = [key for key in row_a if "/losses/" in key]
     assert losses and all(float(row_b[key]) == pytest.approx(float(row_a[key]), rel=1e-6) for key in losses)
@@ -597,6 +583,11 @@ def test_a_run_killed_with_sigkill_resumes_with_nothing_but_resume(uninterrupted
     assert b["agents"][0]["num_updates"] == a["agents"][0]["num_updates"] == 3 * (5 - 2 + 1)
     assert_same(a["agents"], b["agents"], "agents")  # the same networks: the prefill stayed random, the RNG exact
     assert b["extra"]["replays"][0]["total_steps"] == a["extra"]["replays"][0]["total_steps"]
+    replays = []
+    for run in (uninterrupted, run_dir):
+        replays.append(script.Replay(KILL_RUN["replay_capacity"], KILL_RUN["image_size"]))
+        replays[-1].load(os.path.join(run, "checkpoints", "replay_car_0"))
+    assert_same_replays(*replays)  # the same episodes, step for step
 
 
 def test_an_explicit_flag_on_resume_overrides_and_says_so(uninterrupted, tmp_path):
