@@ -140,10 +140,11 @@ def trial_args(spec: dict, stage: str, variant: str, seed: int):
     if stage == "single":
         first, target = None, spec["single_updates"]
         # the learning benchmark's run (benchmarks/learning.py --runs-dir <storage>/trials reads it) unless the
-        # spec changes the preset, a flag, the updates, the threads or the evaluation policy (which picks best.pt)
+        # spec changes the preset, a flag, the updates, the threads or the evaluation policy (which picks best.pt):
+        # the scripts' default, or the sampled policy the final protocol's runs were made with
         plain = spec["preset"] == "cpu" and not spec["overrides"] and spec["single_updates"] == learning.FINAL_UPDATES
         plain = plain and spec["torch_threads"] == learning.LEARNING_CONFIG["torch_threads"]
-        plain = plain and spec["eval_policy"] == script.Args().eval_policy
+        plain = plain and spec["eval_policy"] in (script.Args().eval_policy, "stochastic")
         args = script.preset_args(
             spec["preset"], exp_name=learning.experiment_name(variant) if plain else f"{variant}_single",
             **{**learning.LEARNING_CONFIG, **settings},

@@ -349,18 +349,20 @@ class _Column(nn.Module):
     "rewards, scale_before, scale_after, loss",
     [
         # task returns r + gamma V = r + 0.5; their 5-95% range (torch's linear quantiles of 5 values) is
-        # (30 + 0.8 * 10) - (0 + 0.2 * 10) = 36, so S = 5 + 0.01 (36 - 5) = 5.31 and the actor loss is
-        # -mean(task / 5.31 + entropy) = -(20.5 / 5.31 + 0.2 * 1)
-        ([0.0, 10.0, 20.0, 30.0, 40.0], 5.0, 5.31, -(20.5 / 5.31 + 0.2)),
+        # (30.5 + 0.8 * 10) - (0.5 + 0.2 * 10) = 36 (of task + entropy it would be 36.72), so S = 5 + 0.01 (36 - 5)
+        # = 5.31; the entropy part is -0.2 log pi = 0.2, 0.4, .., 1.0; the terminal fifth start weighs 0:
+        # loss = -(1/5) sum_{i<4} (task_i / 5.31 + entropy_i) = -(62 / 5.31 + 2) / 5
+        ([0.0, 10.0, 20.0, 30.0, 40.0], 5.0, 5.31, -(62 / 5.31 + 2.0) / 5),
         # a fresh scale and a narrow range (0.36): S = 0.0036 < 1, so the task part is not scaled up
-        ([0.0, 0.1, 0.2, 0.3, 0.4], 0.0, 0.0036, -(0.7 + 0.2)),
+        ([0.0, 0.1, 0.2, 0.3, 0.4], 0.0, 0.0036, -(2.6 + 2.0) / 5),
     ],
 )
 def test_return_norm_scales_the_task_part_of_the_actor_objective(script, monkeypatch, rewards, scale_before,
                                                                  scale_after, loss):  # fmt: skip
     """The actor loss is -mean(w (task / max(1, S) + entropy)) with S the EMA (rate 0.01) of the task returns'
     5-95% range; the critic learns task + entropy. A one-step imagination with rewards, values and log pi fixed by
-    hand (continue 1, gamma 0.5, entropy weight 0.2, log pi -1), so every number above is computed on paper."""
+    hand (continue 1, gamma 0.5, entropy weight 0.2, log pi -1 .. -5, the last start terminal), so every number
+    above is computed on paper."""
     torch.manual_seed(0)
     args = tiny_args(script, return_norm=True, entropy_coef=0.2, gamma=0.5, imagination_horizon=1)
     agent = script.Agent(args)
@@ -374,9 +376,9 @@ def test_return_norm_scales_the_task_part_of_the_actor_objective(script, monkeyp
     size = torch.cat([post["z"], post["h"]], -1).shape[-1]
     features = torch.zeros(2, 5, size)  # s_0 and s_1 of 5 starts: column 0 is r_1, column 1 is V(s_1)
     features[1, :, 0], features[1, :, 1] = torch.tensor(rewards), 1.0
-    log_pi = torch.full((1, 5), -1.0, requires_grad=True)
+    log_pi = -torch.arange(1.0, 6.0)[None].requires_grad_()
     monkeypatch.setattr(script, "imagine_rollout", lambda *a: (features, log_pi, None, torch.ones(1, 5, 2)))
-    monkeypatch.setattr(agent, "imagination_starts", lambda post, terminated: (None, None, None, torch.ones(5)))
+    monkeypatch.setattr(agent, "imagination_starts", lambda post, terminated: (None, None, None, torch.tensor([1.0, 1, 1, 1, 0])))
     agent.world_model.reward = _Column(0, pair=False)
     agent.world_model.cont = _Constant(100.0)  # sigmoid(100) = 1 in float32
     agent.targets["critic"] = _Column(1, pair=True)
@@ -385,7 +387,7 @@ def test_return_norm_scales_the_task_part_of_the_actor_objective(script, monkeyp
     torch.testing.assert_close(agent.return_scale, torch.tensor(scale_after), rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(metrics["return_scale"], torch.tensor(scale_after), rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(actor_loss, torch.tensor(loss), rtol=1e-5, atol=1e-5)
-    torch.testing.assert_close(metrics["imagined_return"], torch.tensor(sum(rewards) / 5 + 0.5 + 0.2))
+    torch.testing.assert_close(metrics["imagined_return"], torch.tensor(sum(rewards) / 5 + 0.5 + 0.6))  # unweighted
     saved = script.Agent(args)  # the scale is part of the agent's saved state
     saved.return_scale.copy_(agent.return_scale)
     other = script.Agent(args)
@@ -432,7 +434,7 @@ def test_actor_samples_around_tanh_mean_with_bounded_sigma_and_the_paper_log_pro
     """a = tanh(mu) + sigma eps, clipped to [-1, 1]; sigma soft-bounded to (0.1, 0.1 + log(1 + e^0.9) = 1.341); log pi
     of the unclipped sample is torch's Normal log-density minus log(1 - tanh(a)^2) (paper 3.9); the deterministic
     action is tanh(mu)."""
-    # hand-computed: sigma's floor, its ceiling 0.1 + log(1 + e^0.9), and sigma(0) = 0.1 + softplus(-0.1 - log(1 + e))
+    # hand-computed: sigma's floor, its ceiling 0.1 + log(1 + e^0.9), and sigma(0) = 0.1 + softplus(0.9 - log(1 + e))
     sigma = script.soft_bounded(torch.tensor([-1e4, 1e4, 0.0]), 0.1, 1.0)
     torch.testing.assert_close(sigma, torch.tensor([0.1, 1.341154, 0.607714]), atol=1e-5, rtol=0)
     # log pi at a = 0.5 per dimension, mean 0, sigma 1: -log(2 pi)/2 - 1/8 - log(1 - tanh(0.5)^2) = -0.803711

@@ -203,9 +203,12 @@ def test_the_default_single_stage_is_the_learning_benchmarks_run(tmp_path):
         os.makedirs(os.path.join(args.runs_dir, f"multi_car_racing__{args.exp_name}__12__1700000000"))
         assert learning.find_run(learning.experiment_name(variant), 12, str(tmp_path / "trials")) is not None
     for change in ({"overrides": ("entropy_coef=0.5",)}, {"single_updates": 2000}, {"torch_threads": 2},
-                   {"eval_policy": "stochastic"}):  # fmt: skip
+                   {"eval_policy": "deterministic"}):  # fmt: skip
         changed = dataclasses.asdict(experiment.Spec(storage=str(tmp_path), **change))
         assert experiment.trial_args(changed, "single", "gru", 12)[1].exp_name == "gru_single"
+    # sampled evaluations, as the final protocol's runs were made: still the learning benchmark's run
+    sampled = dataclasses.asdict(experiment.Spec(storage=str(tmp_path), eval_policy="stochastic"))
+    assert experiment.trial_args(sampled, "single", "gru", 12)[1].exp_name == "learning_gru"
 
 
 def test_a_whole_experiment_killed_mid_trial_resumes_on_the_same_command(tmp_path):
