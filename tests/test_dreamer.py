@@ -378,7 +378,8 @@ def test_return_norm_scales_the_task_part_of_the_actor_objective(script, monkeyp
     features[1, :, 0], features[1, :, 1] = torch.tensor(rewards), 1.0
     log_pi = -torch.arange(1.0, 6.0)[None].requires_grad_()
     monkeypatch.setattr(script, "imagine_rollout", lambda *a: (features, log_pi, None, torch.ones(1, 5, 2)))
-    monkeypatch.setattr(agent, "imagination_starts", lambda post, terminated: (None, None, None, torch.tensor([1.0, 1, 1, 1, 0])))
+    start_cont = torch.tensor([1.0, 1.0, 1.0, 1.0, 0.0])  # the fifth start is a terminal state
+    monkeypatch.setattr(agent, "imagination_starts", lambda post, terminated: (None, None, None, start_cont))
     agent.world_model.reward = _Column(0, pair=False)
     agent.world_model.cont = _Constant(100.0)  # sigmoid(100) = 1 in float32
     agent.targets["critic"] = _Column(1, pair=True)
