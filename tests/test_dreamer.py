@@ -345,6 +345,17 @@ class _Column(nn.Module):
         return (x.squeeze(-1), torch.ones_like(x.squeeze(-1))) if self.pair else torch.cat([x, torch.zeros_like(x)], -1)
 
 
+class _Constant(nn.Module):
+    """A stand-in head with one output, `value` everywhere (a continue logit)."""
+
+    def __init__(self, value: float):
+        super().__init__()
+        self.value = value
+
+    def forward(self, features):
+        return torch.full((*features.shape[:-1], 1), self.value)
+
+
 @pytest.mark.parametrize(
     "rewards, scale_before, scale_after, loss",
     [
@@ -394,15 +405,6 @@ def test_return_norm_scales_the_task_part_of_the_actor_objective(script, monkeyp
     other = script.Agent(args)
     other.load_state_dict(saved.state_dict())
     torch.testing.assert_close(other.return_scale, torch.tensor(scale_after), rtol=1e-5, atol=1e-6)
-
-
-class _Constant(nn.Module):
-    def __init__(self, value: float):
-        super().__init__()
-        self.value = value
-
-    def forward(self, features):
-        return torch.full((*features.shape[:-1], 1), self.value)
 
 
 def test_gaussian_kl_matches_torch(script):
