@@ -632,6 +632,29 @@ def fresh_reference(results_dir: str = RESULTS) -> str:
     )
 
 
+def variant_difference(path: str = os.path.join(RESULTS, "learning_final.csv"), reps: int = 2000) -> str:
+    """Markdown for learning_final.md: the paper's solo claim, the LSTM's mean final return minus the GRU's over
+    their seeds (the variants' defaults only), with the final policy driving its mean action and sampled: the
+    difference of the means of independent runs with its stratified-bootstrap 95% interval, and what that
+    interval says (stats.judge). "" until both variants have a row."""
+    from stats import judge, mean_difference
+
+    with open(path, newline="") as f:
+        rows = [r for r in csv.DictReader(f) if r["exp_name"] == experiment_name(r["variant"])]
+    if not {"lstm", "gru"} <= {r["variant"] for r in rows}:
+        return ""
+    lines = ["", "| final policy: LSTM - GRU | difference of means [95% CI] | the LSTM beats the GRU |", "|---|---|---|"]
+    for policy, label in (("mean-action", "mean action"), ("stochastic", "sampled")):
+        key = FINAL_POLICY_COLUMNS[policy][0]
+        lstm, gru = (np.array([float(r[key]) for r in rows if r["variant"] == v]) for v in ("lstm", "gru"))
+        diff = mean_difference(lstm[:, None], gru[:, None], reps=reps)
+        lines.append(
+            f"| {label} | {diff['diff']:+.1f} [{diff['ci'][0]:+.1f}, {diff['ci'][1]:+.1f}] "
+            f"| {judge(diff['ci'], min(lstm.size, gru.size))} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
 def peer_summary(
     final_path: str = os.path.join(RESULTS, "learning_final.csv"),
     peer_path: str = os.path.join(RESULTS, "ppo_peer.csv"), reps: int = 2000,
@@ -680,12 +703,14 @@ def peer_summary(
 def write_final_report(results_dir: str = RESULTS, reps: int = 2000, peer_path: str | None = None) -> str:
     """(Re)write learning_final.md from learning_final.csv (and the PPO peer's csv, by default ppo_peer.csv beside
     it, when present): the evaluation policy of the rule in docs/learning.md first (the mean action), then the
-    policy as trained, the references on the same tracks, and the PPO peer. Returns the text."""
+    policy as trained, the LSTM against the GRU, the references on the same tracks, and the PPO peer. Returns the
+    text."""
     final_path = os.path.join(results_dir, "learning_final.csv")
     peer_path = peer_path or os.path.join(results_dir, "ppo_peer.csv")
     text = (
         final_summary(final_path, reps, policy="mean-action") + "\n" + final_summary(final_path, reps)
-        + fresh_reference(results_dir) + peer_summary(final_path, peer_path, reps)
+        + variant_difference(final_path, reps) + fresh_reference(results_dir)
+        + peer_summary(final_path, peer_path, reps)
     )  # fmt: skip
     with open(os.path.join(results_dir, "learning_final.md"), "w") as f:
         f.write(text)

@@ -161,6 +161,38 @@ def test_the_ppo_peer_is_compared_with_each_variants_mean_action_over_seeds(tmp_
     assert text.index("driving its mean action") < text.index("sampled, as trained") < text.index("SB3 PPO")
 
 
+def test_the_lstm_is_compared_with_the_gru_for_each_policy_over_seeds(tmp_path):
+    path = str(tmp_path / "learning_final.csv")
+    base = {"updates": 8000, "env_steps": 40000, "hours": 2.5, "best_return": 0.0, "best_progress": 0.0,
+            "final_progress": 0.5, "final_mean_abs_steer": 0.6, "mean_action_abs_steer": 0.2,
+            "mean_action_progress": 0.8, "best_eval_return": 600.0, "last3_eval_return": 550.0}  # fmt: skip
+    rows = [
+        ("learning_lstm", "lstm", 11, 600.0, 10.0), ("learning_lstm", "lstm", 12, 700.0, 20.0),
+        ("learning_lstm", "lstm", 13, 800.0, 30.0), ("learning_gru", "gru", 11, 500.0, 40.0),
+        ("learning_gru", "gru", 12, 500.0, 50.0), ("learning_gru", "gru", 13, 500.0, 60.0),
+        ("learning_lstm_alpha0.1", "lstm", 11, -5000.0, -5000.0),  # an ablation is not the method: left out
+    ]  # fmt: skip
+    for i, (exp_name, variant, seed, mean_action, sampled) in enumerate(rows):
+        learning.write_final_row(
+            {"exp_name": exp_name, "variant": variant, "seed": seed, "mean_action_return": mean_action,
+             "final_return": sampled, **base}, path,
+        )  # fmt: skip
+        if i == 2:  # the LSTM alone: nothing to compare
+            assert learning.variant_difference(path) == ""
+    text = learning.variant_difference(path, reps=500)
+    table = {line.split("|")[1].strip(): line.split("|") for line in text.splitlines() if line.startswith("| ")}
+    assert set(table) == {"final policy: LSTM - GRU", "mean action", "sampled"}
+    # mean action: 700 - 500 = +200, bootstrap means of the LSTM in [600, 800] and the GRU's all 500: [100, 300];
+    # sampled: 20 - 50 = -30, each side's bootstrap means within its scores: [10 - 60, 30 - 40] = [-50, -10]
+    for name, diff, lowest, highest, verdict in [
+        ("mean action", 200.0, 100.0, 300.0, "supported"), ("sampled", -30.0, -50.0, -10.0, "contradicted"),
+    ]:  # fmt: skip
+        point, interval = table[name][2].split("[")
+        low, high = (float(x) for x in interval.rstrip("] ").split(","))
+        assert float(point) == diff and lowest <= low < diff < high <= highest
+        assert table[name][3].strip().startswith(verdict)
+
+
 def test_the_bar_is_met_only_when_every_part_is(tmp_path):
     def row(ret, progress=0.7, steer=0.2, best=700.0, last3=600.0, sampled_steer=0.6):
         return {"final_return": ret, "final_progress": progress, "final_mean_abs_steer": sampled_steer,
