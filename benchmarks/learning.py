@@ -643,7 +643,8 @@ def variant_difference(path: str = os.path.join(RESULTS, "learning_final.csv"), 
         rows = [r for r in csv.DictReader(f) if r["exp_name"] == experiment_name(r["variant"])]
     if not {"lstm", "gru"} <= {r["variant"] for r in rows}:
         return ""
-    lines = ["", "| final policy: LSTM - GRU | difference of means [95% CI] | the LSTM beats the GRU |", "|---|---|---|"]
+    lines = ["", "| final policy: LSTM - GRU | difference of means [95% CI] | the LSTM beats the GRU |"]
+    lines.append("|---|---|---|")
     for policy, label in (("mean-action", "mean action"), ("stochastic", "sampled")):
         key = FINAL_POLICY_COLUMNS[policy][0]
         lstm, gru = (np.array([float(r[key]) for r in rows if r["variant"] == v]) for v in ("lstm", "gru"))
