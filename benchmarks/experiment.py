@@ -74,7 +74,7 @@ class Spec:
     tournament_every: int = 50
     """races between tournaments (checkpoints of both agents)"""
     tournament_races: int = 100
-    """evaluation races per tournament (held-out tracks, start positions swapped)"""
+    """evaluation races per tournament (held-out tracks, each raced twice with the start positions swapped: even)"""
     race_train_steps: int = 25
     """updates per agent after every head-to-head race"""
     eval_policy: Literal["deterministic", "mean-action", "stochastic"] = "mean-action"
@@ -97,7 +97,8 @@ class Spec:
     gpus_per_trial: float = 0.0
     """GPUs Ray reserves per trial (on a cluster with GPUs)"""
     address: str | None = None
-    """address of a Ray cluster (default: a local Ray on this machine)"""
+    """address of a Ray cluster (default: a local Ray on this machine); --storage must then be a filesystem every
+    node mounts at the same path (later stages start from earlier trials' checkpoints)"""
     max_failures: int = 2
     """times Ray retries a trial whose worker died (it resumes from its latest.pt)"""
     aggregate_only: bool = False
@@ -117,6 +118,20 @@ def run_of(directory: str) -> str | None:
     """The run directory of a trial that has a checkpoint (a run killed before its first checkpoint is ignored)."""
     runs = sorted(glob.glob(os.path.join(directory, "*", "checkpoints", "latest.pt")))
     return os.path.dirname(os.path.dirname(runs[-1])) if runs else None
+
+
+def start_checkpoint(spec: dict, stage: str, variant: str, seed: int, name: str) -> str:
+    """checkpoints/<name> of the finished `stage` trial a later stage starts from, or an error naming what is
+    missing (on a cluster: a worker whose node does not see the driver's --storage)."""
+    run = run_of(trial_dir(spec, stage, variant, seed))
+    path = os.path.join(run, "checkpoints", name) if run else None
+    if path is None or not os.path.exists(path):
+        raise FileNotFoundError(
+            f"the {stage} trial of {variant} seed {seed} has no checkpoints/{name} under "
+            f"{trial_dir(spec, stage, variant, seed)}; a later stage starts from it. On a Ray cluster every node must "
+            f"see --storage at the same path (a shared filesystem)"
+        )  # fmt: skip
+    return path
 
 
 def parse_overrides(script, overrides) -> dict:
@@ -150,7 +165,7 @@ def trial_args(spec: dict, stage: str, variant: str, seed: int):
             **{**learning.LEARNING_CONFIG, **settings},
         )  # fmt: skip
     else:  # ghost, or its control: from the single trial's best.pt, for as many updates
-        best = os.path.join(run_of(trial_dir(spec, "single", variant, seed)), "checkpoints", "best.pt")
+        best = start_checkpoint(spec, "single", variant, seed, "best.pt")
         first = updates_of(best, script)
         target = first + spec["ghost_updates"]
         ghost = stage == "ghost"
@@ -234,10 +249,7 @@ def race_trial(config: dict) -> None:
     config = config["trial"]
     spec, seed = restored_spec(config["spec"]), config["seed"]
     directory = trial_dir(spec, "race", "lstm_gru", seed)
-    checkpoints = [
-        os.path.join(run_of(trial_dir(spec, "ghost", variant, seed)), "checkpoints", "latest.pt")
-        for variant in ("lstm", "gru")
-    ]
+    checkpoints = [start_checkpoint(spec, "ghost", variant, seed, "latest.pt") for variant in ("lstm", "gru")]
     threads = ["--torch-threads", str(spec["torch_threads"])]
     for trained in range(0, spec["race_episodes"] + 1, spec["tournament_every"]):
         tournament = os.path.join(directory, f"tournament_{trained:05d}")
@@ -383,6 +395,9 @@ def check_spec(spec: Spec) -> None:
     if spec.tournament_every < 1 or spec.race_episodes % spec.tournament_every:
         raise SystemExit(f"experiment.py: --race-episodes ({spec.race_episodes}) must be a multiple of "
                          f"--tournament-every ({spec.tournament_every})")  # fmt: skip
+    if spec.tournament_races < 2 or spec.tournament_races % 2:
+        raise SystemExit(f"experiment.py: --tournament-races ({spec.tournament_races}) must be a positive even number: "
+                         f"each track is raced twice, the start positions swapped")  # fmt: skip
     if "race" in spec.stages and set(spec.variants) != {"lstm", "gru"}:
         raise SystemExit("experiment.py: the race stage pairs an LSTM and a GRU agent: --variants lstm gru")
     path = os.path.join(spec.storage, "spec.json")
@@ -594,8 +609,10 @@ def fresh_return(spec: Spec, path: str, first: int) -> float:
 
 def summarize(single_returns: dict[str, list[float]], final_rates: dict[str, list[float]], reps: int = 2000) -> str:
     """Markdown: IQM and mean of the single-stage final returns per variant (stratified bootstrap, 95%), and the
-    probability that the LSTM's final head-to-head win rate exceeds the GRU's across seed pairs."""
-    from stats import interval_estimates, probability_of_improvement
+    probability that the LSTM's final head-to-head win rate exceeds the GRU's across seed pairs: the share of
+    pairs in which it does, each pair's two rates measured in the same tournament races (paired; a bootstrap over
+    pairs). `final_rates` holds each variant's rates in the same order of pairs."""
+    from stats import interval_estimates, paired_probability_of_improvement
 
     lines = ["| variant | seeds | IQM final return [95% CI] | mean final return [95% CI] |", "|---|---|---|---|"]
     if single_returns:
@@ -605,10 +622,10 @@ def summarize(single_returns: dict[str, list[float]], final_rates: dict[str, lis
             mean = f"{e['mean']:.1f} [{e['mean_ci'][0]:.1f}, {e['mean_ci'][1]:.1f}]"
             lines.append(f"| {variant} | {len(single_returns[variant])} | {iqm} | {mean} |")
     if final_rates["lstm"]:
-        lstm, gru = (np.asarray(final_rates[v])[:, None] for v in ("lstm", "gru"))
-        p = probability_of_improvement(lstm, gru, reps)
-        lines += ["", f"P(LSTM win rate > GRU win rate) across {len(final_rates['lstm'])} seed pair(s), final "
-                      f"tournaments: {p['p']:.2f} [{p['ci'][0]:.2f}, {p['ci'][1]:.2f}]"]  # fmt: skip
+        p = paired_probability_of_improvement(final_rates["lstm"], final_rates["gru"], reps)
+        lines += ["", f"P(LSTM win rate > GRU win rate), paired: the share of {len(final_rates['lstm'])} seed "
+                      f"pair(s) whose final tournament the LSTM won more often (bootstrap over pairs): "
+                      f"{p['p']:.2f} [{p['ci'][0]:.2f}, {p['ci'][1]:.2f}]"]  # fmt: skip
     return "\n".join(lines) + "\n"
 
 

@@ -180,11 +180,20 @@ def test_the_summary_matches_hand_computed_numbers():
     lines = summary.splitlines()
     assert lines[2].startswith("| lstm | 3 | 200.0 [") and "| 200.0 [" in lines[2]  # IQM of 3 = mean
     assert lines[3].startswith("| gru | 4 | 2.5 [") and "| 4.0 [" in lines[3]  # IQM = mean(2, 3)
-    # every LSTM win rate beats every GRU one: P(X > Y) = 1
-    assert "across 2 seed pair(s), final tournaments: 1.00 [1.00, 1.00]" in lines[-1]
+    # the IQM's and the mean's intervals lie within the scores (a bootstrap of them), around the point
+    for line, lowest, highest in ((lines[2], 100.0, 300.0), (lines[3], 1.0, 10.0)):
+        for cell in line.split("|")[3:5]:  # IQM, mean
+            point, interval = cell.split("[")
+            low, high = (float(v) for v in interval.rstrip("] ").split(","))
+            assert lowest <= low < float(point) < high <= highest
+    # the LSTM wins both pairs: P = 1, and every bootstrap of the pairs gives 1
+    assert "the share of 2 seed pair(s)" in lines[-1] and lines[-1].endswith(": 1.00 [1.00, 1.00]")
     tie = experiment.summarize({}, {"lstm": [0.5], "gru": [0.5]}, reps=100)
-    assert "0.50 [0.50, 0.50]" in tie  # ties count one half
-    assert np.isclose(float(tie.split(": ")[1].split()[0]), 0.5)
+    assert tie.splitlines()[-1].endswith(": 0.50 [0.50, 0.50]")  # a tie counts one half
+    # paired, not rliable's independent samples: the LSTM wins 2 pairs of 3 -> 2/3 (comparing every LSTM rate
+    # with every GRU rate would give 4/9); a bootstrap of 3 pairs can draw 0, 1, 2 or 3 wins: [0, 1]
+    three = experiment.summarize({}, {"lstm": [0.55, 0.35, 0.60], "gru": [0.45, 0.65, 0.40]}, reps=2000)
+    assert three.splitlines()[-1].endswith(": 0.67 [0.00, 1.00]")
 
 
 def test_the_default_single_stage_is_the_learning_benchmarks_run(tmp_path):
@@ -211,10 +220,25 @@ def test_the_default_single_stage_is_the_learning_benchmarks_run(tmp_path):
     assert experiment.trial_args(sampled, "single", "gru", 12)[1].exp_name == "learning_gru"
 
 
+def test_a_stage_missing_the_checkpoint_it_starts_from_says_which(tmp_path):
+    """A ghost trial whose single trial it cannot see (on a cluster: a node without the driver's --storage) stops
+    with an error naming the trial and the checkpoint, not a TypeError from a path of None."""
+    spec = dataclasses.asdict(experiment.Spec(storage=str(tmp_path)))
+    with pytest.raises(FileNotFoundError, match="the single trial of gru seed 12 has no checkpoints/best.pt"):
+        experiment.trial_args(spec, "ghost", "gru", 12)
+    run = os.path.join(experiment.trial_dir(spec, "single", "gru", 12), "run", "checkpoints")
+    os.makedirs(run)
+    open(os.path.join(run, "latest.pt"), "w").close()  # a run with a latest.pt but no best.pt yet
+    with pytest.raises(FileNotFoundError, match="shared filesystem"):
+        experiment.trial_args(spec, "ghost", "gru", 12)
+    assert experiment.start_checkpoint(spec, "single", "gru", 12, "latest.pt") == os.path.join(run, "latest.pt")
+
+
 def test_a_whole_experiment_killed_mid_trial_resumes_on_the_same_command(tmp_path):
     """What the end of a sitting does: the driver, Ray and the trials' workers all killed at once (SIGKILL to the
-    process group). The same command then restores the stage and continues the trial from its latest.pt: one run
-    directory, every update counted once, the replay whole."""
+    process group), here in the ghost stage, after the single stage has finished. The same command then skips the
+    finished single trial, leaving every file of it as it was, and continues the ghost trial and its control from
+    their latest.pt: one run directory each, every update counted once, the replay whole."""
     pytest.importorskip("ray")
     import signal
     import subprocess
@@ -222,35 +246,50 @@ def test_a_whole_experiment_killed_mid_trial_resumes_on_the_same_command(tmp_pat
 
     storage = tmp_path / "storage"
     command = [
-        sys.executable, os.path.join(experiment.ROOT, "benchmarks", "experiment.py"), "--stages", "single",
+        sys.executable, os.path.join(experiment.ROOT, "benchmarks", "experiment.py"), "--stages", "single", "ghost",
         "--variants", "lstm", "--seeds", "3", "--preset", "paper", "--overrides",
-        *(f"{k}={v}" for k, v in TINY_FLAGS.items()), "--single-updates", "8", "--report-every", "1",
-        "--storage", str(storage), "--results", str(tmp_path / "results"),
+        *(f"{k}={v}" for k, v in TINY_FLAGS.items()), "--single-updates", "2", "--ghost-updates", "8",
+        "--report-every", "1", "--storage", str(storage), "--results", str(tmp_path / "results"),
     ]  # fmt: skip
     plain = dataclasses.asdict(experiment.Spec(seeds=(3,), storage=str(storage)))
+    script = dreamer_lstm_or_gru("lstm")
+
+    def updates(kind):
+        run = experiment.run_of(experiment.trial_dir(plain, kind, "lstm", 3))
+        return experiment.updates_of(os.path.join(run, "checkpoints", "latest.pt"), script)
+
     driver = subprocess.Popen(command, cwd=experiment.ROOT, start_new_session=True,
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
     try:
         done, deadline = 0, time.time() + 300
-        while done < 2 and time.time() < deadline and driver.poll() is None:  # a few updates in, short of 8
+        while done < 2 and time.time() < deadline and driver.poll() is None:  # a few ghost updates in, short of 8
             time.sleep(0.5)
-            run = experiment.run_of(experiment.trial_dir(plain, "single", "lstm", 3))
             try:
-                done = experiment.updates_of(os.path.join(run, "checkpoints", "latest.pt"), dreamer_lstm_or_gru("lstm"))
+                start = experiment.updates_of(experiment.start_checkpoint(plain, "single", "lstm", 3, "best.pt"), script)
+                done = updates("ghost") - start
             except (TypeError, OSError, EOFError, RuntimeError):
-                done = 0  # no run yet, or a checkpoint being replaced
+                done = 0  # no ghost run yet, or a checkpoint being replaced
     finally:
         os.killpg(driver.pid, signal.SIGKILL)
         driver.wait()
-    assert 2 <= done < 8, f"the trial was at {done} updates when the experiment was killed"
+    assert 2 <= done < 8, f"the ghost trial was {done} updates in when the experiment was killed"
+    single = experiment.trial_dir(plain, "single", "lstm", 3)
+
+    def files(directory):
+        return {p: (os.path.getsize(p), os.path.getmtime(p)) for p in glob.glob(f"{directory}/**", recursive=True)}
+
+    before = files(single)
+    assert updates("single") == 2 and any(p.endswith("best.pt") for p in before)
+    kept = script.load_checkpoint(os.path.join(experiment.run_of(single), "checkpoints", "latest.pt"))
+    kept = kept["extra"]["replays"][0]["episodes"]  # the single run's replay, where ghost and control begin
     subprocess.run(command, cwd=experiment.ROOT, check=True, capture_output=True, timeout=600)
-    directory = experiment.trial_dir(plain, "single", "lstm", 3)
-    assert len(glob.glob(os.path.join(directory, "*", "checkpoints"))) == 1
-    checkpoint = dreamer_lstm_or_gru("lstm").load_checkpoint(
-        os.path.join(experiment.run_of(directory), "checkpoints", "latest.pt")
-    )
-    assert checkpoint["agents"][0]["num_updates"] == 8
-    assert checkpoint["extra"]["replays"][0]["episodes"] == checkpoint["counters"]["episode"]
+    assert files(single) == before  # the finished trial: skipped, not a file touched
+    for kind in ("ghost", "control"):
+        directory = experiment.trial_dir(plain, kind, "lstm", 3)
+        assert len(glob.glob(os.path.join(directory, "*", "checkpoints"))) == 1
+        checkpoint = script.load_checkpoint(os.path.join(experiment.run_of(directory), "checkpoints", "latest.pt"))
+        assert checkpoint["agents"][0]["num_updates"] == start + 8
+        assert checkpoint["extra"]["replays"][0]["episodes"] == kept + checkpoint["counters"]["episode"]
 
 
 def tournament(pair, races, lstm, gru, low=0.5, progress=(0.5, 0.5)):
@@ -525,9 +564,13 @@ def test_the_aggregation_measures_each_checkpoint_once(tmp_path, monkeypatch):
     assert experiment.fresh_return(spec, str(path), 10_100) == 103.0 and len(calls) == 3
 
 
-def test_a_race_stage_whose_races_do_not_fill_its_tournaments_is_refused(tmp_path):
+def test_a_race_stage_whose_races_do_not_fill_its_tournaments_or_swap_its_starts_is_refused(tmp_path):
     with pytest.raises(SystemExit, match=r"--race-episodes \(140\) must be a multiple of --tournament-every \(50\)"):
         experiment.check_spec(experiment.Spec(race_episodes=140, storage=str(tmp_path)))
+    for races in (99, 0):  # each tournament track is raced twice, the start positions swapped
+        with pytest.raises(SystemExit, match=rf"--tournament-races \({races}\) must be a positive even number"):
+            experiment.check_spec(experiment.Spec(tournament_races=races, storage=str(tmp_path)))
+    assert not os.path.exists(tmp_path / "spec.json")  # refused before anything is written
 
 
 def test_a_trial_whose_checkpoint_is_done_ends_though_its_csv_is_a_race_behind(tmp_path, monkeypatch):
