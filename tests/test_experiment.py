@@ -265,7 +265,8 @@ def test_a_whole_experiment_killed_mid_trial_resumes_on_the_same_command(tmp_pat
         while done < 2 and time.time() < deadline and driver.poll() is None:  # a few ghost updates in, short of 8
             time.sleep(0.5)
             try:
-                start = experiment.updates_of(experiment.start_checkpoint(plain, "single", "lstm", 3, "best.pt"), script)
+                best = experiment.start_checkpoint(plain, "single", "lstm", 3, "best.pt")
+                start = experiment.updates_of(best, script)
                 done = updates("ghost") - start
             except (TypeError, OSError, EOFError, RuntimeError):
                 done = 0  # no ghost run yet, or a checkpoint being replaced
