@@ -194,6 +194,10 @@ def test_the_summary_matches_hand_computed_numbers():
     # with every GRU rate would give 4/9); a bootstrap of 3 pairs can draw 0, 1, 2 or 3 wins: [0, 1]
     three = experiment.summarize({}, {"lstm": [0.55, 0.35, 0.60], "gru": [0.45, 0.65, 0.40]}, reps=2000)
     assert three.splitlines()[-1].endswith(": 0.67 [0.00, 1.00]")
+    import stats
+
+    with pytest.raises(ValueError, match="two non-empty arrays of one length, got 1 and 2"):
+        stats.paired_probability_of_improvement([0.5], [0.5, 0.4])  # rates of different pairs cannot be paired
 
 
 def test_the_default_single_stage_is_the_learning_benchmarks_run(tmp_path):
@@ -267,9 +271,10 @@ def test_a_whole_experiment_killed_mid_trial_resumes_on_the_same_command(tmp_pat
             try:
                 best = experiment.start_checkpoint(plain, "single", "lstm", 3, "best.pt")
                 start = experiment.updates_of(best, script)
+                updates("control")  # the control has its latest.pt too (a run killed before it starts anew)
                 done = updates("ghost") - start
             except (TypeError, OSError, EOFError, RuntimeError):
-                done = 0  # no ghost run yet, or a checkpoint being replaced
+                done = 0  # no ghost or control run yet, or a checkpoint being replaced
     finally:
         os.killpg(driver.pid, signal.SIGKILL)
         driver.wait()

@@ -159,6 +159,8 @@ def test_the_ppo_peer_is_compared_with_each_variants_mean_action_over_seeds(tmp_
     assert rows["gru - ppo"][3].strip() == "contradicted (the opposite holds)"
     assert rows["lstm - ppo"][3].strip() == "not supported (the interval includes 0)"
     assert text.index("driving its mean action") < text.index("sampled, as trained") < text.index("SB3 PPO")
+    # the LSTM against the GRU (700 - 500 with the mean action) stands between the variants' tables and PPO
+    assert text.index("sampled, as trained") < text.index("| mean action | +200.0 [") < text.index("SB3 PPO")
 
 
 def test_the_lstm_is_compared_with_the_gru_for_each_policy_over_seeds(tmp_path):
@@ -191,6 +193,11 @@ def test_the_lstm_is_compared_with_the_gru_for_each_policy_over_seeds(tmp_path):
         low, high = (float(x) for x in interval.rstrip("] ").split(","))
         assert float(point) == diff and lowest <= low < diff < high <= highest
         assert table[name][3].strip().startswith(verdict)
+    one = str(tmp_path / "one_gru_seed.csv")  # one GRU seed: its bootstrap has no width, no verdict
+    for exp_name, variant, seed, mean_action, sampled in rows[:4]:
+        learning.write_final_row({"exp_name": exp_name, "variant": variant, "seed": seed,
+                                  "mean_action_return": mean_action, "final_return": sampled, **base}, one)  # fmt: skip
+    assert learning.variant_difference(one, reps=500).count("too few runs to judge (n = 1)") == 2
 
 
 def test_the_bar_is_met_only_when_every_part_is(tmp_path):
