@@ -400,7 +400,7 @@ def test_the_aggregation_counts_finished_trials_only_and_replaces_old_tables(tmp
         ("11,11", "0", "5", "0"), ("11,11", "50", "2", "0"), ("11,11", "100", "7", "0"),
         ("12,12", "0", "5", "0"), ("12,12", "50", "9", "1")]  # fmt: skip
     assert "| lstm | 1 |" in summary and "| gru | 2 |" in summary  # lstm seed 12 is not finished
-    assert "across 1 seed pair(s)" in summary and "1.00 [1.00, 1.00]" in summary  # pair 11 only: 0.7 > 0.3
+    assert "the share of 1 seed pair(s)" in summary and "1.00 [1.00, 1.00]" in summary  # pair 11 only: 0.7 > 0.3
     assert ("Not finished, left out of the statistics: single_lstm_seed12 (5000 of 8000 updates); ghost_gru_seed12 "
             "(7500 of 9000 updates); race pair 12,12 (tournaments up to 50 of 100 races).") in summary
     progress.pop(("single", "gru", 12))  # a trial not started yet
