@@ -133,34 +133,55 @@ def run_args(
     return script, args, set()
 
 
-def sittings(run_dir: str):
-    """(event accumulator, scalar tags, first and last logged wall time) of each sitting's event file of a run
-    with anything logged, in the order the sittings ran."""
+EVENT_FILE_PROCESS = re.compile(r"events\.out\.tfevents\.\d+\.(?P<process>.+?\.\d+)\.\d+")
+"""TensorBoard's event file name, ``events.out.tfevents.<time>.<host>.<pid>.<n>[suffix]``: host and pid name the
+process that wrote it."""
+
+
+def sittings(run_dir: str) -> list[tuple[list, float, float]]:
+    """Each sitting of a run with anything logged, in the order they ran: its event files as (event accumulator,
+    scalar tags), and its first and last logged wall time.
+
+    A sitting is one process. Each call of a script's ``main`` opens a new event file, and an experiment trial
+    calls it again every few hundred updates in the same process, so consecutive files of one host and pid are
+    one sitting and the time between them counts; the time between processes does not."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+    out, last_process = [], None
     for events_file in sorted(glob.glob(os.path.join(run_dir, "events.out.tfevents.*"))):
         acc = EventAccumulator(events_file, size_guidance={"scalars": 0})
         acc.Reload()
         tags = acc.Tags()["scalars"]
-        if tags:
-            wall_times = [e.wall_time for tag in tags for e in acc.Scalars(tag)]
-            yield acc, tags, min(wall_times), max(wall_times)
+        if not tags:
+            continue
+        wall_times = [e.wall_time for tag in tags for e in acc.Scalars(tag)]
+        match = EVENT_FILE_PROCESS.match(os.path.basename(events_file))
+        process = match["process"] if match else events_file
+        if out and process == last_process:
+            files, start, end = out[-1]
+            out[-1] = (files + [(acc, tags)], start, max(end, max(wall_times)))
+        else:
+            out.append(([(acc, tags)], min(wall_times), max(wall_times)))
+        last_process = process
+    return out
 
 
 def training_hours(run_dir: str) -> float:
     """A run's training time in hours up to its last logged scalar: each sitting from its first logged scalar to its
     last, added up (the time between sittings does not count), as ``eval_curve``'s hours."""
-    return round(sum(end - start for _, _, start, end in sittings(run_dir)) / 3600, 4)
+    return round(sum(end - start for _, start, end in sittings(run_dir)) / 3600, 4)
 
 
 def eval_curve(run_dir: str) -> list[dict]:
     """Evaluation points of a run, with the update count and the training hours at each.
 
-    A resumed run writes one event file per sitting; hours add up the sittings (each from its first
-    logged scalar to its last), so the time between sittings does not count."""
+    Hours add up the sittings (each from its first logged scalar to its last; see ``sittings``), so the time
+    between sittings does not count."""
     rows, hours_before = [], 0.0
-    for acc, tags, start, end in sittings(run_dir):
-        if "car_0/eval/episodic_return" in tags:
+    for files, start, end in sittings(run_dir):
+        for acc, tags in files:
+            if "car_0/eval/episodic_return" not in tags:
+                continue
             progress = (
                 {e.step: e.value for e in acc.Scalars("car_0/eval/progress")} if "car_0/eval/progress" in tags else {}
             )

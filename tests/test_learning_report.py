@@ -22,8 +22,10 @@ BASELINES = {
 }
 
 
-def write_sitting(run_dir, points, wall_start):
-    """One event file: eval points (env_steps, return, progress, updates) at 1000 s apart from wall_start."""
+def write_sitting(run_dir, points, wall_start, pid=None):
+    """One event file: eval points (env_steps, return, progress, updates) at 1000 s apart from wall_start, named
+    as TensorBoard names a file of process `pid` (this test's own when None)."""
+    before = set(os.listdir(run_dir)) if os.path.isdir(run_dir) else set()
     writer = SummaryWriter(run_dir, filename_suffix=f".{wall_start}")
     for i, (steps, ret, progress, updates) in enumerate(points):
         wall = wall_start + 1000.0 * i
@@ -31,6 +33,16 @@ def write_sitting(run_dir, points, wall_start):
         writer.add_scalar("car_0/eval/episodic_return", ret, steps, walltime=wall)
         writer.add_scalar("car_0/eval/progress", progress, steps, walltime=wall)
     writer.close()
+    if pid is not None:
+        as_process(run_dir, before, pid)
+
+
+def as_process(run_dir, before, pid):
+    """Rename the one event file written to run_dir since `before` (its file names) as process `pid`'s:
+    events.out.tfevents.<time>.<host>.<pid>.<n><suffix>."""
+    (name,) = set(os.listdir(run_dir)) - before
+    head, rest = name.split(f".{os.getpid()}.", 1)
+    os.rename(os.path.join(run_dir, name), os.path.join(run_dir, f"{head}.{pid}.{rest}"))
 
 
 @pytest.fixture
@@ -45,14 +57,32 @@ def dirs(tmp_path):
 def test_eval_curve_adds_up_sittings_not_the_gap_between_them(dirs):
     runs, _ = dirs
     run_dir = os.path.join(runs, "multi_car_racing__learning_gru__1__1700000000")
-    write_sitting(run_dir, [(500, -80.0, 0.02, 0), (1000, 50.0, 0.2, 300)], wall_start=1_000_000.0)
-    # the second sitting starts a day later: its hours continue from the first sitting's 1000 s
-    write_sitting(run_dir, [(1000, 50.0, 0.2, 300), (2000, 310.0, 0.45, 800)], wall_start=1_086_400.0)
+    write_sitting(run_dir, [(500, -80.0, 0.02, 0), (1000, 50.0, 0.2, 300)], wall_start=1_000_000.0, pid=101)
+    # the second sitting (another process) starts a day later: its hours continue from the first sitting's 1000 s
+    write_sitting(run_dir, [(1000, 50.0, 0.2, 300), (2000, 310.0, 0.45, 800)], wall_start=1_086_400.0, pid=202)
     rows = learning.eval_curve(run_dir)
     assert [r["env_steps"] for r in rows] == [500, 1000, 2000]  # the repeated point once
     assert [r["updates"] for r in rows] == [0, 300, 800]
     assert rows[-1]["wall_hours"] == pytest.approx(2000 / 3600, abs=1e-4)
     assert rows[-1]["eval_progress"] == pytest.approx(0.45, abs=1e-6)
+    assert learning.training_hours(run_dir) == pytest.approx(2000 / 3600, abs=1e-4)
+
+
+def test_event_files_of_one_process_are_one_sitting_and_the_time_between_them_counts(dirs):
+    """An experiment trial calls a script's main every few hundred updates in one process, each call with a new
+    event file: the training between the last scalar of one and the first of the next is training time."""
+    runs, _ = dirs
+    run_dir = os.path.join(runs, "multi_car_racing__learning_lstm__1__1700000000")
+    write_sitting(run_dir, [(500, -80.0, 0.02, 0), (1000, 50.0, 0.2, 300)], wall_start=1_000_000.0, pid=303)
+    write_sitting(run_dir, [(1500, 90.0, 0.3, 500), (2000, 310.0, 0.45, 800)], wall_start=1_002_500.0, pid=303)
+    # a later sitting, another process, two days on
+    write_sitting(run_dir, [(2500, 400.0, 0.5, 1000)], wall_start=1_172_800.0, pid=404)
+    write_sitting(run_dir, [(3000, 450.0, 0.55, 1200)], wall_start=1_173_400.0, pid=404)
+    rows = learning.eval_curve(run_dir)
+    # 0, 1000 s; 2500, 3500 s (the 1500 s between the files count); then 3500 + 0 and 3500 + 600 s
+    assert [r["wall_hours"] for r in rows] == pytest.approx([0, 1000 / 3600, 2500 / 3600, 3500 / 3600,
+                                                            3500 / 3600, 4100 / 3600], abs=1e-4)  # fmt: skip
+    assert learning.training_hours(run_dir) == pytest.approx(4100 / 3600, abs=1e-4)
 
 
 def test_first_at_bar_needs_return_and_progress_at_the_same_evaluation():
@@ -395,11 +425,13 @@ def test_final_row_counts_the_steps_and_hours_after_the_last_evaluation(tmp_path
     sitting), not those of its last evaluation, which can lie hundreds of updates before the end."""
     run = tmp_path / "multi_car_racing__learning_lstm__12__1700000000"
     (run / "checkpoints").mkdir(parents=True)
-    write_sitting(str(run), [(500, -80.0, 0.02, 100), (1000, 50.0, 0.2, 300)], wall_start=1_000_000.0)
+    write_sitting(str(run), [(500, -80.0, 0.02, 100), (1000, 50.0, 0.2, 300)], wall_start=1_000_000.0, pid=101)
+    before = set(os.listdir(run))
     writer = SummaryWriter(str(run), filename_suffix=".2")  # a later sitting: training only, no evaluation
     writer.add_scalar("car_0/perf/updates", 350, 1100, walltime=2_000_000.0)
     writer.add_scalar("car_0/perf/updates", 400, 1234, walltime=2_000_000.0 + 1800.0)
     writer.close()
+    as_process(str(run), before, pid=202)
     import race
 
     checkpoint = {"agents": [{"num_updates": 400}], "counters": {"global_step": 1234}}
