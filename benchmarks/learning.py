@@ -133,9 +133,9 @@ def run_args(
     return script, args, set()
 
 
-EVENT_FILE_PROCESS = re.compile(r"events\.out\.tfevents\.\d+\.(?P<process>.+?\.\d+)\.\d+")
-"""TensorBoard's event file name, ``events.out.tfevents.<time>.<host>.<pid>.<n>[suffix]``: host and pid name the
-process that wrote it."""
+EVENT_FILE_PROCESS = re.compile(r"events\.out\.tfevents\.\d+\.(?P<process>.+\.\d+)\.\d+")
+"""The name SB3's TensorBoard logger gives an event file, ``events.out.tfevents.<time>.<host>.<pid>.<n>`` (no
+suffix): host (which may hold dots) and pid name the process that wrote it."""
 
 
 def sittings(run_dir: str) -> list[tuple[list, float, float]]:
@@ -155,11 +155,11 @@ def sittings(run_dir: str) -> list[tuple[list, float, float]]:
         if not tags:
             continue
         wall_times = [e.wall_time for tag in tags for e in acc.Scalars(tag)]
-        match = EVENT_FILE_PROCESS.match(os.path.basename(events_file))
+        match = EVENT_FILE_PROCESS.fullmatch(os.path.basename(events_file))
         process = match["process"] if match else events_file
         if out and process == last_process:
             files, start, end = out[-1]
-            out[-1] = (files + [(acc, tags)], start, max(end, max(wall_times)))
+            out[-1] = (files + [(acc, tags)], min(start, min(wall_times)), max(end, max(wall_times)))
         else:
             out.append(([(acc, tags)], min(wall_times), max(wall_times)))
         last_process = process

@@ -24,9 +24,9 @@ BASELINES = {
 
 def write_sitting(run_dir, points, wall_start, pid=None):
     """One event file: eval points (env_steps, return, progress, updates) at 1000 s apart from wall_start, named
-    as TensorBoard names a file of process `pid` (this test's own when None)."""
+    as SB3's logger names a file of process `pid` (this test's own when None)."""
     before = set(os.listdir(run_dir)) if os.path.isdir(run_dir) else set()
-    writer = SummaryWriter(run_dir, filename_suffix=f".{wall_start}")
+    writer = SummaryWriter(run_dir)
     for i, (steps, ret, progress, updates) in enumerate(points):
         wall = wall_start + 1000.0 * i
         writer.add_scalar("car_0/perf/updates", updates, steps, walltime=wall)
@@ -39,7 +39,7 @@ def write_sitting(run_dir, points, wall_start, pid=None):
 
 def as_process(run_dir, before, pid):
     """Rename the one event file written to run_dir since `before` (its file names) as process `pid`'s:
-    events.out.tfevents.<time>.<host>.<pid>.<n><suffix>."""
+    events.out.tfevents.<time>.<host>.<pid>.<n>."""
     (name,) = set(os.listdir(run_dir)) - before
     head, rest = name.split(f".{os.getpid()}.", 1)
     os.rename(os.path.join(run_dir, name), os.path.join(run_dir, f"{head}.{pid}.{rest}"))
@@ -83,6 +83,9 @@ def test_event_files_of_one_process_are_one_sitting_and_the_time_between_them_co
     assert [r["wall_hours"] for r in rows] == pytest.approx([0, 1000 / 3600, 2500 / 3600, 3500 / 3600,
                                                             3500 / 3600, 4100 / 3600], abs=1e-4)  # fmt: skip
     assert learning.training_hours(run_dir) == pytest.approx(4100 / 3600, abs=1e-4)
+    # a host name may hold dots and digits: the process is the host and the pid before the file's counter
+    name = "events.out.tfevents.1796255072.node.12.example.24779.3"
+    assert learning.EVENT_FILE_PROCESS.fullmatch(name)["process"] == "node.12.example.24779"
 
 
 def test_first_at_bar_needs_return_and_progress_at_the_same_evaluation():
@@ -427,7 +430,7 @@ def test_final_row_counts_the_steps_and_hours_after_the_last_evaluation(tmp_path
     (run / "checkpoints").mkdir(parents=True)
     write_sitting(str(run), [(500, -80.0, 0.02, 100), (1000, 50.0, 0.2, 300)], wall_start=1_000_000.0, pid=101)
     before = set(os.listdir(run))
-    writer = SummaryWriter(str(run), filename_suffix=".2")  # a later sitting: training only, no evaluation
+    writer = SummaryWriter(str(run))  # a later sitting: training only, no evaluation
     writer.add_scalar("car_0/perf/updates", 350, 1100, walltime=2_000_000.0)
     writer.add_scalar("car_0/perf/updates", 400, 1234, walltime=2_000_000.0 + 1800.0)
     writer.close()
