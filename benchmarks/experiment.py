@@ -4,6 +4,7 @@
     python benchmarks/experiment.py --seeds 11 12 13 --race-episodes 150 --tournament-every 50
     python benchmarks/experiment.py --address auto --gpus-per-trial 1 --torch-threads 4   # on a Ray cluster
     python benchmarks/experiment.py --aggregate-only                  # only the CSVs and the rliable summary
+    python benchmarks/experiment.py --status                          # where each trial stands (nothing runs)
 
 Every (variant, seed, stage) is one Ray Tune trial (``ray.init()`` on this machine unless ``--address``; each
 trial asks for ``--torch-threads`` CPUs, so two share two cores, and ``--gpus-per-trial`` GPUs). A trial is an
@@ -103,6 +104,9 @@ class Spec:
     """times Ray retries a trial whose worker died (it resumes from its latest.pt)"""
     aggregate_only: bool = False
     """only write the result CSVs and the summary from existing trials"""
+    status: bool = False
+    """only print where each trial of the experiment in --storage stands, read from its run directories (no Ray,
+    nothing measured, nothing written)"""
     results: str = RESULTS
     """directory of ghost_vs_control.csv, head_to_head.csv and experiment.md"""
     chaos_kill_after_updates: int = 0
@@ -275,11 +279,12 @@ def race_trial(config: dict) -> None:
         tune.report(tournament_metrics(tournament, trained))
 
 
-def interval_racers(interval: str) -> tuple[list[str], int] | None:
+def interval_racers(interval: str, prune: bool = True) -> tuple[list[str], int] | None:
     """The newest pair of racer checkpoints (LSTM, GRU) in the run directories of `interval` that were saved after
     the same race, and the head-to-head races they have done in all; None if there is none. Runs newer than that
     pair (a kill in the microseconds between the two renames that end the saves of one race leaves racer 0 a
-    race ahead) are removed: the interval continues from the pair, and their logs would count races twice."""
+    race ahead) are removed unless `prune` is False: the interval continues from the pair, and their logs would
+    count races twice."""
     import race
 
     runs = sorted(path for path in glob.glob(os.path.join(interval, "*")) if os.path.isdir(path))
@@ -289,7 +294,7 @@ def interval_racers(interval: str) -> tuple[list[str], int] | None:
             continue
         races = {int(race.read_checkpoint(p)[1]["counters"]["race_episodes"]) for p in paths}
         if len(races) == 1:
-            for newer in runs[k + 1 :]:
+            for newer in runs[k + 1 :] if prune else ():
                 shutil.rmtree(newer)
             return paths, races.pop()
     return None
@@ -446,6 +451,38 @@ def unfinished(spec: dict, stage: str, variants, seeds) -> list[str]:
     return names
 
 
+def race_progress(spec: dict, seed: int) -> str:
+    """How far the race trial of seed pair (seed, seed) has got: head-to-head races trained (by the newest pair of
+    racer checkpoints both saved after the same race) and the tournaments held. Read only."""
+    directory = trial_dir(spec, "race", "lstm_gru", seed)
+    name = f"race_lstm_gru_seed{seed}"
+    held = sorted(int(path.rsplit("_", 1)[1]) for path in glob.glob(os.path.join(directory, "tournament_*[0-9]"))
+                  if os.path.exists(os.path.join(path, "results.json")))  # fmt: skip
+    trained = max(held, default=0)
+    for interval in glob.glob(os.path.join(directory, "races_*[0-9]")):
+        found = interval_racers(interval, prune=False)
+        trained = max(trained, found[1] if found else 0)
+    if not os.path.isdir(directory):
+        return f"{name} (not started)"
+    tournaments = ", ".join(map(str, held)) or "none yet"
+    return f"{name} ({trained} of {spec['race_episodes']} races; tournaments after {tournaments} races)"
+
+
+def status(spec: Spec) -> str:
+    """Every trial of the experiment, stage by stage, with how far it has got: a dreamer trial's updates against
+    its target (read from its latest.pt), a race trial's races and tournaments. Nothing is started or measured."""
+    plain, lines = dataclasses.asdict(spec), []
+    for stage in ("single", "ghost", "race"):
+        if stage == "race":
+            trials = [race_progress(plain, seed) for seed in spec.seeds]
+        else:
+            kinds = ["single"] if stage == "single" else ["ghost", "control"]
+            trials = [progress_text(f"{kind}_{variant}_seed{seed}", *trial_progress(plain, kind, variant, seed))
+                      for seed in spec.seeds for kind in kinds for variant in spec.variants]  # fmt: skip
+        lines += [f"{stage}:"] + [f"  {trial}" for trial in trials]
+    return "\n".join(lines)
+
+
 def race_started(spec: dict) -> bool:
     """Whether the race stage of the experiment in spec["storage"] has begun (its Tune experiment or a trial)."""
     tune_dir = os.path.join(spec["storage"], "tune", f"{spec['name']}_race")
@@ -484,6 +521,12 @@ def saved_spec(storage: str) -> dict | None:
 
 def main(spec: Spec) -> None:
     spec = dataclasses.replace(spec, storage=os.path.abspath(spec.storage))
+    if spec.status:
+        if (saved := saved_spec(spec.storage)) is None:
+            raise SystemExit(f"experiment.py: --status: no experiment in {spec.storage} (it has no spec.json)")
+        print(status(dataclasses.replace(spec, **{k: tuple(v) if isinstance(v, list) else v
+                                                  for k, v in saved.items()})))  # fmt: skip
+        return
     if not spec.aggregate_only:
         check_spec(spec)
     elif (saved := saved_spec(spec.storage)) is not None:

@@ -90,6 +90,20 @@ def test_every_stage_runs_to_completion_and_writes_the_tables(finished):
     assert "| the LSTM-Dreamer beats the GRU-Dreamer head to head | last tournament (after 2 races)" in summary
 
 
+def test_status_names_every_trial_with_how_far_it_got(finished, tmp_path, capsys):
+    spec = finished
+    experiment.main(experiment.Spec(storage=spec.storage, status=True))  # the experiment's own spec, not the flags'
+    lines = capsys.readouterr().out.splitlines()
+    ghost_lstm = latest(spec, "ghost", "lstm")[1]["agents"][0]["num_updates"]
+    assert lines[:3] == ["single:", "  single_lstm_seed3 (2 of 2 updates)", "  single_gru_seed3 (2 of 2 updates)"]
+    assert lines[3:5] == ["ghost:", f"  ghost_lstm_seed3 ({ghost_lstm} of {ghost_lstm} updates)"]
+    assert len(lines) == 10 and all(" of " in line for line in lines[4:8])  # ghost and control of both variants
+    assert lines[8:] == ["race:", "  race_lstm_gru_seed3 (2 of 2 races; tournaments after 0, 1, 2 races)"]
+    with pytest.raises(SystemExit, match="--status: no experiment in .*nothing"):
+        experiment.main(experiment.Spec(storage=str(tmp_path / "nothing"), status=True))
+    assert not os.path.exists(tmp_path / "nothing")  # nothing written
+
+
 def test_a_killed_trial_resumed_with_its_counters_and_the_others_untouched(finished):
     spec = finished
     plain = dataclasses.asdict(spec)
@@ -490,6 +504,7 @@ def test_a_race_trial_continues_a_cut_interval_and_never_retrains_a_trained_one(
         ("train", 2, "ghost_lstm_seed3"), ("tournament", "tournament_00002.tmp"),
         ("train", 2, "races_00002"),  # cut after its first race, both racers saved
     ]  # fmt: skip
+    assert experiment.race_progress(plain, 3) == "race_lstm_gru_seed3 (3 of 4 races; tournaments after 0, 2 races)"
     calls.clear()
     experiment.race_trial(config)  # the next sitting: only the race left, from the last pair saved together
     assert kinds(calls) == [("train", 1, "races_00004"), ("tournament", "tournament_00004.tmp")]
@@ -513,6 +528,7 @@ def test_a_race_interval_split_by_a_kill_between_its_saves_continues_from_the_pa
     cut["races_00002"] = (1, True)
     with pytest.raises(KeyboardInterrupt):
         experiment.race_trial(config)  # racer 0 at 2 races, racer 1 at 1: the only run cannot continue
+    assert experiment.race_progress(plain, 3) == "race_lstm_gru_seed3 (0 of 4 races; tournaments after 0 races)"
     calls.clear()
     experiment.race_trial(config)
     assert kinds(calls)[:2] == [("train", 2, "ghost_lstm_seed3"), ("tournament", "tournament_00002.tmp")]
@@ -526,6 +542,8 @@ def test_a_race_interval_split_by_a_kill_between_its_saves_continues_from_the_pa
     fake = race.read_checkpoint
     monkeypatch.setattr(race, "read_checkpoint", lambda p: (None, {"counters": {"race_episodes": table[p]}})
                         if p in table else fake(p))  # fmt: skip
+    assert experiment.race_progress(plain, 3) == "race_lstm_gru_seed3 (4 of 4 races; tournaments after 0, 2, 4 races)"
+    assert len(os.listdir(interval)) == 2  # --status only reads: the split newer run is still there
     paths, done = experiment.interval_racers(interval)
     assert done == 2 and os.path.join(interval, run) in paths[0]
     assert os.listdir(interval) == [run]  # the split newer run is gone: its logs would count races twice
