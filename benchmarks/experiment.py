@@ -106,7 +106,7 @@ class Spec:
     """only write the result CSVs and the summary from existing trials"""
     status: bool = False
     """only print where each trial of the experiment in --storage stands, read from its run directories (no Ray,
-    nothing measured, nothing written)"""
+    nothing trained or measured)"""
     results: str = RESULTS
     """directory of ghost_vs_control.csv, head_to_head.csv and experiment.md"""
     chaos_kill_after_updates: int = 0
