@@ -500,19 +500,19 @@ def restored_spec(saved: dict) -> dict:
     return {**dataclasses.asdict(Spec()), **FIELD_ORIGINS, **saved}
 
 
-def saved_spec(storage: str) -> dict | None:
+def saved_spec(storage: str, write: bool = True) -> dict | None:
     """The TRIAL_FIELDS of the experiment in `storage` (None: there is none yet). A field its spec.json lacks was
     added to Spec after it started, so it ran with the value that field had then (FIELD_ORIGINS, else its
-    default); that value is written into its spec.json, so that a later change of the default cannot change what
-    the experiment was."""
+    default); that value is written into its spec.json (unless `write` is False: --status only reads), so that a
+    later change of the default cannot change what the experiment was."""
     path = os.path.join(storage, "spec.json")
     if not os.path.exists(path):
         return None
     with open(path) as f:
         saved = json.load(f)
     missing = {k: FIELD_ORIGINS.get(k, v) for k, v in trial_fields(Spec()).items() if k not in saved}
-    if missing:
-        saved |= missing
+    saved |= missing
+    if missing and write:
         with open(path + ".tmp", "w") as f:
             json.dump(saved, f, indent=1)
         os.replace(path + ".tmp", path)
@@ -522,7 +522,7 @@ def saved_spec(storage: str) -> dict | None:
 def main(spec: Spec) -> None:
     spec = dataclasses.replace(spec, storage=os.path.abspath(spec.storage))
     if spec.status:
-        if (saved := saved_spec(spec.storage)) is None:
+        if (saved := saved_spec(spec.storage, write=False)) is None:
             raise SystemExit(f"experiment.py: --status: no experiment in {spec.storage} (it has no spec.json)")
         print(status(dataclasses.replace(spec, **{k: tuple(v) if isinstance(v, list) else v
                                                   for k, v in saved.items()})))  # fmt: skip
@@ -581,7 +581,7 @@ def aggregate(spec: Spec) -> str:
             stage = {k: trial_progress(plain, k, variant, seed) for k in ("ghost", "control")}
             if any(r is None or d < t for r, d, t in stage.values()):
                 left_out += [progress_text(f"{k}_{variant}_seed{seed}", r, d, t) for k, (r, d, t) in stage.items()
-                             if r is not None and d < t]  # fmt: skip
+                             if r is None or d < t]  # fmt: skip
                 continue
             best = os.path.join(run, "checkpoints", "best.pt")
             start = updates_of(best, importlib.import_module(f"dreamer_{variant}"))
@@ -603,8 +603,11 @@ def aggregate(spec: Spec) -> str:
     pairs = finished_pairs(head_rows, spec.race_episodes)
     final_rates = {v: [int(rs[-1][f"{v}_wins"]) / int(rs[-1]["eval_races"]) for rs in pairs.values()]
                    for v in ("lstm", "gru")}  # fmt: skip
-    left_out += [f"race pair {k} (tournaments up to {rs[-1]['races_trained']} of {spec.race_episodes} races)"
-                 for k, rs in group_pairs(head_rows).items() if k not in pairs]  # fmt: skip
+    held = group_pairs(head_rows)
+    for pair in (f"{seed},{seed}" for seed in spec.seeds if f"{seed},{seed}" not in pairs):
+        how_far = (f"tournaments up to {held[pair][-1]['races_trained']} of {spec.race_episodes} races"
+                   if pair in held else "not started")  # fmt: skip
+        left_out.append(f"race pair {pair} ({how_far})")
     summary = summarize(single_returns, final_rates)
     summary += "\n" + claims_table(single_returns, ghost_rows, head_rows, spec.race_episodes)
     if left_out:

@@ -147,6 +147,9 @@ def test_a_spec_saved_before_a_field_existed_means_the_value_it_ran_with(tmp_pat
     del saved["eval_policy"]  # an experiment started before the tournaments' policy was a field
     with open(tmp_path / "spec.json", "w") as f:
         json.dump(saved, f)
+    experiment.main(experiment.Spec(storage=str(tmp_path), status=True))  # --status reads it as it ran ...
+    with open(tmp_path / "spec.json") as f:
+        assert "eval_policy" not in json.load(f)  # ... and writes nothing
     experiment.check_spec(spec)  # it ran with the sampled policy: the same experiment
     with open(tmp_path / "spec.json") as f:
         assert json.load(f)["eval_policy"] == "stochastic"  # written down: a later default cannot change it
@@ -417,11 +420,13 @@ def test_the_aggregation_counts_finished_trials_only_and_replaces_old_tables(tmp
     assert "the share of 1 seed pair(s)" in summary and "1.00 [1.00, 1.00]" in summary  # pair 11 only: 0.7 > 0.3
     assert ("Not finished, left out of the statistics: single_lstm_seed12 (5000 of 8000 updates); ghost_gru_seed12 "
             "(7500 of 9000 updates); race pair 12,12 (tournaments up to 50 of 100 races).") in summary
-    progress.pop(("single", "gru", 12))  # a trial not started yet
+    progress.pop(("ghost", "gru", 12))  # trials not started yet are named too: a ghost trial, a race pair
+    shutil.rmtree(experiment.trial_dir(plain, "race", "lstm_gru", 12))
+    assert "ghost_gru_seed12 (not started); race pair 12,12 (not started)." in experiment.aggregate(spec)
+    progress.pop(("single", "gru", 12))
     assert "single_gru_seed12 (not started)" in experiment.aggregate(spec)
-    for seed in (11, 12):  # nothing finished any more: the headers alone, no earlier rows
-        shutil.rmtree(experiment.trial_dir(plain, "race", "lstm_gru", seed))
-    progress.clear()
+    shutil.rmtree(experiment.trial_dir(plain, "race", "lstm_gru", 11))
+    progress.clear()  # nothing finished any more: the headers alone, no earlier rows
     experiment.aggregate(spec)
     tables = {"ghost_vs_control.csv": experiment.GHOST_COLUMNS, "head_to_head.csv": experiment.HEAD_COLUMNS}
     for name, columns in tables.items():
