@@ -456,14 +456,14 @@ def race_progress(spec: dict, seed: int) -> str:
     racer checkpoints both saved after the same race) and the tournaments held. Read only."""
     directory = trial_dir(spec, "race", "lstm_gru", seed)
     name = f"race_lstm_gru_seed{seed}"
+    if not os.path.isdir(directory):
+        return f"{name} (not started)"
     held = sorted(int(path.rsplit("_", 1)[1]) for path in glob.glob(os.path.join(directory, "tournament_*[0-9]"))
                   if os.path.exists(os.path.join(path, "results.json")))  # fmt: skip
     trained = max(held, default=0)
     for interval in glob.glob(os.path.join(directory, "races_*[0-9]")):
         found = interval_racers(interval, prune=False)
         trained = max(trained, found[1] if found else 0)
-    if not os.path.isdir(directory):
-        return f"{name} (not started)"
     tournaments = ", ".join(map(str, held)) or "none yet"
     return f"{name} ({trained} of {spec['race_episodes']} races; tournaments after {tournaments} races)"
 
@@ -519,13 +519,17 @@ def saved_spec(storage: str, write: bool = True) -> dict | None:
     return saved
 
 
+def as_run(spec: Spec, saved: dict) -> Spec:
+    """`spec` with the seeds, variants, budgets and settings of the experiment as it was run (its spec.json)."""
+    return dataclasses.replace(spec, **{k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()})
+
+
 def main(spec: Spec) -> None:
     spec = dataclasses.replace(spec, storage=os.path.abspath(spec.storage))
     if spec.status:
         if (saved := saved_spec(spec.storage, write=False)) is None:
             raise SystemExit(f"experiment.py: --status: no experiment in {spec.storage} (it has no spec.json)")
-        print(status(dataclasses.replace(spec, **{k: tuple(v) if isinstance(v, list) else v
-                                                  for k, v in saved.items()})))  # fmt: skip
+        print(status(as_run(spec, saved)))
         return
     if not spec.aggregate_only:
         check_spec(spec)
@@ -534,8 +538,7 @@ def main(spec: Spec) -> None:
             policy = saved["eval_policy"]
             raise SystemExit(f"experiment.py: the experiment in {spec.storage} measures its agents with "
                              f"--eval-policy {policy}; its tables take the same: give --eval-policy {policy}")
-        # the tables are of the experiment as it was run (its seeds, variants and budgets), whatever the flags say
-        spec = dataclasses.replace(spec, **{k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()})
+        spec = as_run(spec, saved)  # the tables are of the experiment as it was run, whatever the flags say
     if not spec.aggregate_only:
         import ray
 

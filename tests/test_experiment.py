@@ -94,7 +94,8 @@ def test_status_names_every_trial_with_how_far_it_got(finished, tmp_path, capsys
     spec = finished
     experiment.main(experiment.Spec(storage=spec.storage, status=True))  # the experiment's own spec, not the flags'
     lines = capsys.readouterr().out.splitlines()
-    ghost_lstm = latest(spec, "ghost", "lstm")[1]["agents"][0]["num_updates"]
+    start = latest(spec, "ghost", "lstm")[1]["args"]["checkpoint"]  # the single trial's best.pt
+    ghost_lstm = experiment.updates_of(start, __import__("dreamer_lstm")) + spec.ghost_updates
     assert lines[:3] == ["single:", "  single_lstm_seed3 (2 of 2 updates)", "  single_gru_seed3 (2 of 2 updates)"]
     assert lines[3:5] == ["ghost:", f"  ghost_lstm_seed3 ({ghost_lstm} of {ghost_lstm} updates)"]
     assert len(lines) == 10 and all(" of " in line for line in lines[4:8])  # ghost and control of both variants
