@@ -97,6 +97,11 @@ class Spec:
     """torch threads, and CPUs Ray reserves, per trial"""
     gpus_per_trial: float = 0.0
     """GPUs Ray reserves per trial (on a cluster with GPUs)"""
+    num_cpus: int | None = None
+    """CPUs a local Ray offers the trials (default: the machine's cores); num_cpus // torch_threads trials run at
+    once. More than the cores time-shares them, which changes no result (each trial is its own seeded process) and
+    keeps every core busy when a stage has fewer trials left than the cores: the race stage's three seed pairs on
+    two cores run at once with --num-cpus 3, instead of two and then one alone"""
     address: str | None = None
     """address of a Ray cluster (default: a local Ray on this machine); --storage must then be a filesystem every
     node mounts at the same path (later stages start from earlier trials' checkpoints)"""
@@ -387,6 +392,11 @@ def check_spec(spec: Spec) -> None:
     rerun that asks for other trials than the experiment in --storage holds (its spec is saved there)."""
     for variant in ("lstm", "gru"):
         parse_overrides(importlib.import_module(f"dreamer_{variant}"), spec.overrides)
+    if spec.num_cpus is not None and spec.address is not None:
+        raise SystemExit("experiment.py: --num-cpus is for a local Ray; a cluster (--address) offers its own CPUs")
+    if spec.num_cpus is not None and spec.num_cpus < spec.torch_threads:
+        raise SystemExit(f"experiment.py: --num-cpus ({spec.num_cpus}) must be at least --torch-threads "
+                         f"({spec.torch_threads}), the CPUs each trial reserves: no trial would start")  # fmt: skip
     plain = dataclasses.asdict(spec)
     needs = {"ghost": "single", "race": "ghost"}
     for stage in spec.stages:
@@ -545,7 +555,8 @@ def main(spec: Spec) -> None:
         # Ray starts its workers at nice 15, where they yield the cores to anything else running here (measured:
         # ~6.5 s instead of ~1.2 s per update beside one ordinary process); the trials are the experiment.
         os.environ.setdefault("RAY_worker_niceness", "0")
-        ray.init(address=spec.address, runtime_env=runtime_env(spec), include_dashboard=False, log_to_driver=False)
+        ray.init(address=spec.address, num_cpus=spec.num_cpus, runtime_env=runtime_env(spec), include_dashboard=False,
+                 log_to_driver=False)  # fmt: skip
         for stage in ("single", "ghost", "race"):
             if stage in spec.stages:
                 run_stage(spec, stage)

@@ -141,6 +141,30 @@ def test_a_rerun_with_other_trials_or_a_missing_stage_is_refused_before_ray_star
         experiment.check_spec(experiment.Spec(overrides=("no_such_flag=1",), storage=str(tmp_path)))
 
 
+def test_a_local_ray_offers_the_cpus_asked_for_and_a_rerun_may_change_them(finished, tmp_path, monkeypatch):
+    import ray
+
+    experiment.check_spec(dataclasses.replace(finished, num_cpus=3))  # not a trial setting: the same experiment
+    with pytest.raises(SystemExit, match="--num-cpus is for a local Ray"):
+        experiment.check_spec(experiment.Spec(num_cpus=3, address="auto", storage=str(tmp_path)))
+    with pytest.raises(SystemExit, match=r"--num-cpus \(1\) must be at least --torch-threads \(2\)"):
+        experiment.check_spec(experiment.Spec(num_cpus=1, torch_threads=2, storage=str(tmp_path)))
+
+    class Started(Exception):
+        pass
+
+    asked = {}
+
+    def init(**kwargs):
+        asked.update(kwargs)
+        raise Started
+
+    monkeypatch.setattr(ray, "init", init)
+    with pytest.raises(Started):
+        experiment.main(dataclasses.replace(finished, num_cpus=3))
+    assert asked["num_cpus"] == 3 and asked["address"] is None
+
+
 def test_a_spec_saved_before_a_field_existed_means_the_value_it_ran_with(tmp_path):
     assert experiment.Spec().eval_policy == "mean-action"  # today's default, not what older experiments ran with
     spec = experiment.Spec(stages=("single",), storage=str(tmp_path), eval_policy="stochastic")
