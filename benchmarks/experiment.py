@@ -70,6 +70,12 @@ class Spec:
     """updates of a single-stage trial"""
     ghost_updates: int = 2000
     """updates of a ghost-stage trial beyond its starting best.pt (and of its control)"""
+    controls: bool = True
+    """run each ghost trial's control. Without them (--no-controls) the ghost stage trains only the ghost agents the
+    race stage starts from: for an experiment whose ghost-vs-control table is measured and kept in --results but
+    whose trial directories were lost. The trials are deterministic (same seed and code, the same agents), so the
+    aggregation keeps that table and checks it against the ghost agents made again. It may change until the ghost
+    stage begins"""
     race_episodes: int = 150
     """head-to-head training races per seed pair"""
     tournament_every: int = 50
@@ -328,10 +334,17 @@ def stage_configs(spec: Spec, stage: str) -> list[dict]:
     plain = dataclasses.asdict(spec)
     if stage == "race":
         return [{"spec": plain, "stage": "race", "variant": "lstm_gru", "seed": s} for s in spec.seeds]
-    kinds = ["single"] if stage == "single" else ["ghost", "control"]
-    return [
-        {"spec": plain, "stage": k, "variant": v, "seed": s} for s in spec.seeds for k in kinds for v in spec.variants
-    ]  # seed by seed, so that an experiment cut short has whole seeds of every variant
+    # seed by seed, so that an experiment cut short has whole seeds of every variant
+    return [{"spec": plain, "stage": k, "variant": v, "seed": s}
+            for s in spec.seeds for k in trial_kinds(plain, stage) for v in spec.variants]
+
+
+def trial_kinds(spec: dict, stage: str) -> list[str]:
+    """The dreamer trials of a single or ghost stage, per variant and seed: the ghost stage's with its control
+    unless the experiment runs without controls."""
+    if stage == "single":
+        return ["single"]
+    return ["ghost", "control"] if spec["controls"] else ["ghost"]
 
 
 def trial_name(trial) -> str:
@@ -378,8 +391,11 @@ def runtime_env(spec: Spec) -> dict:
 # What fixes the trials of an experiment: a rerun must ask for the same (Tune restores the trials it saved).
 TRIAL_FIELDS = (
     "variants", "seeds", "preset", "overrides", "single_updates", "ghost_updates", "race_episodes", "tournament_every",
-    "tournament_races", "race_train_steps", "report_every", "torch_threads", "eval_policy",
+    "tournament_races", "race_train_steps", "report_every", "torch_threads", "eval_policy", "controls",
 )  # fmt: skip
+# The trial fields that may change until the stage that first uses them has begun: the evaluation policy until the
+# race stage (the tables measured before are measured again with the new one), the controls until the ghost stage.
+CHANGEABLE_UNTIL = {"eval_policy": "race", "controls": "ghost"}
 
 
 def trial_fields(spec: Spec) -> dict:
@@ -419,9 +435,10 @@ def check_spec(spec: Spec) -> None:
     wanted, saved = trial_fields(spec), saved_spec(spec.storage)
     if saved is not None:
         changed = sorted(k for k in TRIAL_FIELDS if saved[k] != wanted[k])
-        if changed == ["eval_policy"] and not race_started(plain):
-            # no tournament has used it yet, and the tables are measured again with the new one: it may change
-            print(f"experiment.py: --eval-policy {spec.eval_policy} (was {saved['eval_policy']}) for {spec.storage}")
+        if changed and all(k in CHANGEABLE_UNTIL and not stage_started(plain, CHANGEABLE_UNTIL[k]) for k in changed):
+            # no trial has used them yet: they may change (and are written down)
+            for k in changed:
+                print(f"experiment.py: {k} {wanted[k]} (was {saved[k]}) for {spec.storage}")
             with open(path + ".tmp", "w") as f:
                 json.dump(wanted, f, indent=1)
             os.replace(path + ".tmp", path)
@@ -449,12 +466,12 @@ def progress_text(name: str, run: str | None, done: int, target: int | None) -> 
 
 
 def unfinished(spec: dict, stage: str, variants, seeds) -> list[str]:
-    """The trials of a single or ghost stage (ghost: with its controls) that have not made all their updates, each
-    named with how far it got."""
+    """The trials of a single or ghost stage that the next stage starts from (the ghost stage's ghosts, not their
+    controls) and that have not made all their updates, each named with how far it got."""
     names = []
     for variant in variants:
         for seed in seeds:
-            for kind in ["single"] if stage == "single" else ["ghost", "control"]:
+            for kind in trial_kinds(spec, stage)[:1]:
                 run, done, target = trial_progress(spec, kind, variant, seed)
                 if run is None or done < target:
                     names.append(progress_text(f"{kind}_{variant}_seed{seed}", run, done, target))
@@ -486,17 +503,17 @@ def status(spec: Spec) -> str:
         if stage == "race":
             trials = [race_progress(plain, seed) for seed in spec.seeds]
         else:
-            kinds = ["single"] if stage == "single" else ["ghost", "control"]
             trials = [progress_text(f"{kind}_{variant}_seed{seed}", *trial_progress(plain, kind, variant, seed))
-                      for seed in spec.seeds for kind in kinds for variant in spec.variants]  # fmt: skip
+                      for seed in spec.seeds for kind in trial_kinds(plain, stage) for variant in spec.variants]
         lines += [f"{stage}:"] + [f"  {trial}" for trial in trials]
     return "\n".join(lines)
 
 
-def race_started(spec: dict) -> bool:
-    """Whether the race stage of the experiment in spec["storage"] has begun (its Tune experiment or a trial)."""
-    tune_dir = os.path.join(spec["storage"], "tune", f"{spec['name']}_race")
-    return os.path.exists(tune_dir) or bool(glob.glob(trial_dir(spec, "race", "*", "*")))
+def stage_started(spec: dict, stage: str) -> bool:
+    """Whether a stage of the experiment in spec["storage"] has begun (its Tune experiment or a trial)."""
+    tune_dir = os.path.join(spec["storage"], "tune", f"{spec['name']}_{stage}")
+    kinds = {"single": ["single"], "ghost": ["ghost", "control"], "race": ["race"]}[stage]
+    return os.path.exists(tune_dir) or any(glob.glob(trial_dir(spec, k, "*", "*")) for k in kinds)
 
 
 # The value of a trial field whose default changed after it was added: what an experiment whose spec.json predates
@@ -576,7 +593,9 @@ def aggregate(spec: Spec) -> str:
 
     Only finished trials are results: a single, ghost or control trial that has made all its updates, and a seed
     pair whose tournament after the last head-to-head race exists. head_to_head.csv lists every tournament held so
-    far; the statistics use the finished pairs, and the summary names what it left out."""
+    far; the statistics use the finished pairs, and the summary names what it left out. An experiment without
+    controls keeps the ghost_vs_control.csv in spec.results and says how its ghost agents made again compare."""
+    kept = None if spec.controls else kept_ghost_rows(spec.results)
     os.makedirs(spec.results, exist_ok=True)
     plain, first = dataclasses.asdict(spec), 10_100
     single_returns: dict[str, list[float]] = {}
@@ -592,7 +611,7 @@ def aggregate(spec: Spec) -> str:
                 return fresh_return(spec, os.path.join(run, "checkpoints", name), first)
 
             single_returns.setdefault(variant, []).append(fresh(run, "latest.pt"))
-            stage = {k: trial_progress(plain, k, variant, seed) for k in ("ghost", "control")}
+            stage = {k: trial_progress(plain, k, variant, seed) for k in trial_kinds(plain, "ghost")}
             if any(r is None or d < t for r, d, t in stage.values()):
                 left_out += [progress_text(f"{k}_{variant}_seed{seed}", r, d, t) for k, (r, d, t) in stage.items()
                              if r is None or d < t]  # fmt: skip
@@ -603,9 +622,13 @@ def aggregate(spec: Spec) -> str:
                 "variant": variant, "seed": seed, "updates_at_start": start, "updates": stage["ghost"][1] - start,
                 "return_before": fresh(run, "best.pt"),
                 "return_after_ghost": fresh(stage["ghost"][0], "latest.pt"),
-                "return_after_control": fresh(stage["control"][0], "latest.pt"),
+                "return_after_control": fresh(stage["control"][0], "latest.pt") if "control" in stage else None,
             })  # fmt: skip
-    write_csv(os.path.join(spec.results, "ghost_vs_control.csv"), GHOST_COLUMNS, ghost_rows)
+    if kept is None:
+        write_csv(os.path.join(spec.results, "ghost_vs_control.csv"), GHOST_COLUMNS, ghost_rows)
+        remade = ""
+    else:
+        remade, ghost_rows = remade_note(kept, ghost_rows), kept
     head_rows = []
     for seed in spec.seeds:
         tournaments = sorted(glob.glob(os.path.join(trial_dir(plain, "race", "lstm_gru", seed), "tournament_*[0-9]")))
@@ -624,11 +647,40 @@ def aggregate(spec: Spec) -> str:
         left_out.append(f"race pair {pair} ({how_far})")
     summary = summarize(single_returns, final_rates)
     summary += "\n" + claims_table(single_returns, ghost_rows, head_rows, spec.race_episodes)
+    summary += remade
     if left_out:
         summary += "\nNot finished, left out of the statistics: " + "; ".join(left_out) + ".\n"
     with open(os.path.join(spec.results, "experiment.md"), "w") as f:
         f.write(summary)
     return summary
+
+
+def kept_ghost_rows(results: str) -> list[dict]:
+    """The ghost_vs_control.csv in `results`, which an experiment without controls keeps (it cannot measure it)."""
+    path = os.path.join(results, "ghost_vs_control.csv")
+    if not os.path.exists(path):
+        raise SystemExit(f"experiment.py: without controls the ghost-vs-control table measured before is kept, and "
+                         f"{path} does not exist: run the controls, or give --results the directory that holds it")
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def remade_note(kept: list[dict], remade: list[dict]) -> str:
+    """Markdown: the ghost agents made again without controls, their return before and after the ghost stage
+    against the kept table's for the same variant and seed, and the largest difference."""
+    table = {(r["variant"], int(r["seed"])): r for r in kept}
+    parts, worst = [], 0.0
+    for r in remade:
+        old = table.get((r["variant"], int(r["seed"])))
+        if old is None:
+            parts.append(f"{r['variant']} seed {r['seed']} is not in the table")
+            continue
+        pairs = [(float(r[c]), float(old[c])) for c in ("return_before", "return_after_ghost")]
+        worst = max([worst] + [abs(new - was) for new, was in pairs])
+        parts.append(f"{r['variant']} seed {r['seed']} " + " -> ".join(f"{new:.2f} ({was:.2f})" for new, was in pairs))
+    return (f"\nThe ghost row is the ghost_vs_control.csv measured before: this experiment's ghost stage ran without "
+            f"controls. Its ghost agents made again, return on the fresh tracks before -> after the ghost stage (the "
+            f"table's in brackets): {'; '.join(parts) or 'none finished yet'}. Largest difference: {worst:.2f}.\n")
 
 
 def group_pairs(head_rows: list[dict]) -> dict[str, list[dict]]:

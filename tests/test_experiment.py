@@ -593,7 +593,8 @@ def test_a_later_stage_needs_the_earlier_trials_finished(tmp_path, monkeypatch):
     done["gru"] = 8000
     experiment.check_spec(spec)  # both finished: the ghost stage may start
     race_spec = dataclasses.replace(spec, stages=("race",))
-    with pytest.raises(SystemExit, match=r"ghost_lstm_seed3 \(not started\), control_lstm_seed3 \(not started\)"):
+    with pytest.raises(SystemExit, match=r"ghost trials finished: ghost_lstm_seed3 \(not started\), ghost_gru_seed3 "
+                                         r"\(not started\)$"):  # the agents it starts from, not the controls
         experiment.check_spec(race_spec)
 
 
@@ -649,3 +650,69 @@ def test_a_trial_whose_checkpoint_is_done_ends_though_its_csv_is_a_race_behind(t
     monkeypatch.setattr(dreamer_lstm_or_gru("gru"), "main", lambda *a: pytest.fail("nothing is left to train"))
     experiment.dreamer_trial({"trial": {"spec": spec, "stage": "single", "variant": "gru", "seed": 12}})
     assert reports == [{"updates": 900}]
+
+
+def test_without_controls_the_ghost_stage_trains_only_the_agents_the_race_stage_starts_from(tmp_path, capsys):
+    spec = experiment.Spec(seeds=(11, 12), stages=("single",), storage=str(tmp_path))
+    assert [(c["stage"], c["variant"], c["seed"]) for c in experiment.stage_configs(spec, "ghost")] == [
+        ("ghost", "lstm", 11), ("ghost", "gru", 11), ("control", "lstm", 11), ("control", "gru", 11),
+        ("ghost", "lstm", 12), ("ghost", "gru", 12), ("control", "lstm", 12), ("control", "gru", 12)]  # fmt: skip
+    without = dataclasses.replace(spec, controls=False)
+    assert [(c["stage"], c["variant"], c["seed"]) for c in experiment.stage_configs(without, "ghost")] == [
+        ("ghost", "lstm", 11), ("ghost", "gru", 11), ("ghost", "lstm", 12), ("ghost", "gru", 12)]  # fmt: skip
+    experiment.check_spec(spec)
+    os.makedirs(tmp_path / "trials" / "single_lstm_seed11")  # the single stage has begun: the controls may change
+    experiment.check_spec(without)
+    with open(tmp_path / "spec.json") as f:
+        assert json.load(f)["controls"] is False
+    experiment.main(dataclasses.replace(spec, status=True))  # the experiment as saved: without controls
+    assert [line for line in capsys.readouterr().out.splitlines() if "seed11" in line] == [
+        "  single_lstm_seed11 (not started)", "  single_gru_seed11 (not started)", "  ghost_lstm_seed11 (not started)",
+        "  ghost_gru_seed11 (not started)", "  race_lstm_gru_seed11 (not started)"]  # fmt: skip
+    os.makedirs(tmp_path / "trials" / "ghost_gru_seed12")  # the ghost stage has begun: they may not
+    with pytest.raises(SystemExit, match="holds an experiment with other controls;"):
+        experiment.check_spec(spec)
+
+
+def test_an_experiment_without_controls_keeps_the_measured_table_and_compares_its_ghosts_made_again(
+    tmp_path, monkeypatch
+):
+    """The ghost_vs_control.csv in --results is kept as it is (the controls that measured it are gone); the summary
+    compares each ghost agent made again with its row, and a missing table is refused before anything is measured."""
+    spec = experiment.Spec(seeds=(11, 12), controls=False, race_episodes=50, storage=str(tmp_path / "s"),
+                           results=str(tmp_path / "results"))  # fmt: skip
+    progress = {("single", v, s): 8000 for v in ("lstm", "gru") for s in (11, 12)}
+    progress |= {("ghost", "lstm", 11): 9000, ("ghost", "gru", 11): 9000, ("ghost", "lstm", 12): 8500}
+    monkeypatch.setattr(experiment, "trial_progress", lambda spec, kind, variant, seed: (
+        f"/runs/{kind}_{variant}_{seed}" if (kind, variant, seed) in progress else None,
+        progress.get((kind, variant, seed), 0), 8000 if kind == "single" else 9000))  # fmt: skip
+    monkeypatch.setattr(experiment, "updates_of", lambda path, script: 7000)
+    measured = []
+
+    def fresh_return(spec, path, first):
+        measured.append(path)
+        return {"/runs/single_lstm_11/checkpoints/best.pt": 315.1, "/runs/ghost_lstm_11/checkpoints/latest.pt": 817.9,
+                "/runs/single_gru_11/checkpoints/best.pt": 576.1,
+                "/runs/ghost_gru_11/checkpoints/latest.pt": 634.75}.get(path, 500.0)  # fmt: skip
+
+    monkeypatch.setattr(experiment, "fresh_return", fresh_return)
+    with pytest.raises(SystemExit, match=r"without controls .*ghost_vs_control.csv does not exist"):
+        experiment.aggregate(spec)
+    assert measured == [] and not os.path.exists(spec.results)  # refused before measuring or writing anything
+    os.makedirs(spec.results)
+    table = ("variant,seed,updates_at_start,updates,return_before,return_after_ghost,return_after_control\n"
+             "lstm,11,7600,2000,315.1,817.9,812.5\nlstm,12,6100,2000,822.0,789.7,807.7\n"
+             "gru,11,6600,2000,576.1,635.0,416.3\ngru,12,7600,2000,539.5,600.2,434.2\n")  # fmt: skip
+    with open(os.path.join(spec.results, "ghost_vs_control.csv"), "w") as f:
+        f.write(table)
+    summary = experiment.aggregate(spec)
+    with open(os.path.join(spec.results, "ghost_vs_control.csv")) as f:
+        assert f.read() == table  # kept as measured
+    ghost_row = next(line for line in summary.splitlines() if line.startswith("| racing a ghost"))
+    assert "4 (variant, seed) pairs" in ghost_row  # the kept table's four rows
+    assert ghost_row.split(" | ")[2].startswith("93.0 [")  # (5.4 - 18.0 + 218.7 + 166.0) / 4, the kept rows
+    assert ("Its ghost agents made again, return on the fresh tracks before -> after the ghost stage (the table's in "
+            "brackets): lstm seed 11 315.10 (315.10) -> 817.90 (817.90); gru seed 11 576.10 (576.10) -> 634.75 "
+            "(635.00). Largest difference: 0.25.") in summary
+    assert "ghost_lstm_seed12 (8500 of 9000 updates); ghost_gru_seed12 (not started)" in summary
+    assert not any("control" in path for path in measured)
