@@ -429,6 +429,8 @@ def check_spec(spec: Spec) -> None:
     if spec.tournament_races < 2 or spec.tournament_races % 2:
         raise SystemExit(f"experiment.py: --tournament-races ({spec.tournament_races}) must be a positive even number: "
                          f"each track is raced twice, the start positions swapped")  # fmt: skip
+    if not spec.controls:
+        kept_ghost_rows(spec)  # the table the aggregation will keep: refused now, not after the trials
     if "race" in spec.stages and set(spec.variants) != {"lstm", "gru"}:
         raise SystemExit("experiment.py: the race stage pairs an LSTM and a GRU agent: --variants lstm gru")
     path = os.path.join(spec.storage, "spec.json")
@@ -438,7 +440,7 @@ def check_spec(spec: Spec) -> None:
         if changed and all(k in CHANGEABLE_UNTIL and not stage_started(plain, CHANGEABLE_UNTIL[k]) for k in changed):
             # no trial has used them yet: they may change (and are written down)
             for k in changed:
-                print(f"experiment.py: {k} {wanted[k]} (was {saved[k]}) for {spec.storage}")
+                print(f"experiment.py: --{k.replace('_', '-')} {wanted[k]} (was {saved[k]}) for {spec.storage}")
             with open(path + ".tmp", "w") as f:
                 json.dump(wanted, f, indent=1)
             os.replace(path + ".tmp", path)
@@ -471,7 +473,7 @@ def unfinished(spec: dict, stage: str, variants, seeds) -> list[str]:
     names = []
     for variant in variants:
         for seed in seeds:
-            for kind in trial_kinds(spec, stage)[:1]:
+            for kind in [stage]:
                 run, done, target = trial_progress(spec, kind, variant, seed)
                 if run is None or done < target:
                     names.append(progress_text(f"{kind}_{variant}_seed{seed}", run, done, target))
@@ -512,6 +514,7 @@ def status(spec: Spec) -> str:
 def stage_started(spec: dict, stage: str) -> bool:
     """Whether a stage of the experiment in spec["storage"] has begun (its Tune experiment or a trial)."""
     tune_dir = os.path.join(spec["storage"], "tune", f"{spec['name']}_{stage}")
+    # (a ghost stage begun with or without controls has begun either way)
     kinds = {"single": ["single"], "ghost": ["ghost", "control"], "race": ["race"]}[stage]
     return os.path.exists(tune_dir) or any(glob.glob(trial_dir(spec, k, "*", "*")) for k in kinds)
 
@@ -595,7 +598,7 @@ def aggregate(spec: Spec) -> str:
     pair whose tournament after the last head-to-head race exists. head_to_head.csv lists every tournament held so
     far; the statistics use the finished pairs, and the summary names what it left out. An experiment without
     controls keeps the ghost_vs_control.csv in spec.results and says how its ghost agents made again compare."""
-    kept = None if spec.controls else kept_ghost_rows(spec.results)
+    kept = None if spec.controls else kept_ghost_rows(spec)
     os.makedirs(spec.results, exist_ok=True)
     plain, first = dataclasses.asdict(spec), 10_100
     single_returns: dict[str, list[float]] = {}
@@ -655,26 +658,32 @@ def aggregate(spec: Spec) -> str:
     return summary
 
 
-def kept_ghost_rows(results: str) -> list[dict]:
-    """The ghost_vs_control.csv in `results`, which an experiment without controls keeps (it cannot measure it)."""
-    path = os.path.join(results, "ghost_vs_control.csv")
+def kept_ghost_rows(spec: Spec) -> list[dict]:
+    """The ghost_vs_control.csv in spec.results, which an experiment without controls keeps (it cannot measure it):
+    refused unless it has a row for every variant and seed of the experiment."""
+    path = os.path.join(spec.results, "ghost_vs_control.csv")
     if not os.path.exists(path):
-        raise SystemExit(f"experiment.py: without controls the ghost-vs-control table measured before is kept, and "
-                         f"{path} does not exist: run the controls, or give --results the directory that holds it")
-    with open(path, newline="") as f:
-        return list(csv.DictReader(f))
+        problem = "does not exist"
+    else:
+        with open(path, newline="") as f:
+            rows = list(csv.DictReader(f))
+        have = {(r["variant"], int(r["seed"])) for r in rows}
+        missing = [f"{v} seed {s}" for v in spec.variants for s in spec.seeds if (v, s) not in have]
+        if not missing:
+            return rows
+        problem = f"has no row for {', '.join(missing)}"
+    raise SystemExit(f"experiment.py: without controls the ghost-vs-control table measured before is kept, and {path} "
+                     f"{problem}: run the controls, or give --results the directory of the measured table (restore "
+                     f"it with git if an aggregation with controls emptied it)")  # fmt: skip
 
 
 def remade_note(kept: list[dict], remade: list[dict]) -> str:
     """Markdown: the ghost agents made again without controls, their return before and after the ghost stage
     against the kept table's for the same variant and seed, and the largest difference."""
-    table = {(r["variant"], int(r["seed"])): r for r in kept}
+    table = {(r["variant"], int(r["seed"])): r for r in kept}  # (it has every variant and seed: kept_ghost_rows)
     parts, worst = [], 0.0
     for r in remade:
-        old = table.get((r["variant"], int(r["seed"])))
-        if old is None:
-            parts.append(f"{r['variant']} seed {r['seed']} is not in the table")
-            continue
+        old = table[(r["variant"], int(r["seed"]))]
         pairs = [(float(r[c]), float(old[c])) for c in ("return_before", "return_after_ghost")]
         worst = max([worst] + [abs(new - was) for new, was in pairs])
         parts.append(f"{r['variant']} seed {r['seed']} " + " -> ".join(f"{new:.2f} ({was:.2f})" for new, was in pairs))

@@ -652,8 +652,15 @@ def test_a_trial_whose_checkpoint_is_done_ends_though_its_csv_is_a_race_behind(t
     assert reports == [{"updates": 900}]
 
 
+GHOST_TABLE = ("variant,seed,updates_at_start,updates,return_before,return_after_ghost,return_after_control\n"
+               "lstm,11,7600,2000,315.1,817.9,812.5\nlstm,12,6100,2000,822.0,789.7,807.7\n"
+               "gru,11,6600,2000,576.1,635.0,416.3\ngru,12,7600,2000,539.5,600.2,434.2\n")  # fmt: skip
+
+
 def test_without_controls_the_ghost_stage_trains_only_the_agents_the_race_stage_starts_from(tmp_path, capsys):
-    spec = experiment.Spec(seeds=(11, 12), stages=("single",), storage=str(tmp_path))
+    results = tmp_path / "results"
+    spec = experiment.Spec(seeds=(11, 12), stages=("single",), storage=str(tmp_path), results=str(results),
+                           eval_policy="stochastic")  # fmt: skip
     assert [(c["stage"], c["variant"], c["seed"]) for c in experiment.stage_configs(spec, "ghost")] == [
         ("ghost", "lstm", 11), ("ghost", "gru", 11), ("control", "lstm", 11), ("control", "gru", 11),
         ("ghost", "lstm", 12), ("ghost", "gru", 12), ("control", "lstm", 12), ("control", "gru", 12)]  # fmt: skip
@@ -661,17 +668,38 @@ def test_without_controls_the_ghost_stage_trains_only_the_agents_the_race_stage_
     assert [(c["stage"], c["variant"], c["seed"]) for c in experiment.stage_configs(without, "ghost")] == [
         ("ghost", "lstm", 11), ("ghost", "gru", 11), ("ghost", "lstm", 12), ("ghost", "gru", 12)]  # fmt: skip
     experiment.check_spec(spec)
+    with open(tmp_path / "spec.json") as f:
+        saved = json.load(f)
+    del saved["controls"]  # an experiment begun before the field existed: it runs its controls
+    with open(tmp_path / "spec.json", "w") as f:
+        json.dump(saved, f)
+    assert experiment.saved_spec(str(tmp_path), write=False)["controls"] is True
     os.makedirs(tmp_path / "trials" / "single_lstm_seed11")  # the single stage has begun: the controls may change
+    without = dataclasses.replace(without, eval_policy="mean-action")  # and the policy, each until its stage
+    # the table it would keep is refused before Ray starts: none, the header alone (as an aggregation with controls
+    # leaves it when their trials are gone), a seed missing
+    header = GHOST_TABLE.split("\n")[0] + "\n"
+    refused = [(None, "does not exist"),
+               (header, "has no row for lstm seed 11, lstm seed 12, gru seed 11, gru seed 12"),
+               (GHOST_TABLE.replace("gru,12,", "gru,13,"), "has no row for gru seed 12")]  # fmt: skip
+    for table, problem in refused:
+        if table is not None:
+            results.mkdir(exist_ok=True)
+            (results / "ghost_vs_control.csv").write_text(table)
+        with pytest.raises(SystemExit, match=f"without controls .*ghost_vs_control.csv {problem}: run the controls"):
+            experiment.check_spec(without)
+    (results / "ghost_vs_control.csv").write_text(GHOST_TABLE)
     experiment.check_spec(without)
     with open(tmp_path / "spec.json") as f:
-        assert json.load(f)["controls"] is False
+        assert {k: v for k, v in json.load(f).items() if k in ("controls", "eval_policy")} == {
+            "controls": False, "eval_policy": "mean-action"}  # fmt: skip
     experiment.main(dataclasses.replace(spec, status=True))  # the experiment as saved: without controls
     assert [line for line in capsys.readouterr().out.splitlines() if "seed11" in line] == [
         "  single_lstm_seed11 (not started)", "  single_gru_seed11 (not started)", "  ghost_lstm_seed11 (not started)",
         "  ghost_gru_seed11 (not started)", "  race_lstm_gru_seed11 (not started)"]  # fmt: skip
     os.makedirs(tmp_path / "trials" / "ghost_gru_seed12")  # the ghost stage has begun: they may not
     with pytest.raises(SystemExit, match="holds an experiment with other controls;"):
-        experiment.check_spec(spec)
+        experiment.check_spec(dataclasses.replace(without, controls=True))
 
 
 def test_an_experiment_without_controls_keeps_the_measured_table_and_compares_its_ghosts_made_again(
@@ -700,9 +728,7 @@ def test_an_experiment_without_controls_keeps_the_measured_table_and_compares_it
         experiment.aggregate(spec)
     assert measured == [] and not os.path.exists(spec.results)  # refused before measuring or writing anything
     os.makedirs(spec.results)
-    table = ("variant,seed,updates_at_start,updates,return_before,return_after_ghost,return_after_control\n"
-             "lstm,11,7600,2000,315.1,817.9,812.5\nlstm,12,6100,2000,822.0,789.7,807.7\n"
-             "gru,11,6600,2000,576.1,635.0,416.3\ngru,12,7600,2000,539.5,600.2,434.2\n")  # fmt: skip
+    table = GHOST_TABLE
     with open(os.path.join(spec.results, "ghost_vs_control.csv"), "w") as f:
         f.write(table)
     summary = experiment.aggregate(spec)
