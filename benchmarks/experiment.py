@@ -73,7 +73,7 @@ class Spec:
     controls: bool = True
     """run each ghost trial's control. Without them (--no-controls) the ghost stage trains only the ghost agents the
     race stage starts from: for an experiment whose ghost-vs-control table is measured and kept in --results but
-    whose trial directories were lost. The trials are deterministic (same seed and code, the same agents), so the
+    whose trial directories were lost. The same seed and code are expected to make the same agents, so the
     aggregation keeps that table and checks it against the ghost agents made again. It may change until the ghost
     stage begins"""
     race_episodes: int = 150
