@@ -280,7 +280,9 @@ def head_to_head_figure(csv_path: str) -> plt.Figure:
         lstm = np.array([int(r["lstm_wins"]) for r in mine]) / n
         low, high = (np.array([float(r[k]) for r in mine]) for k in ("lstm_win_rate_ci_low", "lstm_win_rate_ci_high"))
         (line,) = ax.plot(x, lstm, marker="o", label=f"LSTM, seeds {pair}")
-        ax.fill_between(x, low, high, color=line.get_color(), alpha=0.15)
+        ax.fill_between(x, low, high, color=line.get_color(), alpha=0.15)  # the band between tournaments
+        ax.errorbar(x, lstm, yerr=[lstm - low, high - lstm], fmt="none", ecolor=line.get_color(), capsize=3,
+                    label=f"_interval {pair}")  # each tournament's own interval, visible for a single one too
         ax.plot(x, np.array([int(r["gru_wins"]) for r in mine]) / n, marker="s", linestyle="--",
                 color=line.get_color(), alpha=0.6, label=f"GRU, seeds {pair}")  # fmt: skip
         ax.plot(x, np.array([int(r["both_out"]) for r in mine]) / n, linestyle=":", color=line.get_color(), alpha=0.6)

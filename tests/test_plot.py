@@ -209,6 +209,9 @@ def test_head_to_head_figure_from_the_tournaments_csv(logdir, tmp_path, capsys):
     assert lstm.get_xdata().tolist() == [50, 100] and lstm.get_ydata().tolist() == pytest.approx([0.4, 0.6])
     gru = next(line for line in ax.lines if line.get_label() == "GRU, seeds 12,12")
     assert gru.get_ydata().tolist() == pytest.approx([0.7])
+    bars = next(c for c in ax.containers if c.get_label() == "_interval 12,12")  # the lone tournament's interval
+    (segment,) = bars.lines[2][0].get_segments()
+    np.testing.assert_allclose(segment, [[50, 0.13], [50, 0.29]])
     assert os.path.getsize(tmp_path / "f" / "head_to_head.png") > 1000
     bad = tmp_path / "bad.csv"
     bad.write_text("seed_pair,races_trained\n\"1,1\",50\n")
