@@ -4,6 +4,7 @@
     python benchmarks/experiment.py --seeds 11 12 13 --race-episodes 150 --tournament-every 50
     python benchmarks/experiment.py --address auto --gpus-per-trial 1 --torch-threads 4   # on a Ray cluster
     python benchmarks/experiment.py --aggregate-only                  # only the CSVs and the rliable summary
+    python benchmarks/experiment.py --aggregate-only --second-policy stochastic   # and the tournaments sampled
     python benchmarks/experiment.py --status                          # where each trial stands (nothing runs)
 
 Every (variant, seed, stage) is one Ray Tune trial (``ray.init()`` on this machine unless ``--address``; each
@@ -26,7 +27,8 @@ restores each stage's experiment). The stages follow the paper and run one after
 
 Then it writes ``benchmarks/results/ghost_vs_control.csv``, ``head_to_head.csv`` and ``experiment.md`` (IQM and
 mean of the single-stage final returns per variant with stratified-bootstrap intervals, and the probability that
-the LSTM's head-to-head win rate exceeds the GRU's across seed pairs, both with rliable).
+the LSTM's head-to-head win rate exceeds the GRU's across seed pairs, both with rliable), and the table of the
+paper's claims; with ``--second-policy`` the head-to-head claims again, every tournament raced with that policy too.
 """
 
 from __future__ import annotations
@@ -91,6 +93,12 @@ class Spec:
     evaluation policy (--eval-policy) of the dreamer trials, which selects their best.pt. It may change until the
     race stage begins (the tables measured before are measured again with the new policy); a stage already
     started keeps the policy it started with (its trials and their best.pt)"""
+    second_policy: Literal["deterministic", "mean-action", "stochastic"] | None = None
+    """a second policy for the head-to-head tournaments, asked of the aggregation (it changes no trial): every
+    tournament's two checkpoints race again on the same held-out tracks with it (kept beside the tournament as
+    tournament_<races>_<policy>/, raced once), into head_to_head_<policy>.csv and a second table of the head-to-head
+    claims in experiment.md. The verdicts stay those of --eval-policy; this shows whether they depend on it
+    (e.g. stochastic: the policy the agents race with in their training races)"""
     report_every: int = 500
     """updates of a dreamer trial between its reports to Tune"""
     fresh_tracks: int = 20
@@ -264,7 +272,7 @@ def race_trial(config: dict) -> None:
     config = config["trial"]
     spec, seed = restored_spec(config["spec"]), config["seed"]
     directory = trial_dir(spec, "race", "lstm_gru", seed)
-    checkpoints = [start_checkpoint(spec, "ghost", variant, seed, "latest.pt") for variant in ("lstm", "gru")]
+    checkpoints = tournament_checkpoints(spec, seed, 0)
     threads = ["--torch-threads", str(spec["torch_threads"])]
     for trained in range(0, spec["race_episodes"] + 1, spec["tournament_every"]):
         tournament = os.path.join(directory, f"tournament_{trained:05d}")
@@ -282,12 +290,32 @@ def race_trial(config: dict) -> None:
                 found = interval_racers(interval)
             checkpoints = found[0]
         if not os.path.exists(done):
-            race.main([*checkpoints, "--races", str(spec["tournament_races"]), "--seed", str(TOURNAMENT_SEED),
-                       "--policy", spec["eval_policy"], "--out", tournament + ".tmp", "--no-video",
-                       *threads])  # fmt: skip
-            shutil.rmtree(tournament, ignore_errors=True)
-            os.replace(tournament + ".tmp", tournament)
+            race_tournament(spec, checkpoints, spec["eval_policy"], tournament)
         tune.report(tournament_metrics(tournament, trained))
+
+
+def race_tournament(spec: dict, checkpoints: list[str], policy: str, out: str) -> None:
+    """One tournament: spec["tournament_races"] races of the two checkpoints on the held-out tracks (seed
+    TOURNAMENT_SEED, each track from both starts) with `policy`, written to `out` whole or not at all."""
+    import race
+
+    race.main([*checkpoints, "--races", str(spec["tournament_races"]), "--seed", str(TOURNAMENT_SEED),
+               "--policy", policy, "--out", out + ".tmp", "--no-video",
+               "--torch-threads", str(spec["torch_threads"])])  # fmt: skip
+    shutil.rmtree(out, ignore_errors=True)
+    os.replace(out + ".tmp", out)
+
+
+def tournament_checkpoints(spec: dict, seed: int, trained: int) -> list[str]:
+    """The LSTM's and the GRU's checkpoints that raced the tournament after `trained` head-to-head races of seed
+    pair (seed, seed): the ghost-stage agents at 0, else the pair both racers saved after race `trained`."""
+    if trained == 0:
+        return [start_checkpoint(spec, "ghost", variant, seed, "latest.pt") for variant in ("lstm", "gru")]
+    interval = os.path.join(trial_dir(spec, "race", "lstm_gru", seed), f"races_{trained:05d}")
+    found = interval_racers(interval, prune=False)
+    if found is None or found[1] != trained:
+        raise FileNotFoundError(f"{interval} holds no pair of racer checkpoints saved after race {trained}")
+    return found[0]
 
 
 def interval_racers(interval: str, prune: bool = True) -> tuple[list[str], int] | None:
@@ -636,9 +664,7 @@ def aggregate(spec: Spec) -> str:
     for seed in spec.seeds:
         tournaments = sorted(glob.glob(os.path.join(trial_dir(plain, "race", "lstm_gru", seed), "tournament_*[0-9]")))
         for tournament in tournaments:
-            m = tournament_metrics(tournament, int(tournament.rsplit("_", 1)[1]))
-            head_rows.append({"seed_pair": f"{seed},{seed}",
-                              **{k: round(m[k], 4) if isinstance(m[k], float) else m[k] for k in HEAD_COLUMNS[1:]}})
+            head_rows.append(head_row(seed, tournament_metrics(tournament, int(tournament.rsplit("_", 1)[1]))))
     write_csv(os.path.join(spec.results, "head_to_head.csv"), HEAD_COLUMNS, head_rows)
     pairs = finished_pairs(head_rows, spec.race_episodes)
     final_rates = {v: [int(rs[-1][f"{v}_wins"]) / int(rs[-1]["eval_races"]) for rs in pairs.values()]
@@ -651,11 +677,37 @@ def aggregate(spec: Spec) -> str:
     summary = summarize(single_returns, final_rates)
     summary += "\n" + claims_table(single_returns, ghost_rows, head_rows, spec.race_episodes)
     summary += remade
+    if spec.second_policy not in (None, spec.eval_policy):
+        summary += second_policy_claims(spec, head_rows)
     if left_out:
         summary += "\nNot finished, left out of the statistics: " + "; ".join(left_out) + ".\n"
     with open(os.path.join(spec.results, "experiment.md"), "w") as f:
         f.write(summary)
     return summary
+
+
+def head_row(seed: int, metrics: dict) -> dict:
+    """A row of head_to_head.csv: seed pair (seed, seed) and one tournament's metrics (tournament_metrics)."""
+    return {"seed_pair": f"{seed},{seed}",
+            **{k: round(metrics[k], 4) if isinstance(metrics[k], float) else metrics[k] for k in HEAD_COLUMNS[1:]}}
+
+
+def second_policy_claims(spec: Spec, head_rows: list[dict]) -> str:
+    """The tournaments of `head_rows` raced again with spec.second_policy (the same checkpoints, held-out tracks and
+    starts; each raced once, kept as tournament_<races>_<policy>/ beside the tournament), written to
+    head_to_head_<policy>.csv; returns markdown: the head-to-head claims measured with that policy."""
+    plain, policy, rows = dataclasses.asdict(spec), spec.second_policy, []
+    for r in head_rows:
+        seed, trained = int(r["seed_pair"].split(",")[0]), int(r["races_trained"])
+        out = os.path.join(trial_dir(plain, "race", "lstm_gru", seed), f"tournament_{trained:05d}_{policy}")
+        if not os.path.exists(os.path.join(out, "results.json")):
+            race_tournament(plain, tournament_checkpoints(plain, seed, trained), policy, out)
+        rows.append(head_row(seed, tournament_metrics(out, trained)))
+    write_csv(os.path.join(spec.results, f"head_to_head_{policy}.csv"), HEAD_COLUMNS, rows)
+    table = claims_table({}, [], rows, spec.race_episodes)
+    return (f"\nThe same tournaments raced again with the {policy} policy (the same checkpoints, held-out tracks and "
+            f"starts; head_to_head_{policy}.csv). The verdicts above, with the {spec.eval_policy} policy, are the "
+            f"experiment's; these show whether they depend on the policy:\n\n{table}")
 
 
 def kept_ghost_rows(spec: Spec) -> list[dict]:

@@ -550,6 +550,42 @@ def test_a_race_trial_continues_a_cut_interval_and_never_retrains_a_trained_one(
     assert calls == []  # all done: nothing raced again
 
 
+def test_a_second_policy_races_each_tournament_again_once_with_its_own_checkpoints(fake_race, tmp_path):
+    """--second-policy: every tournament of the trial raced again with the other policy, by the same two checkpoints
+    on the same held-out tracks, into its own directory and CSV; a second aggregation races nothing."""
+    plain, config, calls, _, _ = fake_race
+    experiment.race_trial(config)
+    out = lambda call: os.path.basename(call[call.index("--out") + 1])  # noqa: E731
+    flag = lambda call, name: call[call.index(name) + 1]  # noqa: E731
+    first = {out(c): c for c in calls if "--train" not in c}
+    assert {flag(c, "--policy") for c in first.values()} == {"mean-action"}
+    directory = experiment.trial_dir(plain, "race", "lstm_gru", 3)
+    head_rows = [experiment.head_row(3, experiment.tournament_metrics(os.path.join(directory, f"tournament_{n:05d}"), n))
+                 for n in (0, 2, 4)]  # fmt: skip
+    spec = dataclasses.replace(experiment.Spec(**plain), second_policy="stochastic", results=str(tmp_path / "res"))
+    os.makedirs(spec.results)
+    calls.clear()
+    text = experiment.second_policy_claims(spec, head_rows)
+    again = {out(c): c for c in calls}
+    assert sorted(again) == [f"tournament_{n:05d}_stochastic.tmp" for n in (0, 2, 4)]
+    for n in (0, 2, 4):
+        call, before = again[f"tournament_{n:05d}_stochastic.tmp"], first[f"tournament_{n:05d}.tmp"]
+        assert call[:2] == before[:2]  # the same LSTM and GRU checkpoints: the ghost agents at 0, then each interval's
+        assert (flag(call, "--policy"), flag(call, "--seed"), flag(call, "--races")) == (
+            "stochastic", str(experiment.TOURNAMENT_SEED), "2")  # fmt: skip
+        assert os.path.exists(os.path.join(directory, f"tournament_{n:05d}_stochastic", "results.json"))
+    assert first["tournament_00000.tmp"][0].split(os.sep)[-4] == "ghost_lstm_seed3"
+    with open(os.path.join(spec.results, "head_to_head_stochastic.csv")) as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["seed_pair"], r["races_trained"], r["lstm_wins"], r["gru_wins"]) for r in rows] == [
+        ("3,3", "0", "1", "1"), ("3,3", "2", "1", "1"), ("3,3", "4", "1", "1")]  # fmt: skip
+    assert "raced again with the stochastic policy" in text and "| the LSTM-Dreamer beats the GRU-Dreamer head to" in text
+    assert experiment.race_progress(plain, 3) == "race_lstm_gru_seed3 (4 of 4 races; tournaments after 0, 2, 4 races)"
+    calls.clear()
+    experiment.second_policy_claims(spec, head_rows)
+    assert calls == []  # each raced once
+
+
 def test_a_race_interval_split_by_a_kill_between_its_saves_continues_from_the_pair_saved_together(
     fake_race, monkeypatch
 ):
