@@ -677,6 +677,8 @@ def aggregate(spec: Spec) -> str:
     summary = summarize(single_returns, final_rates)
     summary += "\n" + claims_table(single_returns, ghost_rows, head_rows, spec.race_episodes)
     summary += remade
+    if pairs:
+        summary += training_wins_text(plain, [int(k.split(",")[0]) for k in pairs])
     if spec.second_policy not in (None, spec.eval_policy):
         summary += second_policy_claims(spec, head_rows)
     if left_out:
@@ -684,6 +686,51 @@ def aggregate(spec: Spec) -> str:
     with open(os.path.join(spec.results, "experiment.md"), "w") as f:
         f.write(summary)
     return summary
+
+
+def training_race_wins(spec: dict, seed: int) -> dict[int, tuple[int, int]]:
+    """Who won each head-to-head training race of seed pair (seed, seed): {race: (LSTM won, GRU won)}, from the
+    progress.csv of each sitting of race.py --train in the intervals. It logs each racer's win rate over the last
+    20 races of the sitting, w_k after its k-th race, so that race was won iff min(k, 20)·w_k - min(k-1, 20)·w_{k-1}
+    (plus the outcome of race k-20 once the window is full) is 1. A race raced again by a later sitting (a kill
+    after its row and before its checkpoints) is the later one's, the race the agents continued from."""
+    wins: dict[int, tuple[int, int]] = {}
+    directory = trial_dir(spec, "race", "lstm_gru", seed)
+    sittings = sorted(glob.glob(os.path.join(directory, "races_*[0-9]", "*", "progress.csv")))
+    for path in sorted(sittings, key=lambda p: int(os.path.basename(os.path.dirname(p)).rsplit("__", 1)[1])):
+        with open(path, newline="") as f:
+            rows = [r for r in csv.DictReader(f) if r.get("charts/race")]
+        outcomes = []
+        for racer in ("racer_0_lstm", "racer_1_gru"):
+            rates, won = [float(r[f"{racer}/charts/win_rate"]) for r in rows], []
+            for k in range(1, len(rates) + 1):
+                x = min(k, 20) * rates[k - 1] - (min(k - 1, 20) * rates[k - 2] if k > 1 else 0.0)
+                x += won[k - 21] if k > 20 else 0
+                if abs(x - round(x)) > 1e-6 or round(x) not in (0, 1):
+                    raise ValueError(f"{path}: {racer}'s win rate after row {k} is not a 20-race window of wins")
+                won.append(round(x))
+            outcomes.append(won)
+        for r, lstm, gru in zip(rows, *outcomes):
+            wins[int(float(r["charts/race"]))] = (lstm, gru)
+    return wins
+
+
+def training_wins_text(spec: dict, pairs: list[int]) -> str:
+    """Markdown: the training races' wins of each finished seed pair per interval of tournament_every races."""
+    every, parts, total = spec["tournament_every"], [], np.zeros(4, int)
+    for seed in pairs:
+        wins = training_race_wins(spec, seed)
+        counts = []
+        for start in range(0, spec["race_episodes"], every):
+            block = [wins[k] for k in range(start + 1, start + every + 1) if k in wins]
+            c = np.array([sum(w[0] for w in block), sum(w[1] for w in block), sum(w == (0, 0) for w in block),
+                          len(block)])  # fmt: skip
+            total += c
+            counts.append(f"{c[0]}-{c[1]} ({c[2]})")
+        parts.append(f"{seed},{seed}: " + ", ".join(counts))
+    return (f"\nThe training races (both agents learning, both sampling their actions; from the logs): LSTM wins - "
+            f"GRU wins (neither) in each interval of {every} races, per seed pair: {'; '.join(parts)}. In all, the "
+            f"LSTM won {total[0]} and the GRU {total[1]} of {total[3]}.\n")
 
 
 def head_row(seed: int, metrics: dict) -> dict:

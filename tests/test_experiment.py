@@ -560,8 +560,8 @@ def test_a_second_policy_races_each_tournament_again_once_with_its_own_checkpoin
     first = {out(c): c for c in calls if "--train" not in c}
     assert {flag(c, "--policy") for c in first.values()} == {"mean-action"}
     directory = experiment.trial_dir(plain, "race", "lstm_gru", 3)
-    head_rows = [experiment.head_row(3, experiment.tournament_metrics(os.path.join(directory, f"tournament_{n:05d}"), n))
-                 for n in (0, 2, 4)]  # fmt: skip
+    held = lambda n: experiment.tournament_metrics(os.path.join(directory, f"tournament_{n:05d}"), n)  # noqa: E731
+    head_rows = [experiment.head_row(3, held(n)) for n in (0, 2, 4)]
     spec = dataclasses.replace(experiment.Spec(**plain), second_policy="stochastic", results=str(tmp_path / "res"))
     os.makedirs(spec.results)
     calls.clear()
@@ -579,11 +579,49 @@ def test_a_second_policy_races_each_tournament_again_once_with_its_own_checkpoin
         rows = list(csv.DictReader(f))
     assert [(r["seed_pair"], r["races_trained"], r["lstm_wins"], r["gru_wins"]) for r in rows] == [
         ("3,3", "0", "1", "1"), ("3,3", "2", "1", "1"), ("3,3", "4", "1", "1")]  # fmt: skip
-    assert "raced again with the stochastic policy" in text and "| the LSTM-Dreamer beats the GRU-Dreamer head to" in text
+    assert "raced again with the stochastic policy" in text
+    assert "| the LSTM-Dreamer beats the GRU-Dreamer head to head |" in text
     assert experiment.race_progress(plain, 3) == "race_lstm_gru_seed3 (4 of 4 races; tournaments after 0, 2, 4 races)"
     calls.clear()
     experiment.second_policy_claims(spec, head_rows)
     assert calls == []  # each raced once
+
+
+def test_the_training_races_outcomes_are_read_back_from_the_logged_win_rates(tmp_path):
+    """race.py --train logs each racer's win rate over the last 20 races of its sitting; from those alone the
+    outcome of every training race is recovered (windows full and not, a sitting cut and continued, a race raced
+    again by the next sitting), and the summary counts them per interval."""
+    spec = dataclasses.asdict(experiment.Spec(seeds=(3,), race_episodes=60, tournament_every=30, storage=str(tmp_path)))
+    rng = np.random.default_rng(0)
+    truth, stamp = {}, iter(range(1_800_000_000, 1_900_000_000))
+
+    def sitting(interval, races, force=None):
+        run = os.path.join(experiment.trial_dir(spec, "race", "lstm_gru", 3), interval,
+                           f"multi_car_racing__race__3__{next(stamp)}")  # fmt: skip
+        os.makedirs(run)
+        won = {0: [], 1: []}
+        with open(os.path.join(run, "progress.csv"), "w", newline="") as f:
+            writer = csv.writer(f)
+            writer.writerow(["racer_1_gru/charts/win_rate", "charts/race", "racer_0_lstm/charts/win_rate"])
+            for k in races:
+                winner = rng.choice(3, p=[0.4, 0.5, 0.1])  # LSTM, GRU, neither
+                if k == force:  # the race raced again, with the next outcome
+                    winner = (1, 2, 0)[[(1, 0), (0, 1), (0, 0)].index(truth[k])]
+                for i in (0, 1):
+                    won[i].append(int(winner == i))
+                truth[k] = (won[0][-1], won[1][-1])
+                writer.writerow([np.mean(won[1][-20:]), k, np.mean(won[0][-20:])])
+
+    sitting("races_00030", range(1, 25))  # cut after race 24 was logged, before its checkpoints
+    sitting("races_00030", range(24, 31), force=24)  # race 24 again, another outcome: this one counts
+    sitting("races_00060", range(31, 61))  # a window that fills after 20 races and slides
+    assert experiment.training_race_wins(spec, 3) == truth
+    blocks = [[truth[k] for k in range(a, a + 30)] for a in (1, 31)]
+    expected = ", ".join(f"{sum(w[0] for w in b)}-{sum(w[1] for w in b)} ({b.count((0, 0))})" for b in blocks)
+    text = experiment.training_wins_text(spec, [3])
+    assert f"3,3: {expected}." in text
+    lstm, gru = (sum(w[i] for w in truth.values()) for i in (0, 1))
+    assert f"the LSTM won {lstm} and the GRU {gru} of 60" in text
 
 
 def test_a_race_interval_split_by_a_kill_between_its_saves_continues_from_the_pair_saved_together(
