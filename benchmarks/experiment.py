@@ -679,7 +679,9 @@ def aggregate(spec: Spec) -> str:
     summary += remade
     if pairs:
         summary += training_wins_text(plain, [int(k.split(",")[0]) for k in pairs])
-    if spec.second_policy not in (None, spec.eval_policy):
+    if spec.second_policy == spec.eval_policy:
+        print(f"experiment.py: --second-policy {spec.second_policy} is the experiment's --eval-policy: nothing to add")
+    elif spec.second_policy is not None:
         summary += second_policy_claims(spec, head_rows)
     if left_out:
         summary += "\nNot finished, left out of the statistics: " + "; ".join(left_out) + ".\n"
@@ -689,15 +691,16 @@ def aggregate(spec: Spec) -> str:
 
 
 def training_race_wins(spec: dict, seed: int) -> dict[int, tuple[int, int]]:
-    """Who won each head-to-head training race of seed pair (seed, seed): {race: (LSTM won, GRU won)}, from the
-    progress.csv of each sitting of race.py --train in the intervals. It logs each racer's win rate over the last
-    20 races of the sitting, w_k after its k-th race, so that race was won iff min(k, 20)·w_k - min(k-1, 20)·w_{k-1}
-    (plus the outcome of race k-20 once the window is full) is 1. A race raced again by a later sitting (a kill
-    after its row and before its checkpoints) is the later one's, the race the agents continued from."""
+    """Who won each head-to-head training race of seed pair (seed, seed): {race: (LSTM won, GRU won)}, (1, 1) a
+    dead heat, from the progress.csv of each sitting of race.py --train in the intervals. It logs each racer's win
+    rate over the last 20 races of the sitting, w_k after its k-th race, so that race was won iff
+    min(k, 20)·w_k - min(k-1, 20)·w_{k-1} (plus the outcome of race k-20 once the window is full) is 1. A race
+    whose row is missing (race.py writes it after both checkpoints: a kill between the two) is missing here."""
     wins: dict[int, tuple[int, int]] = {}
     directory = trial_dir(spec, "race", "lstm_gru", seed)
-    sittings = sorted(glob.glob(os.path.join(directory, "races_*[0-9]", "*", "progress.csv")))
-    for path in sorted(sittings, key=lambda p: int(os.path.basename(os.path.dirname(p)).rsplit("__", 1)[1])):
+    # the sittings in the order they ran: run directories are named <env>__<exp>__<seed>__<start time>
+    for path in sorted(glob.glob(os.path.join(directory, "races_*[0-9]", "*", "progress.csv")),
+                       key=lambda p: os.path.basename(os.path.dirname(p))):  # fmt: skip
         with open(path, newline="") as f:
             rows = [r for r in csv.DictReader(f) if r.get("charts/race")]
         outcomes = []
@@ -716,21 +719,24 @@ def training_race_wins(spec: dict, seed: int) -> dict[int, tuple[int, int]]:
 
 
 def training_wins_text(spec: dict, pairs: list[int]) -> str:
-    """Markdown: the training races' wins of each finished seed pair per interval of tournament_every races."""
-    every, parts, total = spec["tournament_every"], [], np.zeros(4, int)
+    """Markdown: the training races' outcomes of each finished seed pair per interval of tournament_every races,
+    descriptive only (the agents change from race to race, and the tracks are the pair's training tracks), with
+    the races whose outcome the logs lack named."""
+    every, parts, missing = spec["tournament_every"], [], []
     for seed in pairs:
-        wins = training_race_wins(spec, seed)
-        counts = []
+        wins, counts = training_race_wins(spec, seed), []
         for start in range(0, spec["race_episodes"], every):
             block = [wins[k] for k in range(start + 1, start + every + 1) if k in wins]
-            c = np.array([sum(w[0] for w in block), sum(w[1] for w in block), sum(w == (0, 0) for w in block),
-                          len(block)])  # fmt: skip
-            total += c
-            counts.append(f"{c[0]}-{c[1]} ({c[2]})")
+            heats = block.count((1, 1))
+            counts.append(f"{sum(w == (1, 0) for w in block)}-{sum(w == (0, 1) for w in block)} "
+                          f"({block.count((0, 0))}{f', {heats} dead heats' if heats else ''})")  # fmt: skip
+            if len(block) < every:
+                missing.append(f"{seed},{seed}: {every - len(block)} of races {start + 1}..{start + every}")
         parts.append(f"{seed},{seed}: " + ", ".join(counts))
-    return (f"\nThe training races (both agents learning, both sampling their actions; from the logs): LSTM wins - "
-            f"GRU wins (neither) in each interval of {every} races, per seed pair: {'; '.join(parts)}. In all, the "
-            f"LSTM won {total[0]} and the GRU {total[1]} of {total[3]}.\n")
+    lacking = f" The logs lack the outcome of {'; '.join(missing)}." if missing else ""
+    return (f"\nThe training races (both agents learning and sampling their actions, on the pair's training tracks; "
+            f"read from the logs, descriptive): LSTM wins - GRU wins (neither) in each interval of {every} races, per "
+            f"seed pair: {'; '.join(parts)}.{lacking}\n")
 
 
 def head_row(seed: int, metrics: dict) -> dict:
@@ -749,12 +755,29 @@ def second_policy_claims(spec: Spec, head_rows: list[dict]) -> str:
         out = os.path.join(trial_dir(plain, "race", "lstm_gru", seed), f"tournament_{trained:05d}_{policy}")
         if not os.path.exists(os.path.join(out, "results.json")):
             race_tournament(plain, tournament_checkpoints(plain, seed, trained), policy, out)
+        held = os.path.join(os.path.dirname(out), f"tournament_{trained:05d}")
+        racers = [[r["racer"] for r in json.load(open(os.path.join(d, "results.json")))[:2]] for d in (held, out)]
+        if racers[0] != racers[1]:
+            raise ValueError(f"{out} raced {racers[1]}, not the agents of {held} ({racers[0]}): remove it to race "
+                             f"it again with the tournament's own checkpoints")  # fmt: skip
         rows.append(head_row(seed, tournament_metrics(out, trained)))
     write_csv(os.path.join(spec.results, f"head_to_head_{policy}.csv"), HEAD_COLUMNS, rows)
     table = claims_table({}, [], rows, spec.race_episodes)
+    again = finished_pairs(rows, spec.race_episodes)
+    ends = [(rs[-1], again[pair][-1]) for pair, rs in finished_pairs(head_rows, spec.race_episodes).items()]
+    shift = ""
+    if ends:
+        from stats import interval_estimates
+
+        rate = lambda r: int(r["lstm_wins"]) / int(r["eval_races"])  # noqa: E731
+        diffs = [rate(a) - rate(b) for a, b in ends]
+        est = interval_estimates({"d": np.asarray(diffs, float)[:, None]})["d"]
+        shift = (f" In the last tournaments the LSTM's win rate with the {spec.eval_policy} policy - with the "
+                 f"{policy} policy is {est['mean']:.2f} [{est['mean_ci'][0]:.2f}, {est['mean_ci'][1]:.2f}] over "
+                 f"{len(diffs)} seed pairs ({', '.join(f'{d:+.2f}' for d in diffs)}): where that excludes 0, the "
+                 f"verdicts depend on the policy the agents drive.")  # fmt: skip
     return (f"\nThe same tournaments raced again with the {policy} policy (the same checkpoints, held-out tracks and "
-            f"starts; head_to_head_{policy}.csv). The verdicts above, with the {spec.eval_policy} policy, are the "
-            f"experiment's; these show whether they depend on the policy:\n\n{table}")
+            f"starts; head_to_head_{policy}.csv).{shift}\n\n{table}")
 
 
 def kept_ghost_rows(spec: Spec) -> list[dict]:

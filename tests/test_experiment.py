@@ -502,10 +502,12 @@ def fake_race(tmp_path, monkeypatch):
                 raise KeyboardInterrupt  # the sitting ends mid-interval
         else:
             os.makedirs(value("--out"))
-            rows = [{"racer": f"{v}:x/racer.pt:0", "races": 2, "wins": 1, "win_rate": 0.5, "win_rate_ci_low": 0.1,
+            won = {"lstm": 1, "gru": 1} if value("--policy") == "mean-action" else {"lstm": 0, "gru": 2}
+            rows = [{"racer": f"{v}:{os.sep.join(argv[i].split(os.sep)[-4:])}:{i}", "races": 2, "wins": won[v],
+                     "win_rate": won[v] / 2, "win_rate_ci_low": 0.1,
                      "win_rate_ci_high": 0.9, "mean_progress": 0.5, "eliminations": 0, "collision_steps": 0,
                      "all_eliminated": 0, "no_winner": 0, "dead_heats": 0}
-                    for v in ("lstm", "gru")]  # fmt: skip
+                    for i, v in enumerate(("lstm", "gru"))]  # fmt: skip
             with open(os.path.join(value("--out"), "results.json"), "w") as f:
                 json.dump(rows, f)
 
@@ -553,7 +555,10 @@ def test_a_race_trial_continues_a_cut_interval_and_never_retrains_a_trained_one(
 def test_a_second_policy_races_each_tournament_again_once_with_its_own_checkpoints(fake_race, tmp_path):
     """--second-policy: every tournament of the trial raced again with the other policy, by the same two checkpoints
     on the same held-out tracks, into its own directory and CSV; a second aggregation races nothing."""
-    plain, config, calls, _, _ = fake_race
+    plain, config, calls, cut, _ = fake_race
+    cut["races_00004"] = (1, True)  # a kill between the racers' saves: racer 0 one race ahead, pruned on resume
+    with pytest.raises(KeyboardInterrupt):
+        experiment.race_trial(config)
     experiment.race_trial(config)
     out = lambda call: os.path.basename(call[call.index("--out") + 1])  # noqa: E731
     flag = lambda call, name: call[call.index(name) + 1]  # noqa: E731
@@ -578,13 +583,21 @@ def test_a_second_policy_races_each_tournament_again_once_with_its_own_checkpoin
     with open(os.path.join(spec.results, "head_to_head_stochastic.csv")) as f:
         rows = list(csv.DictReader(f))
     assert [(r["seed_pair"], r["races_trained"], r["lstm_wins"], r["gru_wins"]) for r in rows] == [
-        ("3,3", "0", "1", "1"), ("3,3", "2", "1", "1"), ("3,3", "4", "1", "1")]  # fmt: skip
+        ("3,3", "0", "0", "2"), ("3,3", "2", "0", "2"), ("3,3", "4", "0", "2")]  # fmt: skip
     assert "raced again with the stochastic policy" in text
+    assert "with the mean-action policy - with the stochastic policy is 0.50 [0.50, 0.50] over 1 seed pairs" in text
     assert "| the LSTM-Dreamer beats the GRU-Dreamer head to head |" in text
     assert experiment.race_progress(plain, 3) == "race_lstm_gru_seed3 (4 of 4 races; tournaments after 0, 2, 4 races)"
     calls.clear()
     experiment.second_policy_claims(spec, head_rows)
     assert calls == []  # each raced once
+    with open(os.path.join(directory, "tournament_00002", "results.json")) as f:
+        held = json.load(f)
+    held[0]["racer"] = "lstm:another/run/checkpoints/racer_0.pt:0"
+    with open(os.path.join(directory, "tournament_00002", "results.json"), "w") as f:
+        json.dump(held, f)
+    with pytest.raises(ValueError, match="tournament_00002_stochastic raced"):
+        experiment.second_policy_claims(spec, head_rows)  # not the agents of the tournament it repeats
 
 
 def test_the_training_races_outcomes_are_read_back_from_the_logged_win_rates(tmp_path):
@@ -604,24 +617,25 @@ def test_the_training_races_outcomes_are_read_back_from_the_logged_win_rates(tmp
             writer = csv.writer(f)
             writer.writerow(["racer_1_gru/charts/win_rate", "charts/race", "racer_0_lstm/charts/win_rate"])
             for k in races:
-                winner = rng.choice(3, p=[0.4, 0.5, 0.1])  # LSTM, GRU, neither
-                if k == force:  # the race raced again, with the next outcome
-                    winner = (1, 2, 0)[[(1, 0), (0, 1), (0, 0)].index(truth[k])]
+                outcome = [(1, 0), (0, 1), (0, 0), (1, 1)][rng.choice(4, p=[0.4, 0.4, 0.1, 0.1])]  # last: dead heat
                 for i in (0, 1):
-                    won[i].append(int(winner == i))
-                truth[k] = (won[0][-1], won[1][-1])
-                writer.writerow([np.mean(won[1][-20:]), k, np.mean(won[0][-20:])])
+                    won[i].append(outcome[i])
+                if k not in unlogged:
+                    truth[k] = outcome
+                    writer.writerow([np.mean(won[1][-20:]), k, np.mean(won[0][-20:])])
 
-    sitting("races_00030", range(1, 25))  # cut after race 24 was logged, before its checkpoints
-    sitting("races_00030", range(24, 31), force=24)  # race 24 again, another outcome: this one counts
+    unlogged = {24}  # the sitting killed after race 24's checkpoints, before its row
+    sitting("races_00030", range(1, 25))
+    sitting("races_00030", range(25, 31))  # the next sitting continues after race 24
     sitting("races_00060", range(31, 61))  # a window that fills after 20 races and slides
     assert experiment.training_race_wins(spec, 3) == truth
-    blocks = [[truth[k] for k in range(a, a + 30)] for a in (1, 31)]
-    expected = ", ".join(f"{sum(w[0] for w in b)}-{sum(w[1] for w in b)} ({b.count((0, 0))})" for b in blocks)
+    blocks = [[truth[k] for k in range(a, a + 30) if k in truth] for a in (1, 31)]
+    assert any((1, 1) in b for b in blocks)
+    heats = [f", {b.count((1, 1))} dead heats" if (1, 1) in b else "" for b in blocks]
+    expected = [f"{b.count((1, 0))}-{b.count((0, 1))} ({b.count((0, 0))}{h})" for b, h in zip(blocks, heats)]
     text = experiment.training_wins_text(spec, [3])
-    assert f"3,3: {expected}." in text
-    lstm, gru = (sum(w[i] for w in truth.values()) for i in (0, 1))
-    assert f"the LSTM won {lstm} and the GRU {gru} of 60" in text
+    assert f"3,3: {', '.join(expected)}." in text
+    assert "The logs lack the outcome of 3,3: 1 of races 1..30." in text
 
 
 def test_a_race_interval_split_by_a_kill_between_its_saves_continues_from_the_pair_saved_together(
