@@ -774,8 +774,7 @@ def second_policy_claims(spec: Spec, head_rows: list[dict]) -> str:
         est = interval_estimates({"d": np.asarray(diffs, float)[:, None]})["d"]
         shift = (f" In the last tournaments the LSTM's win rate with the {spec.eval_policy} policy - with the "
                  f"{policy} policy is {est['mean']:.2f} [{est['mean_ci'][0]:.2f}, {est['mean_ci'][1]:.2f}] over "
-                 f"{len(diffs)} seed pairs ({', '.join(f'{d:+.2f}' for d in diffs)}): where that excludes 0, the "
-                 f"verdicts depend on the policy the agents drive.")  # fmt: skip
+                 f"{len(diffs)} seed pairs ({', '.join(f'{d:+.2f}' for d in diffs)}).")  # fmt: skip
     return (f"\nThe same tournaments raced again with the {policy} policy (the same checkpoints, held-out tracks and "
             f"starts; head_to_head_{policy}.csv).{shift}\n\n{table}")
 
