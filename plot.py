@@ -1,7 +1,7 @@
 """Paper-style figures from the TensorBoard logs of several runs and seeds.
 
     python plot.py runs/ --out figures/ [--sigma 2]
-    python plot.py runs/experiment/trials --out figures/ --head-to-head benchmarks/results/head_to_head.csv
+    python plot.py runs/experiment/trials --out figures/ --head-to-head benchmarks/results/head_to_head*.csv
 
 Every run directory under ``runs/`` holding a TensorBoard event file is one seed of one
 group. A run's group is ``(variant, stage)``, read from the ``config.json`` the dreamer
@@ -25,7 +25,9 @@ it runs longer than the others). Figures (one PNG each):
   (``--eval-policy``: the mean action by default, sampled in runs begun before; when logged)
 * ``losses.png``               - actor, critic, reconstruction, KL (dyn) for every group against steps
 * ``losses_race.png``          - the same for ``race.py --train`` runs, against races
-* ``head_to_head.png``         - with ``--head-to-head CSV``: the tournaments of ``benchmarks/experiment.py``
+* ``head_to_head.png``         - with ``--head-to-head CSV [CSV ...]``: the tournaments of
+  ``benchmarks/experiment.py``, one figure per CSV named after it (``head_to_head_stochastic.csv``: the same
+  tournaments raced with the sampled policy, ``head_to_head_stochastic.png``)
 
 A ``race.py --train`` run (tags ``racer_<i>_<variant>/...``) counts as one run per variant of its racers, drawn
 against the race count it logs (``charts/race``); its later sittings (the experiment's intervals of races) join
@@ -257,9 +259,9 @@ def plot_metric(ax, groups, tag: str, sigma: float, stage: str | tuple[str, ...]
 
 
 def head_to_head_figure(csv_path: str) -> plt.Figure:
-    """The tournaments of benchmarks/experiment.py (its head_to_head.csv): per seed pair the LSTM's win rate in
-    the evaluation races with its Wilson 95% interval, the GRU's, and the races both cars were eliminated in,
-    against the head-to-head races trained."""
+    """The tournaments of benchmarks/experiment.py (its head_to_head.csv, or head_to_head_<policy>.csv: titled
+    with the policy): per seed pair the LSTM's win rate in the evaluation races with its Wilson 95% interval, the
+    GRU's, and the races both cars were eliminated in, against the head-to-head races trained."""
     import csv
 
     columns = {"seed_pair", "races_trained", "eval_races", "lstm_wins", "gru_wins", "both_out",
@@ -292,18 +294,27 @@ def head_to_head_figure(csv_path: str) -> plt.Figure:
     ax.set_ylim(0, 1)
     ax.grid(alpha=0.3)
     ax.legend(fontsize="small")
-    ax.set_title("tournaments: LSTM vs GRU (Wilson 95%)")
+    policy = figure_name(csv_path)[len("head_to_head_"):-len(".png")]
+    ax.set_title(f"tournaments{f' ({policy} policy)' if policy else ''}: LSTM vs GRU (Wilson 95%)")
     return fig
 
 
-def make_figures(logdir: str, out: str, sigma: float = 2.0, head_to_head: str | None = None) -> dict[str, plt.Figure]:
-    """Build every figure that has data (and the tournaments' figure from a head_to_head.csv); save each as a PNG
+def figure_name(csv_path: str) -> str:
+    """The tournaments' figure of a CSV: its name with .png (head_to_head.csv: head_to_head.png)."""
+    return os.path.splitext(os.path.basename(csv_path))[0] + ".png"
+
+
+def make_figures(logdir: str, out: str, sigma: float = 2.0, head_to_head: str | list[str] | None = None
+                 ) -> dict[str, plt.Figure]:  # fmt: skip
+    """Build every figure that has data (and a tournaments' figure from each head_to_head CSV); save each as a PNG
     in ``out``; return them."""
+    csvs = [head_to_head] if isinstance(head_to_head, str) else list(head_to_head or [])
+    names = [figure_name(path) for path in csvs]
+    if len(set(names)) < len(names):
+        raise ValueError(f"--head-to-head: two CSVs of the same name would draw the same figure: {csvs}")
     groups = group_runs(load_runs(logdir))
     os.makedirs(out, exist_ok=True)
-    figures = {}
-    if head_to_head is not None:
-        figures["head_to_head.png"] = head_to_head_figure(head_to_head)
+    figures = {name: head_to_head_figure(path) for name, path in zip(names, csvs)}
     for name, (stage, tag, ylabel) in FIGURES.items():
         fig, ax = plt.subplots(figsize=(6, 4))
         if plot_metric(ax, groups, tag, sigma, stage=stage):
@@ -336,15 +347,17 @@ def main(argv=None):
     parser.add_argument(
         "--head-to-head",
         metavar="CSV",
-        help="also the tournaments' figure from benchmarks/experiment.py's head_to_head.csv",
+        nargs="+",
+        help="also the tournaments' figure from each of benchmarks/experiment.py's head_to_head CSVs",
     )
     args = parser.parse_args(argv)
     if not os.path.isdir(args.logdir):
         parser.error(f"logdir {args.logdir!r} is not a directory")
     if not math.isfinite(args.sigma) or args.sigma < 0:
         parser.error(f"--sigma must be a finite number >= 0, got {args.sigma}")
-    if args.head_to_head is not None and not os.path.isfile(args.head_to_head):
-        parser.error(f"--head-to-head {args.head_to_head!r} is not a file")
+    for path in args.head_to_head or ():
+        if not os.path.isfile(path):
+            parser.error(f"--head-to-head {path!r} is not a file")
     if os.path.exists(args.out) and not os.path.isdir(args.out):
         parser.error(f"--out {args.out!r} exists and is not a directory")
     try:

@@ -213,6 +213,19 @@ def test_head_to_head_figure_from_the_tournaments_csv(logdir, tmp_path, capsys):
     (segment,) = bars.lines[2][0].get_segments()
     np.testing.assert_allclose(segment, [[50, 0.13], [50, 0.29]])
     assert os.path.getsize(tmp_path / "f" / "head_to_head.png") > 1000
+    assert ax.get_title() == "tournaments: LSTM vs GRU (Wilson 95%)"
+    sampled = tmp_path / "head_to_head_stochastic.csv"  # the same tournaments raced with another policy
+    sampled.write_text(path.read_text().replace(",60,30,10,0.5,0.69", ",25,70,10,0.18,0.34"))
+    plot.main([logdir, "--out", str(tmp_path / "h"), "--head-to-head", str(path), str(sampled)])
+    assert {"head_to_head.png", "head_to_head_stochastic.png"} <= set(os.listdir(tmp_path / "h"))
+    figures = plot.make_figures(logdir, str(tmp_path / "h"), head_to_head=[str(path), str(sampled)])
+    ax = figures["head_to_head_stochastic.png"].axes[0]
+    assert ax.get_title() == "tournaments (stochastic policy): LSTM vs GRU (Wilson 95%)"
+    lstm = next(line for line in ax.lines if line.get_label() == "LSTM, seeds 11,11")
+    assert lstm.get_ydata().tolist() == pytest.approx([0.4, 0.25])  # each figure draws its own CSV
+    with pytest.raises(ValueError, match="same name"):
+        plot.make_figures(logdir, str(tmp_path / "h"), head_to_head=[str(path), str(tmp_path / "f" / "..")
+                                                                     + "/head_to_head.csv"])  # fmt: skip
     bad = tmp_path / "bad.csv"
     bad.write_text("seed_pair,races_trained\n\"1,1\",50\n")
     with pytest.raises(SystemExit, match="not a head_to_head.csv"):
