@@ -294,8 +294,9 @@ def head_to_head_figure(csv_path: str) -> plt.Figure:
     ax.set_ylim(0, 1)
     ax.grid(alpha=0.3)
     ax.legend(fontsize="small")
-    policy = figure_name(csv_path)[len("head_to_head_"):-len(".png")]
-    ax.set_title(f"tournaments{f' ({policy} policy)' if policy else ''}: LSTM vs GRU (Wilson 95%)")
+    stem = os.path.splitext(os.path.basename(csv_path))[0]  # head_to_head_<policy>: the tournaments with <policy>
+    policy = f" ({stem.removeprefix('head_to_head_')} policy)" if stem.startswith("head_to_head_") else ""
+    ax.set_title(f"tournaments{policy}: LSTM vs GRU (Wilson 95%)")
     return fig
 
 

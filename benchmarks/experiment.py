@@ -339,6 +339,12 @@ def interval_racers(interval: str, prune: bool = True) -> tuple[list[str], int] 
     return None
 
 
+def tournament_racers(tournament: str) -> list[str]:
+    """The two racers (LSTM, GRU) of a tournament as its results.json names them: variant, run and checkpoint."""
+    with open(os.path.join(tournament, "results.json")) as f:
+        return [r["racer"] for r in json.load(f)[:2]]
+
+
 def tournament_metrics(tournament: str, trained: int) -> dict:
     """The LSTM's (racer 0) and GRU's (racer 1) results of one tournament, with the LSTM's Wilson interval."""
     with open(os.path.join(tournament, "results.json")) as f:
@@ -756,10 +762,10 @@ def second_policy_claims(spec: Spec, head_rows: list[dict]) -> str:
         if not os.path.exists(os.path.join(out, "results.json")):
             race_tournament(plain, tournament_checkpoints(plain, seed, trained), policy, out)
         held = os.path.join(os.path.dirname(out), f"tournament_{trained:05d}")
-        racers = [[r["racer"] for r in json.load(open(os.path.join(d, "results.json")))[:2]] for d in (held, out)]
-        if racers[0] != racers[1]:
-            raise ValueError(f"{out} raced {racers[1]}, not the agents of {held} ({racers[0]}): remove it to race "
-                             f"it again with the tournament's own checkpoints")  # fmt: skip
+        if tournament_racers(held) != tournament_racers(out):
+            raise ValueError(f"{out} raced {tournament_racers(out)}, not the agents of {held} "
+                             f"({tournament_racers(held)}): remove it to race it again with the tournament's own "
+                             f"checkpoints")  # fmt: skip
         rows.append(head_row(seed, tournament_metrics(out, trained)))
     write_csv(os.path.join(spec.results, f"head_to_head_{policy}.csv"), HEAD_COLUMNS, rows)
     table = claims_table({}, [], rows, spec.race_episodes)
@@ -767,13 +773,11 @@ def second_policy_claims(spec: Spec, head_rows: list[dict]) -> str:
     ends = [(rs[-1], again[pair][-1]) for pair, rs in finished_pairs(head_rows, spec.race_episodes).items()]
     shift = ""
     if ends:
-        from stats import interval_estimates
-
         rate = lambda r: int(r["lstm_wins"]) / int(r["eval_races"])  # noqa: E731
         diffs = [rate(a) - rate(b) for a, b in ends]
-        est = interval_estimates({"d": np.asarray(diffs, float)[:, None]})["d"]
+        mean, (low, high) = paired_mean(diffs)
         shift = (f" In the last tournaments the LSTM's win rate with the {spec.eval_policy} policy - with the "
-                 f"{policy} policy is {est['mean']:.2f} [{est['mean_ci'][0]:.2f}, {est['mean_ci'][1]:.2f}] over "
+                 f"{policy} policy is {mean:.2f} [{low:.2f}, {high:.2f}] over "
                  f"{len(diffs)} seed pairs ({', '.join(f'{d:+.2f}' for d in diffs)}).")  # fmt: skip
     return (f"\nThe same tournaments raced again with the {policy} policy (the same checkpoints, held-out tracks and "
             f"starts; head_to_head_{policy}.csv).{shift}\n\n{table}")
@@ -871,6 +875,14 @@ def summarize(single_returns: dict[str, list[float]], final_rates: dict[str, lis
     return "\n".join(lines) + "\n"
 
 
+def paired_mean(diffs: list[float], reps: int = 2000) -> tuple[float, tuple[float, float]]:
+    """The mean of paired differences (one per run) with its stratified-bootstrap 95% interval (rliable)."""
+    from stats import interval_estimates
+
+    est = interval_estimates({"d": np.asarray(diffs, float)[:, None]}, reps=reps)["d"]
+    return est["mean"], est["mean_ci"]
+
+
 def claims_table(single_returns: dict[str, list[float]], ghost_rows: list[dict], head_rows: list[dict],
                  race_episodes: int, reps: int = 2000) -> str:  # fmt: skip
     """Markdown: each claim of the paper, what measures it here, the estimate with its 95% interval, and what the
@@ -888,8 +900,7 @@ def claims_table(single_returns: dict[str, list[float]], ghost_rows: list[dict],
 
     def paired(diffs: list[float]) -> tuple[float, tuple[float, float]]:
         sizes.append(len(diffs))
-        est = interval_estimates({"d": np.asarray(diffs, float)[:, None]}, reps=reps)["d"]
-        return est["mean"], est["mean_ci"]
+        return paired_mean(diffs, reps)
 
     def row(claim: str, measured: str, estimate: float, ci: tuple[float, float], n: int, digits: int = 1) -> str:
         judged = judge(ci, n)
