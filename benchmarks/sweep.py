@@ -1,0 +1,244 @@
+"""Screens as a Ray Tune sweep: a grid of flag sets x variants x seeds of single-car dreamer runs, then their readings.
+
+    python benchmarks/sweep.py --name entropy --grid entropy_coef=0.3 "return_norm=true entropy_coef=3e-4" \\
+        --seeds 11 12 --variants lstm --updates 3100                # train (resumable: the same command continues)
+    python benchmarks/sweep.py --name entropy --status                # how far each trial got (nothing runs)
+    python benchmarks/sweep.py --name entropy --report                # readings of the finished trials
+    python benchmarks/sweep.py --name entropy --address auto ...      # on a Ray cluster (shared --storage)
+
+Each (flag set, variant, seed) is one Ray Tune trial: the single-stage run of ``benchmarks/experiment.py`` (the same
+trial code: ``--preset cpu`` with the flag set on top, one car, ``--updates`` updates, resumed from its own
+``latest.pt`` in chunks), in its own run directory ``<storage>/<name>/<tag>/trials/single_<variant>_seed<S>/``.
+A flag set is ``name=value`` pairs of the scripts' ``Args`` separated by spaces, or ``default`` (the preset alone);
+its tag names its directory (``entropy_coef-0.3``). The grid of a sweep is fixed when it starts (``sweep.json``):
+the same command continues it, another grid needs another ``--name``.
+
+``--report`` measures every finished trial's final policy (``latest.pt`` at ``--updates``) on the screening tracks
+(10200..10219 by default, never used to report a result), sampled and with its mean action, and writes
+``benchmarks/results/screening/sweep_<name>.csv`` and ``.md`` with the readings that say *why* a policy drives as it
+does (``screen_readings``): return, progress, |steer|, throttle, speed, laps finished, eliminations; the actor's
+sigma and entropy, the imagined return and the reward head's mean on elimination frames; each measurement is kept in
+``<storage>/<name>/readings.json`` and made once.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import re
+import sys
+
+import tyro
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import experiment  # noqa: E402  (the trials are the experiment's single-stage trials)
+
+SCREEN_RESULTS = os.path.join(ROOT, "benchmarks", "results", "screening")
+
+
+@dataclasses.dataclass
+class Sweep:
+    name: str
+    """the sweep's name: its directory under --storage, its Tune experiment and its result files"""
+    grid: tuple[str, ...] = ("default",)
+    """flag sets, each 'name=value name=value' of the dreamer scripts' Args on top of --preset cpu, or 'default'"""
+    variants: tuple[str, ...] = ("lstm",)
+    """dreamer variants (lstm, gru)"""
+    seeds: tuple[int, ...] = (11, 12)
+    """seeds of every flag set"""
+    updates: int = 3100
+    """updates of every trial (the screened policy is the trial's latest.pt there)"""
+    storage: str = os.path.join(ROOT, "runs", "sweep")
+    """where every sweep's trials and Tune's state go"""
+    torch_threads: int = 1
+    """torch threads, and CPUs Ray reserves, per trial"""
+    num_cpus: int | None = None
+    """CPUs a local Ray offers (default: the machine's cores)"""
+    address: str | None = None
+    """address of a Ray cluster (default: a local Ray); --storage must be a filesystem every node mounts"""
+    max_failures: int = 2
+    """times Ray retries a trial whose worker died (it resumes from its latest.pt)"""
+    report_every: int = 500
+    """updates of a trial between its reports to Tune"""
+    status: bool = False
+    """only print how far each trial got (no Ray, nothing trained)"""
+    report: bool = False
+    """only measure the finished trials and write the readings (no Ray)"""
+    first_track: int = 10_200
+    """--report: first track seed of the screening tracks"""
+    tracks: int = 20
+    """--report: number of screening tracks"""
+    results: str = SCREEN_RESULTS
+    """--report: directory of sweep_<name>.csv and .md"""
+
+
+# What fixes a sweep's trials: a rerun under the same --name must ask for the same.
+SWEEP_FIELDS = ("grid", "variants", "seeds", "updates", "torch_threads", "report_every")
+
+
+def flag_set(text: str) -> tuple[str, ...]:
+    """'a=1 b=2' -> ('a=1', 'b=2'); 'default' -> ()."""
+    items = tuple(text.split())
+    return () if items == ("default",) else items
+
+
+TAG_LENGTH = 60  # a longer tag is cut and ends in a hash of the whole flag set (file names have limits)
+
+
+def tag_of(text: str) -> str:
+    """A flag set's directory name: 'entropy_coef=0.3 return_norm=true' -> 'entropy_coef-0.3_return_norm-true'."""
+    items = flag_set(text)
+    tag = "_".join(re.sub(r"[^A-Za-z0-9.+-]", "-", item.replace("=", "-")) for item in items) or "default"
+    if len(tag) > TAG_LENGTH:
+        tag = tag[: TAG_LENGTH - 9] + "-" + hashlib.sha1(" ".join(items).encode()).hexdigest()[:8]
+    return tag
+
+
+def trial_spec(sweep: Sweep, flags: str, variant: str, seed: int) -> dict:
+    """The experiment spec (as a dict) of one trial: its flag set as overrides, its own storage."""
+    spec = experiment.Spec(
+        variants=(variant,), seeds=(seed,), stages=("single",), overrides=flag_set(flags),
+        single_updates=sweep.updates, report_every=sweep.report_every, torch_threads=sweep.torch_threads,
+        storage=os.path.join(os.path.abspath(sweep.storage), sweep.name, tag_of(flags)),
+    )  # fmt: skip
+    return dataclasses.asdict(spec)
+
+
+def trial_configs(sweep: Sweep) -> list[dict]:
+    """Seed by seed, then flag set, then variant: a sweep cut short has whole seeds of every flag set."""
+    return [
+        {"spec": trial_spec(sweep, flags, v, s), "stage": "single", "variant": v, "seed": s, "tag": tag_of(flags)}
+        for s in sweep.seeds for flags in sweep.grid for v in sweep.variants
+    ]  # fmt: skip
+
+
+def trial_name(trial) -> str:
+    config = trial.config["trial"]
+    return f"{config['tag']}_{config['variant']}_seed{config['seed']}"
+
+
+def check(sweep: Sweep) -> None:
+    """Refuse, before Ray starts: an unknown flag or bad value, a duplicate tag, or another grid under this name."""
+    import importlib
+
+    tags = [tag_of(flags) for flags in sweep.grid]
+    if len(set(tags)) != len(tags):
+        raise SystemExit(f"sweep.py: --grid has flag sets with the same tag: {tags}")
+    for variant in sweep.variants:
+        if variant not in experiment.learning.VARIANTS:
+            raise SystemExit(f"sweep.py: --variants: {variant!r} is not one of {experiment.learning.VARIANTS}")
+        script = importlib.import_module(f"dreamer_{variant}")
+        for flags in sweep.grid:
+            try:
+                experiment.parse_overrides(script, flag_set(flags))
+            except ValueError as error:
+                raise SystemExit(f"sweep.py: --grid {flags!r}: {error}") from None
+    if sweep.updates < 1:
+        raise SystemExit(f"sweep.py: --updates must be >= 1, got {sweep.updates}")
+    saved = saved_fields(sweep)
+    if saved is not None and saved != fields(sweep):
+        differ = [k for k in SWEEP_FIELDS if saved[k] != fields(sweep)[k]]
+        raise SystemExit(
+            f"sweep.py: sweep {sweep.name!r} in {sweep.storage} was started with other {', '.join(differ)} "
+            f"({', '.join(f'{k}={saved[k]}' for k in differ)}); continue it with those, or give another --name"
+        )  # fmt: skip
+
+
+def fields(sweep: Sweep) -> dict:
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(sweep).items() if k in SWEEP_FIELDS}
+
+
+def saved_fields(sweep: Sweep) -> dict | None:
+    path = os.path.join(sweep.storage, sweep.name, "sweep.json")
+    if not os.path.exists(path):
+        return None
+    with open(path) as f:
+        return json.load(f)
+
+
+def save_fields(sweep: Sweep) -> None:
+    path = os.path.join(sweep.storage, sweep.name, "sweep.json")
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with open(path + ".tmp", "w") as f:
+        json.dump(fields(sweep), f, indent=1)
+    os.replace(path + ".tmp", path)
+
+
+def trial_status(sweep: Sweep) -> list[tuple[dict, str | None, int]]:
+    """(config, run directory or None, updates its latest.pt holds) of every trial."""
+    import importlib
+
+    rows = []
+    for config in trial_configs(sweep):
+        script = importlib.import_module(f"dreamer_{config['variant']}")
+        directory = experiment.trial_dir(config["spec"], "single", config["variant"], config["seed"])
+        run = experiment.run_of(directory)
+        done = experiment.updates_of(os.path.join(run, "checkpoints", "latest.pt"), script) if run else 0
+        rows.append((config, run, done))
+    return rows
+
+
+def status_text(sweep: Sweep) -> str:
+    lines = [f"sweep {sweep.name} ({os.path.join(sweep.storage, sweep.name)}), {sweep.updates} updates per trial:"]
+    for config, run, done in trial_status(sweep):
+        name = f"{config['tag']}_{config['variant']}_seed{config['seed']}"
+        state = "not started" if run is None else ("done" if done >= sweep.updates else f"{done} updates")
+        lines.append(f"  {name}: {state}")
+    return "\n".join(lines)
+
+
+def run_sweep(sweep: Sweep):
+    """One Tune experiment per sweep; an existing one is restored (finished trials are skipped)."""
+    import ray
+    from ray import tune
+
+    save_fields(sweep)
+    os.environ.setdefault("RAY_worker_niceness", "0")  # (as experiment.py: Ray's nice 15 would starve the trials)
+    runtime = experiment.runtime_env(experiment.Spec(address=sweep.address))
+    ray.init(address=sweep.address, num_cpus=sweep.num_cpus, runtime_env=runtime, include_dashboard=False,
+             log_to_driver=False)  # fmt: skip
+    trainable = tune.with_resources(experiment.dreamer_trial, {"cpu": sweep.torch_threads})
+    path = os.path.join(os.path.abspath(sweep.storage), sweep.name, "tune", f"sweep_{sweep.name}")
+    if tune.Tuner.can_restore(path):
+        tuner = tune.Tuner.restore(path, trainable, resume_unfinished=True, resume_errored=True)
+    else:
+        tuner = tune.Tuner(
+            trainable,
+            param_space={"trial": tune.grid_search(trial_configs(sweep))},
+            tune_config=tune.TuneConfig(trial_name_creator=trial_name, trial_dirname_creator=trial_name),
+            run_config=tune.RunConfig(
+                name=f"sweep_{sweep.name}", storage_path=os.path.dirname(path), verbose=1,
+                failure_config=tune.FailureConfig(max_failures=sweep.max_failures),
+            ),
+        )  # fmt: skip
+    results = tuner.fit()
+    errors = [r.error for r in results if r.error]
+    if errors:
+        raise RuntimeError(f"sweep {sweep.name}: {len(errors)} trial(s) failed: {errors[0]}")
+    return results
+
+
+def main(sweep: Sweep) -> None:
+    sweep = dataclasses.replace(sweep, storage=os.path.abspath(sweep.storage))
+    saved = saved_fields(sweep)
+    if (sweep.status or sweep.report) and saved is not None:  # the sweep as it was started, whatever the flags say
+        sweep = dataclasses.replace(sweep, **{k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()})
+    if sweep.status:
+        print(status_text(sweep))
+        return
+    check(sweep)
+    if sweep.report:
+        import readings
+
+        print(readings.report(sweep))
+        return
+    run_sweep(sweep)
+    print(status_text(sweep))
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Sweep))
