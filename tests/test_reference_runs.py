@@ -1,0 +1,69 @@
+"""The scripts compute what they computed before a refactor, and resume run directories written before it.
+
+tests/fixtures/record_reference_runs.py recorded, at the commit before the run plumbing left the scripts, a tiny
+race-stage run of each script: its run directory after race 2 and what it ended with after race 3. A new run with
+the same arguments must end with the same networks, optimisers, counters and logged losses, and the old directory
+must resume to that same end. (Tolerances allow other CPUs' float rounding; a changed computation, such as one
+random draw more or less, moves the numbers by orders of magnitude more.)"""
+
+import os
+import shutil
+import sys
+
+import pytest
+import torch
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "fixtures"))
+from record_reference_runs import REFERENCE_RUN, logged_rows  # noqa: E402
+
+FIXTURES = os.path.join(os.path.dirname(os.path.abspath(__file__)), "fixtures")
+
+
+def assert_close(a, b, where=""):
+    if isinstance(a, dict):
+        assert isinstance(b, dict) and a.keys() == b.keys(), f"{where}: keys {sorted(a)} != {sorted(b)}"
+        for key in a:
+            assert_close(a[key], b[key], f"{where}/{key}")
+    elif isinstance(a, (list, tuple)):
+        assert len(a) == len(b), f"{where}: {len(a)} != {len(b)}"
+        for i, (x, y) in enumerate(zip(a, b)):
+            assert_close(x, y, f"{where}[{i}]")
+    elif isinstance(a, torch.Tensor):
+        assert a.dtype == b.dtype and a.shape == b.shape, f"{where}: {a.dtype}{tuple(a.shape)} != {b.dtype}{tuple(b.shape)}"
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5, msg=lambda m: f"{where}: {m}")
+    elif isinstance(a, str):
+        try:
+            assert float(a) == pytest.approx(float(b), rel=1e-4, abs=1e-5), f"{where}: {a} != {b}"
+        except ValueError:
+            assert a == b, f"{where}: {a!r} != {b!r}"
+    else:
+        assert a == pytest.approx(b, rel=1e-4, abs=1e-5), f"{where}: {a!r} != {b!r}"
+
+
+def check_against_reference(script, run_dir: str) -> None:
+    reference = torch.load(os.path.join(FIXTURES, f"reference_{script.VARIANT}.pt"), weights_only=True)
+    checkpoint = script.load_checkpoint(os.path.join(run_dir, "checkpoints", "latest.pt"))
+    assert checkpoint["counters"] == reference["counters"]
+    assert [agent["num_updates"] for agent in checkpoint["agents"]] == [6, 6]
+    assert_close(checkpoint["agents"], reference["agents"], "agents")
+    assert_close(logged_rows(run_dir), reference["rows"], "progress.csv")
+
+
+def test_a_new_run_computes_what_the_reference_run_computed(script, tmp_path):
+    run_dir = script.main(script.Args(**REFERENCE_RUN, runs_dir=str(tmp_path)))
+    check_against_reference(script, run_dir)
+
+
+def test_a_run_directory_written_before_the_refactor_resumes_to_the_same_end(script, tmp_path):
+    run_dir = str(tmp_path / "run")
+    shutil.copytree(os.path.join(FIXTURES, f"reference_{script.VARIANT}"), run_dir)
+    script.main(script.Args(resume=run_dir, total_episodes=3, torch_threads=1), {"total_episodes"})
+    check_against_reference(script, run_dir)
+
+
+def test_the_reference_check_fails_for_a_changed_computation(script, tmp_path):
+    """A test that cannot fail is no test: a run with another batch size (the same networks, other numbers) fails it."""
+    run_dir = script.main(script.Args(**{**REFERENCE_RUN, "batch_size": REFERENCE_RUN["batch_size"] + 1},
+                                      runs_dir=str(tmp_path)))  # fmt: skip
+    with pytest.raises(AssertionError):
+        check_against_reference(script, run_dir)
