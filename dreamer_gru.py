@@ -122,6 +122,10 @@ class Args:
     """stop after the first race at which every agent has made this many updates (0: no limit)"""
     time_limit_hours: float = 0.0
     """stop after the first race that ends past this many hours of this process, with checkpoints (0: no limit)"""
+    cpu_hours_limit: float = 0.0
+    """stop, with checkpoints, once the run has used this many CPU-hours (checked at the start and at the end of every
+    race): process CPU time summed over every sitting of a resumed run (0: no limit); unlike wall time it does not
+    depend on what else the machine runs"""
     prefill_episodes: int = 5
     """random-action races before the first update (from a --checkpoint the agent's own policy fills replay)"""
     train_steps_per_episode: int = 200
@@ -178,6 +182,12 @@ class Args:
     entropy_coef: float = 1.0
     """alpha: weight of -log pi in the lambda-return (the paper's entropy regulariser; 1.0 in the paper authors'
     configurations. Algorithm 1's "alpha = 0.0006" is the model's and critic's learning rate, not this)"""
+    entropy_target: float | None = None
+    """adapt alpha so that the policy's entropy (-log pi, as in the lambda-return) per action dimension tends to this
+    many nats: SAC's automatic temperature (Haarnoja et al., 2018), alpha starting at --entropy-coef. None: alpha
+    stays --entropy-coef"""
+    entropy_lr: float = 1e-3
+    """Adam learning rate of log alpha (--entropy-target)"""
     return_norm: bool = False
     """DreamerV3's return normalisation: scale the task part of the lambda-return by 1 / max(1, S), S an EMA of
     its 95th - 5th percentile range; the entropy part stays unscaled (DreamerV3 pairs it with --entropy-coef 3e-4)"""
@@ -186,6 +196,9 @@ class Args:
     stop-gradient sigma^(2 beta), so that a rare large reward (an elimination's -100) moves the head's mean and not
     only its sigma. 0: the paper's Gaussian NLL; 0.5: the value Seitzer et al. recommend; 1: the mean learns as
     with a squared error"""
+    head_sigma: float = 0.0
+    """sigma of the reward and critic Gaussians: 0 learns it (softplus + 0.1, the paper); a positive value fixes it
+    (1: the paper authors' code, a squared error, so that a rare -100 moves the mean instead of widening sigma)"""
     lambda_: Annotated[float, tyro.conf.arg(name="lambda")] = 0.95
     """lambda of the lambda-return"""
     gamma: float = 0.99
@@ -218,8 +231,9 @@ class Args:
     """width of the reward, continue, actor and critic MLPs"""
     latent_size: int = 60
     """size of the stochastic latent z"""
-    norm: Literal["batch", "layer"] = "batch"
-    """normalisation of the networks (the critic always uses LayerNorm, as in the appendix)"""
+    norm: Literal["batch", "layer", "mixed"] = "batch"
+    """normalisation of the networks (the critic always uses LayerNorm, as in the appendix); mixed: BatchNorm in the
+    convolutions, LayerNorm in every MLP and the recurrent input (the paper authors' code)"""
 
 
 # --preset cpu: a configuration that learns on a 2-core CPU in hours (docs/deviations.md); explicit flags override it.
@@ -321,7 +335,7 @@ def norm_1d(kind: str, size: int) -> nn.Module:
 
 def norm_2d(kind: str, channels: int) -> nn.Module:
     # GroupNorm with one group normalises over (C, H, W): the layer norm of a feature map
-    return nn.BatchNorm2d(channels) if kind == "batch" else nn.GroupNorm(1, channels)
+    return nn.BatchNorm2d(channels) if kind in ("batch", "mixed") else nn.GroupNorm(1, channels)
 
 
 def frames_to_input(frames: torch.Tensor) -> torch.Tensor:
@@ -475,6 +489,13 @@ def gaussian_params(out: torch.Tensor, min_std: float) -> tuple[torch.Tensor, to
     return mean, F.softplus(raw_std) + min_std
 
 
+def head_gaussian(out: torch.Tensor, sigma: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The reward's or the critic's Gaussian: sigma learned (gaussian_params, floored at HEAD_MIN_STD) when `sigma`
+    is 0, else fixed at `sigma` (--head-sigma; the head's second output is then unused)."""
+    mean, std = gaussian_params(out, HEAD_MIN_STD)
+    return (mean, std) if sigma == 0 else (mean, torch.full_like(mean, sigma))
+
+
 class WorldModel(nn.Module):
     """Encoder, recurrent core, representation (posterior), transition (prior), decoder, reward, continue.
 
@@ -598,14 +619,14 @@ def policy_log_prob(action: torch.Tensor, mean: torch.Tensor, std: torch.Tensor)
 
 
 class Critic(nn.Module):
-    """MLP 572->512->512->2 with LayerNorm (appendix): Gaussian over the lambda-return."""
+    """MLP 572->512->512->2 with LayerNorm (appendix): Gaussian over the lambda-return (sigma: head_gaussian)."""
 
-    def __init__(self, feature_size: int, mlp_size: int):
+    def __init__(self, feature_size: int, mlp_size: int, sigma: float = 0.0):
         super().__init__()
-        self.net = MLP(feature_size, [mlp_size] * 2, 2, "layer")
+        self.net, self.sigma = MLP(feature_size, [mlp_size] * 2, 2, "layer"), sigma
 
     def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        mean, std = gaussian_params(self.net(features), HEAD_MIN_STD)
+        mean, std = head_gaussian(self.net(features), self.sigma)
         return mean.squeeze(-1), std.squeeze(-1)
 
 
@@ -866,7 +887,7 @@ class Agent:
         feature_size = args.latent_size + args.deter_size
         self.world_model = WorldModel(args, action_dim).to(self.device)
         self.actor = Actor(feature_size, args.mlp_size, action_dim, args.norm).to(self.device)
-        self.critic = Critic(feature_size, args.mlp_size).to(self.device)
+        self.critic = Critic(feature_size, args.mlp_size, args.head_sigma).to(self.device)
         # Target networks (hard copy now, soft updates later): the stop-gradient sides of the KL terms
         # and the slow critic for bootstrap values. They never receive gradient.
         self.targets = nn.ModuleDict(
@@ -881,6 +902,10 @@ class Agent:
         self.model_optimizer = torch.optim.Adam(self.world_model.parameters(), lr=args.model_lr)
         self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=args.actor_lr)
         self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=args.critic_lr)
+        self.log_alpha = None  # --entropy-target: alpha = exp(log_alpha), learned (SAC); else alpha = --entropy-coef
+        if args.entropy_target is not None:
+            self.log_alpha = nn.Parameter(torch.tensor(math.log(args.entropy_coef), device=self.device))
+            self.alpha_optimizer = torch.optim.Adam([self.log_alpha], lr=args.entropy_lr)
         if args.compile:  # in place (nn.Module.compile): parameter names, and so checkpoints, stay the same
             for module in (*self.world_model.children(), self.actor, self.critic, *self.targets.values()):
                 module.compile()
@@ -924,7 +949,7 @@ class Agent:
         prior_mean, prior_std = gaussian_params(wm.transition(h), LATENT_MIN_STD)  # batched over B*L
         # L_pred: -log p(x|s) - log p(r|s) - log p(cont|s); cont = 1 - terminated (truncation is not termination)
         image_nll = image_gaussian_nll(frames_to_input(obs), wm.decoder(features), wm.decoder.sigma())
-        reward_mean, reward_std = gaussian_params(wm.reward(features), HEAD_MIN_STD)
+        reward_mean, reward_std = head_gaussian(wm.reward(features), args.head_sigma)
         reward_nll = gaussian_nll(rewards, reward_mean.squeeze(-1), reward_std.squeeze(-1))  # (logged as is)
         reward_loss = beta_nll(rewards, reward_mean.squeeze(-1), reward_std.squeeze(-1), args.reward_nll_beta)
         cont_logits = wm.cont(features).float().squeeze(-1)
@@ -950,6 +975,10 @@ class Agent:
         return loss, metrics, post
 
     # --- behaviour (paper 3.9) ---------------------------------------------------------------
+    def alpha(self) -> float | torch.Tensor:
+        """The entropy weight of the lambda-return: --entropy-coef, or exp(log alpha) under --entropy-target."""
+        return self.args.entropy_coef if self.log_alpha is None else self.log_alpha.detach().exp()
+
     def imagination_starts(self, post: dict, terminated: torch.Tensor):
         """Detached posterior states (state tuple, h, z) of all B*L steps, or a random subset of them, and each
         start's continue flag 1 - terminated."""
@@ -980,14 +1009,14 @@ class Agent:
         self.actor.eval()
         with frozen(wm, self.critic):  # only the actor's parameters take gradient from the actor loss
             features, log_pi, _, stds = imagine_rollout(wm, self.actor, state, h, z, args.imagination_horizon)
-            rewards = gaussian_params(wm.reward(features[1:]), HEAD_MIN_STD)[0].squeeze(-1)  # r_1..r_H
+            rewards = head_gaussian(wm.reward(features[1:]), args.head_sigma)[0].squeeze(-1)  # r_1..r_H
             continues = torch.sigmoid(wm.cont(features[1:]).float().squeeze(-1))  # c_1..c_H
             values = bootstrap(features[1:])[0]  # V(s_1..s_H)
             weights = discount_weights(continues, args.gamma, start_cont)
             gamma, lam, zero = args.gamma, args.lambda_, torch.zeros_like(rewards)
             if args.return_norm:  # scale the task part only (lambda_returns is linear in r, V and log pi)
                 task = lambda_returns(rewards, continues, values, torch.zeros_like(log_pi), gamma, lam, 0.0)
-                entropy = lambda_returns(zero, continues, zero, log_pi, gamma, lam, args.entropy_coef)
+                entropy = lambda_returns(zero, continues, zero, log_pi, gamma, lam, self.alpha())
                 with torch.no_grad():  # (a non-finite batch leaves the scale alone)
                     spread = return_range(task)
                     moved = self.return_scale.lerp(spread, RETURN_NORM_RATE)
@@ -995,7 +1024,7 @@ class Agent:
                 returns = task + entropy  # what the critic learns
                 objective = task / self.return_scale.clamp(min=1.0) + entropy
             else:
-                returns = lambda_returns(rewards, continues, values, log_pi, gamma, lam, args.entropy_coef)
+                returns = lambda_returns(rewards, continues, values, log_pi, gamma, lam, self.alpha())
                 objective = returns
             actor_loss = -(weights * objective).mean()
         wm.train()
@@ -1008,6 +1037,8 @@ class Agent:
         }  # fmt: skip
         if args.return_norm:
             metrics["return_scale"] = self.return_scale.clone()
+        if self.log_alpha is not None:
+            metrics["alpha"] = self.log_alpha.detach().exp()
         return actor_loss, critic_loss, metrics
 
     def _step(self, optimizer: torch.optim.Optimizer, loss: torch.Tensor, params) -> bool:
@@ -1048,6 +1079,10 @@ class Agent:
             actor_loss, critic_loss, behaviour_metrics = self.behaviour_losses(post, terminated)
         actor_ok = self._step(self.actor_optimizer, actor_loss, self.actor.parameters())
         critic_ok = self._step(self.critic_optimizer, critic_loss, self.critic.parameters())
+        alpha_ok = True
+        if self.log_alpha is not None:  # SAC: alpha rises while the entropy is below its target, falls above it
+            shortfall = self.args.entropy_target * self.action_dim - behaviour_metrics["entropy"].detach()
+            alpha_ok = self._step(self.alpha_optimizer, -self.log_alpha * shortfall, [self.log_alpha])
         if self.args.target_critic and critic_ok:
             soft_update(self.targets["critic"], self.critic, self.args.tau)
         for module, ok in ((self.world_model, model_ok), (self.actor, actor_ok)):
@@ -1056,7 +1091,7 @@ class Agent:
                     for buffer, saved in zip(module.buffers(), statistics[module]):
                         buffer.copy_(saved)
         self.num_updates += 1
-        faulty = not (model_ok and actor_ok and critic_ok)
+        faulty = not (model_ok and actor_ok and critic_ok and alpha_ok)
         self.nonfinite_updates += int(faulty)
         self.nonfinite_in_a_row = self.nonfinite_in_a_row + 1 if faulty else 0
 
@@ -1132,7 +1167,9 @@ class Agent:
             "num_updates": self.num_updates,
             "nonfinite_updates": self.nonfinite_updates,
             "nonfinite_in_a_row": self.nonfinite_in_a_row,
-        }
+        } | ({} if self.log_alpha is None else {
+            "log_alpha": self.log_alpha.detach().clone(), "alpha_optimizer": self.alpha_optimizer.state_dict(),
+        })  # fmt: skip
 
     def acting_state_dict(self) -> dict:
         """What acting needs and nothing else: encoder, posterior, recurrent core (with its input layer), actor.
@@ -1158,6 +1195,10 @@ class Agent:
         self.critic_optimizer.load_state_dict(state["critic_optimizer"])
         if "return_scale" in state:
             self.return_scale.copy_(state["return_scale"])
+        if self.log_alpha is not None and "log_alpha" in state:  # (else alpha starts at --entropy-coef)
+            with torch.no_grad():
+                self.log_alpha.copy_(state["log_alpha"])
+            self.alpha_optimizer.load_state_dict(state["alpha_optimizer"])
         self.num_updates = int(state["num_updates"])
         self.nonfinite_updates = int(state.get("nonfinite_updates", 0))
         self.nonfinite_in_a_row = int(state.get("nonfinite_in_a_row", 0))
@@ -1197,11 +1238,21 @@ def evaluate(agents: list[Agent], args: Args, eval_envs, policy: str | None = No
     """Races with `policy` (default --eval-policy) on the tracks `seeds` (default: the held-out eval_seed + i, i <
     eval_episodes); per race and car the return, the final progress (fraction of tiles) and the mean |action[0]|
     of the car's decisions while racing, each (E, N). On the racing env action 0 is the steer: near 1 is bang-bang
-    steering (the pursuit driver: ~0.06)."""
+    steering (the pursuit driver: ~0.06). `drive_races` has more readings of the same races."""
+    readings = drive_races(agents, args, eval_envs, policy, seeds)
+    return readings["return"], readings["progress"], readings["abs_steer"]
+
+
+def drive_races(agents: list[Agent], args: Args, eval_envs, policy: str | None = None, seeds=None) -> dict:
+    """`evaluate`'s races, with every reading per race and car, each an (E, N) array: return, progress, abs_steer;
+    gas (mean of max(action[1], 0) over decisions), brake_share (share of decisions with action[1] at or below the
+    dead zone's edge: braking), speed (mean over env steps while racing), lap_finished (within the time limit) and
+    eliminated (off the road or stalled)."""
     n, policy = args.num_agents, policy or args.eval_policy
     seeds = [args.eval_seed + e for e in range(args.eval_episodes)] if seeds is None else list(seeds)
-    returns, progress = np.zeros((len(seeds), n)), np.zeros((len(seeds), n))
-    abs_steer, decisions = np.zeros((len(seeds), n)), np.zeros((len(seeds), n))
+    keys = ("return", "progress", "abs_steer", "gas", "brake_share", "speed", "lap_finished", "eliminated")
+    out = {key: np.zeros((len(seeds), n)) for key in keys}
+    decisions, steps = np.zeros((len(seeds), n)), np.zeros((len(seeds), n))
     for e, seed in enumerate(seeds):
         eval_envs.seed(seed)
         obs, states, is_first = eval_envs.reset(), [None] * n, np.ones(n, dtype=bool)
@@ -1212,18 +1263,28 @@ def evaluate(agents: list[Agent], args: Args, eval_envs, policy: str | None = No
             for i, agent in enumerate(agents):
                 car = slice(i, i + 1)
                 actions[car], states[i] = agent.act(frames[car], states[i], is_first[car], policy)
-            abs_steer[e] += np.abs(actions[:, 0]) * racing
+            out["abs_steer"][e] += np.abs(actions[:, 0]) * racing
+            out["gas"][e] += np.maximum(actions[:, 1], 0.0) * racing
+            out["brake_share"][e] += (actions[:, 1] <= args.dead_zone_end) * racing
             decisions[e] += racing
             obs, rewards, dones, infos, _ = step_with_repeat(eval_envs, actions, args.action_repeat)
-            returns[e] += rewards  # cars that are out get reward 0
+            out["return"][e] += rewards  # cars that are out get reward 0
             for i, info in enumerate(infos):
+                if racing[i] and "speed" in info:  # (the speed after the decision's last env step)
+                    out["speed"][e, i] += info["speed"]
+                    steps[e, i] += 1
                 racing[i] = info["alive"] and not dones[i]  # a car that went out this step decides no more
                 if info["alive"]:
-                    progress[e, i] = info.get("progress", 0.0)
+                    out["progress"][e, i] = info.get("progress", 0.0)
+                    out["lap_finished"][e, i] = float(bool(info.get("lap_finished", False)))
+                    out["eliminated"][e, i] = float(bool(info.get("eliminated")))
             if infos[0]["is_first"]:
                 break
             is_first[:] = False
-    return returns, progress, abs_steer / np.maximum(decisions, 1)
+    for key in ("abs_steer", "gas", "brake_share"):
+        out[key] /= np.maximum(decisions, 1)
+    out["speed"] /= np.maximum(steps, 1)
+    return out
 
 
 def train_agent(agent: Agent, replay: Replay, args: Args, logger, prefix: str, on_update=None) -> float:
@@ -1263,9 +1324,15 @@ class Run:
     manifests: list = dataclasses.field(default_factory=list)  # per agent, the replay save that latest.pt names
     from_checkpoint: bool = False  # the agents started from --checkpoint: no random prefill
     started: float = dataclasses.field(default_factory=time.time)
+    cpu_started: float = dataclasses.field(default_factory=time.process_time)
+    cpu_before: float = 0.0  # CPU seconds of the run's earlier sittings (a resumed run)
     fault: str | None = None  # set when an agent had --max-nonfinite-updates faulty updates in a row
     update_seconds: list = dataclasses.field(default_factory=list)  # the first two updates' times (CPU report)
     pbar: object = None
+
+    def cpu_seconds(self) -> float:
+        """Process CPU time of the run so far, over all its sittings (--cpu-hours-limit)."""
+        return self.cpu_before + time.process_time() - self.cpu_started
 
     @property
     def checkpoint_dir(self) -> str:
@@ -1281,6 +1348,7 @@ class Run:
             self.counters["episode"] >= args.total_episodes
             or (args.total_updates > 0 and min(agent.num_updates for agent in self.agents) >= args.total_updates)
             or (args.time_limit_hours > 0 and time.time() - self.started > 3600 * args.time_limit_hours)
+            or (args.cpu_hours_limit > 0 and self.cpu_seconds() > 3600 * args.cpu_hours_limit)
             or self.fault is not None
         )
 
@@ -1407,7 +1475,7 @@ def evaluate_and_keep_best(run: Run) -> None:
     _print(run, f"evaluation after race {counters['episode']} ({updates} updates, {counters['global_step']} env steps):"
                 f" return {returns.mean():.1f}, progress {progress.mean():.2f}, |steer| {abs_steer.mean():.2f}"
                 f" ({args.eval_policy}, {len(returns)} held-out tracks)")  # fmt: skip
-    extra = _extra(run.ghosts, run.manifests, run.wins)
+    extra = _extra(run)
     if args.eval_checkpoints:
         path = os.path.join(run.checkpoint_dir, f"eval_{counters['episode']:06d}.pt")
         save_checkpoint(path, args, run.agents, counters, extra)
@@ -1419,7 +1487,7 @@ def evaluate_and_keep_best(run: Run) -> None:
 def save_latest(run: Run) -> str:
     """checkpoints/latest.pt, naming each agent's replay save; then the replay files it does not name go."""
     path = os.path.join(run.checkpoint_dir, "latest.pt")
-    save_checkpoint(path, run.args, run.agents, run.counters, _extra(run.ghosts, run.manifests, run.wins))
+    save_checkpoint(path, run.args, run.agents, run.counters, _extra(run))
     for j, manifest in enumerate(run.manifests):
         if manifest is not None:
             Replay.prune(run.replay_dir(j), manifest)
@@ -1450,6 +1518,7 @@ def end_race(run: Run, cars: list[CarEpisode], track_seed: int | None, env_sps: 
             run.manifests = [replay.save(run.replay_dir(j)) for j, replay in enumerate(run.replays)]
         if args.checkpoint_every and episode % args.checkpoint_every == 0:
             save_latest(run)
+    run.logger.record("charts/cpu_hours", run.cpu_seconds() / 3600)  # after the race's training and evaluation
     run.logger.dump(counters["global_step"])
     if run.pbar is not None:
         run.pbar.update(1)
@@ -1583,7 +1652,7 @@ def validate_args(args: Args) -> None:
         2: ("seq_len",),  # a sequence model learns from transitions: at least two steps
         0: ("torch_threads", "stall_steps", "dead_zone_episodes", "prefill_episodes", "train_steps_per_episode",
             "eval_every", "video_every", "checkpoint_every", "replay_save_every", "imagination_starts",
-            "time_limit_hours", "entropy_coef", "free_bits", "kl_dyn_scale", "kl_rep_scale", "brake_speed_threshold",
+            "time_limit_hours", "cpu_hours_limit", "entropy_coef", "free_bits", "kl_dyn_scale", "kl_rep_scale", "brake_speed_threshold",
             "collision_penalty", "offroad_penalty", "eval_seed", "ghost_seed"),
     }.items():  # fmt: skip
         for name in names:
@@ -1593,6 +1662,11 @@ def validate_args(args: Args) -> None:
     require(0 < args.gamma <= 1, "gamma", "must lie in (0, 1]")
     require(0 <= args.lambda_ <= 1, "lambda_", "must lie in [0, 1]")
     require(0 <= args.reward_nll_beta <= 1, "reward_nll_beta", "must lie in [0, 1]")
+    require(args.head_sigma >= 0, "head_sigma", "must be >= 0 (0: learned)")
+    require(args.entropy_lr > 0, "entropy_lr", "must be > 0")
+    if args.entropy_target is not None:
+        require(math.isfinite(args.entropy_target), "entropy_target", "must be a finite number")
+        require(args.entropy_coef > 0, "entropy_coef", "must be > 0 with --entropy-target (alpha starts there)")
     require(0 < args.tau <= 1, "tau", "must lie in (0, 1]")
     low, high = LOG_SIGMA_RANGE
     require(low <= args.decoder_min_log_sigma <= high, "decoder_min_log_sigma", f"must lie in [{low:g}, {high:g}]")
@@ -1786,6 +1860,7 @@ def restore_run(run: Run, resumed: dict, path: str) -> None:
     run.ghosts = {int(s): ghost_from_tensors(g) for s, g in extra.get("ghosts", {}).items()}
     for j, history in enumerate(extra.get("wins", [])[:n]):
         run.wins[j].extend(history)
+    run.cpu_before = float(extra.get("cpu_seconds", 0.0))  # (0 for a checkpoint written before it was kept)
     saved = list(extra.get("replays") or []) + [None] * n
     for j, replay in enumerate(run.replays):
         run.manifests[j] = restore_replay(replay, run.replay_dir(j), saved[j], run.counters["episode"])
@@ -2026,12 +2101,13 @@ def ghost_from_tensors(trajectory: dict) -> dict:
     return {k: v.numpy() if isinstance(v, torch.Tensor) else v for k, v in trajectory.items()}
 
 
-def _extra(ghosts: dict, replays: list, wins: list) -> dict:
-    """The checkpoint's extra state: ghosts (ghost stage), the replay save of every agent, recent wins."""
+def _extra(run: Run) -> dict:
+    """The checkpoint's extra state: ghosts (ghost stage), the replay save of every agent, recent wins, CPU time."""
     return {
-        "ghosts": {str(seed): ghost_to_tensors(g) for seed, g in ghosts.items()},
-        "replays": list(replays),
-        "wins": [list(w) for w in wins],
+        "ghosts": {str(seed): ghost_to_tensors(g) for seed, g in run.ghosts.items()},
+        "replays": list(run.manifests),
+        "wins": [list(w) for w in run.wins],
+        "cpu_seconds": run.cpu_seconds(),
     }
 
 

@@ -915,6 +915,38 @@ def test_evaluate_averages_steer_over_the_decisions_of_cars_still_racing(script)
     assert abs_steer[0].tolist() == pytest.approx([1.0, 0.25])  # ... and those decisions do not count
 
 
+class _ScriptedPedal(_ScriptedSteer):
+    """Steers `steer` with the throttle-brake axis at `pedal` (1: full gas, -1: full brake)."""
+
+    def __init__(self, steer: float, pedal: float):
+        super().__init__(steer)
+        self.pedal = pedal
+
+    def act(self, frames, state, is_first, policy):
+        action, state = super().act(frames, state, is_first, policy)
+        action[0, 1] = self.pedal
+        return action, state
+
+
+def test_drive_races_reads_gas_brakes_speed_and_how_each_race_ended(script):
+    """car_0 steers hard at full gas and leaves the road; car_1 stands on the brake from the start, never moves and
+    is eliminated for stalling. Their readings follow from what they did, not from the agents."""
+    from utils import make_vec_env
+
+    args = tiny_args(script, num_agents=2, eval_episodes=1, eval_seed=3, max_steps=400, action_repeat=2)
+    envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
+    readings = script.drive_races([_ScriptedPedal(1.0, 1.0), _ScriptedPedal(0.0, -1.0)], args, envs)
+    envs.close()
+    assert all(value.shape == (1, 2) for value in readings.values())
+    assert readings["gas"][0].tolist() == [1.0, 0.0] and readings["brake_share"][0].tolist() == [0.0, 1.0]
+    assert readings["speed"][0, 0] > 10 and readings["speed"][0, 1] < 1e-3  # (physics leaves ~1e-7)
+    assert readings["eliminated"][0].tolist() == [1.0, 1.0] and readings["lap_finished"][0].tolist() == [0.0, 0.0]
+    returns, progress, abs_steer = script.evaluate([_ScriptedPedal(1.0, 1.0), _ScriptedPedal(0.0, -1.0)], args,
+                                                   make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, -0.5)))
+    for key, value in (("return", returns), ("progress", progress), ("abs_steer", abs_steer)):
+        np.testing.assert_array_equal(readings[key], value)  # evaluate() is drive_races' first three readings
+
+
 def test_dead_zone_of_the_next_race_is_set_before_its_reset(script):
     """The env applies a dead zone at its next reset. One race at a time resets after end_race: it gets the value of
     the races finished so far. K > 1 races have already auto-reset the finished race's slot inside the step, so
