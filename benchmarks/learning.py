@@ -465,7 +465,7 @@ def calibrate_checkpoint(path: str, first_track: int = 10_100, tracks: int = 5, 
                 terminal.append((rewards[-1], reward_mean[-1].item(), reward_std[-1].item(), last_continue))
             mean, std = actor(features)
             log_pi = script.policy_log_prob(mean + std * torch.randn_like(std), mean, std).numpy()
-            g = realised_returns(rewards, terminated, -args.entropy_coef * log_pi, values[-1], gamma)
+            g = realised_returns(rewards, terminated, -float(agent.alpha()) * log_pi, values[-1], gamma)
             last = len(frames) - 1
             if not terminated[-1]:  # truncated: G_t carries gamma^(T - t) V(s_T)
                 sums["bootstrap_weight"] += float(np.sum(gamma ** (last - np.arange(last))))

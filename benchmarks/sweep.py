@@ -10,7 +10,7 @@ Each (flag set, variant, seed) is one Ray Tune trial: the single-stage run of ``
 trial code: ``--preset cpu`` with the flag set on top, one car, ``--updates`` updates, resumed from its own
 ``latest.pt`` in chunks), in its own run directory ``<storage>/<name>/<tag>/trials/single_<variant>_seed<S>/``.
 A flag set is ``name=value`` pairs of the scripts' ``Args`` separated by spaces, or ``default`` (the preset alone);
-its tag names its directory (``entropy_coef-0.3``). The grid of a sweep is fixed when it starts (``sweep.json``):
+its tag names its directory (``entropy-coef-0.3``). The grid of a sweep is fixed when it starts (``sweep.json``):
 the same command continues it, another grid needs another ``--name``.
 
 ``--report`` measures every finished trial's final policy (``latest.pt`` at ``--updates``) on the screening tracks
@@ -90,7 +90,7 @@ TAG_LENGTH = 60  # a longer tag is cut and ends in a hash of the whole flag set 
 
 
 def tag_of(text: str) -> str:
-    """A flag set's directory name: 'entropy_coef=0.3 return_norm=true' -> 'entropy_coef-0.3_return_norm-true'."""
+    """A flag set's directory name: 'entropy_coef=0.3 return_norm=true' -> 'entropy-coef-0.3_return-norm-true'."""
     items = flag_set(text)
     tag = "_".join(re.sub(r"[^A-Za-z0-9.+-]", "-", item.replace("=", "-")) for item in items) or "default"
     if len(tag) > TAG_LENGTH:

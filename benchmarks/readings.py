@@ -1,0 +1,137 @@
+"""What a screened policy does and why: the readings of ``benchmarks/sweep.py --report``.
+
+For one saved single-car agent, on a block of tracks (the screening tracks 10200..10219 by default):
+
+* driving, for each policy (sampled as trained, and the mean action): return, progress, |steer| (near 1: bang-bang),
+  gas (mean of max(action[1], 0)), brake share (decisions at or below the dead zone's edge), speed, the share of
+  laps finished within the time limit and of races ended by an elimination (``drive_races`` of the agent's script);
+* the model on those real episodes (sampled policy; ``learning.calibrate_checkpoint``): the imagined H-step task
+  return against the real one from the same states, and on the frames where a car was eliminated the reward head's
+  mean (the real reward there is the -100 penalty);
+* training, as logged over the run's last ``learning.SCREEN_WINDOW`` updates: the actor's sigma, the entropy
+  (-log pi), the entropy weight alpha (--entropy-target) and the imagined lambda-return; and the run's CPU-hours.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+
+import learning
+
+POLICIES = ("stochastic", "mean-action")
+DRIVING = ("return", "progress", "abs_steer", "gas", "brake_share", "speed", "lap_finished", "eliminated")
+TRAINING = {  # column: the progress.csv tag averaged over the last SCREEN_WINDOW updates
+    "actor_sigma": "car_0/losses/actor_std", "entropy": "car_0/losses/entropy", "alpha": "car_0/losses/alpha",
+    "imagined_return": "car_0/losses/imagined_return",
+}  # fmt: skip
+MODEL = ("imagined_task_return", "real_task_return", "eliminations", "terminal_reward_predicted")
+COLUMNS = ("tag", "variant", "seed", "updates", "policy", *DRIVING, *TRAINING, *MODEL, "cpu_hours", "checkpoint")
+
+
+def driving(path: str, first_track: int, tracks: int) -> dict[str, dict[str, float]]:
+    """Per policy, the mean of every DRIVING reading over the tracks."""
+    import torch
+
+    from race import read_checkpoint
+    from utils import make_vec_env
+
+    script, checkpoint = read_checkpoint(path)
+    args = script.args_from_checkpoint(checkpoint, path, num_agents=1)
+    agent = script.agent_from_checkpoint(path, 0)
+    envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
+    out = {}
+    try:
+        for policy in POLICIES:
+            torch.manual_seed(first_track)  # as learning.evaluate_checkpoint: the same command, the same numbers
+            readings = script.drive_races([agent], args, envs, policy, range(first_track, first_track + tracks))
+            out[policy] = {key: round(float(readings[key][:, 0].mean()), 4) for key in DRIVING}
+    finally:
+        envs.close()
+    return out
+
+
+def training(run_dir: str, updates: int) -> dict[str, float]:
+    """Means of the TRAINING columns over the updates (updates - SCREEN_WINDOW, updates], and the run's CPU-hours
+    when it had made `updates` updates (NaN where the run did not log them)."""
+    window = [row for u, row in learning.progress_rows(run_dir) if updates - learning.SCREEN_WINDOW < u <= updates]
+    out = {}
+    for column, tag in TRAINING.items():
+        values = [float(row[tag]) for row in window if row.get(tag)]
+        out[column] = round(float(np.mean(values)), 4) if values else float("nan")
+    hours = [float(row["charts/cpu_hours"]) for row in window if row.get("charts/cpu_hours")]
+    out["cpu_hours"] = round(hours[-1], 3) if hours else float("nan")
+    return out
+
+
+def measure(path: str, run_dir: str, updates: int, first_track: int, tracks: int) -> dict:
+    """Every reading of the policy at `path` (kept by `run_dir` at `updates` updates): {policy: row fields}."""
+    model = learning.calibrate_checkpoint(path, first_track, tracks)
+    model = {key: model[key] for key in MODEL}
+    trained = training(run_dir, updates)
+    return {policy: {**values, **trained, **model} for policy, values in driving(path, first_track, tracks).items()}
+
+
+def report(sweep) -> str:
+    """Measure every finished trial of `sweep` once (kept in <storage>/<name>/readings.json), write
+    sweep_<name>.csv and .md in --results, and return the markdown table."""
+    import csv
+
+    import sweep as sweeps
+
+    cache_path = os.path.join(sweep.storage, sweep.name, "readings.json")
+    cache = {}
+    if os.path.exists(cache_path):
+        with open(cache_path) as f:
+            cache = json.load(f)
+    rows, waiting = [], []
+    for config, run, done in sweeps.trial_status(sweep):
+        name = f"{config['tag']}_{config['variant']}_seed{config['seed']}"
+        if run is None or done < sweep.updates:
+            waiting.append(f"{name} ({done} of {sweep.updates} updates)")
+            continue
+        path = learning.checkpoint_at(run, sweep.updates)
+        key = f"{os.path.relpath(path, sweep.storage)}@{sweep.first_track}+{sweep.tracks}"
+        if key not in cache:
+            cache[key] = measure(path, run, sweep.updates, sweep.first_track, sweep.tracks)
+            with open(cache_path + ".tmp", "w") as f:
+                json.dump(cache, f, indent=1)
+            os.replace(cache_path + ".tmp", cache_path)
+        for policy in POLICIES:
+            rows.append({"tag": config["tag"], "variant": config["variant"], "seed": config["seed"],
+                         "updates": sweep.updates, "policy": policy, **cache[key][policy],
+                         "checkpoint": os.path.relpath(path, sweep.storage)})  # fmt: skip
+    os.makedirs(sweep.results, exist_ok=True)
+    base = os.path.join(sweep.results, f"sweep_{sweep.name}")
+    with open(base + ".csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=COLUMNS)
+        writer.writeheader()
+        writer.writerows(rows)
+    text = table(sweep, rows, waiting)
+    with open(base + ".md", "w") as f:
+        f.write(text)
+    return text
+
+
+def table(sweep, rows: list[dict], waiting: list[str]) -> str:
+    """Markdown: the sweep's command, then one line per trial and policy."""
+    grid = " ".join(f'"{flags}"' for flags in sweep.grid)
+    lines = [
+        f"# Sweep {sweep.name}",
+        "",
+        f"`python benchmarks/sweep.py --name {sweep.name} --grid {grid} --variants {' '.join(sweep.variants)} "
+        f"--seeds {' '.join(map(str, sweep.seeds))} --updates {sweep.updates}`, then `--report`: each trial's policy "
+        f"at {sweep.updates} updates on tracks {sweep.first_track}..{sweep.first_track + sweep.tracks - 1} "
+        "(benchmarks/readings.py says what each column is).",
+        "",
+    ]  # fmt: skip
+    shown = [c for c in COLUMNS if c not in ("updates", "checkpoint")]
+    lines += ["| " + " | ".join(shown) + " |", "|" + "---|" * len(shown)]
+    for row in rows:
+        cells = [f"{row[c]:.2f}" if isinstance(row[c], float) else str(row[c]) for c in shown]
+        lines.append("| " + " | ".join(cells) + " |")
+    if waiting:
+        lines += ["", "Not finished yet: " + ", ".join(waiting) + "."]
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,120 @@
+"""benchmarks/sweep.py and readings.py: screens as a Ray Tune sweep of flag sets x seeds, and their readings.
+
+A tiny sweep of two flag sets runs to completion on a local Ray, each trial in its own run directory with its own
+flags; the same command again trains nothing; another grid under the same name and an unknown flag are refused
+before Ray starts; the report measures each finished trial once."""
+
+import csv
+import dataclasses
+import json
+import os
+import sys
+
+import pytest
+from conftest import TINY
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
+import readings  # noqa: E402
+import sweep as sweeps  # noqa: E402
+
+TINY_FLAGS = " ".join(
+    f"{k}={v}" for k, v in {
+        **TINY, "batch_size": 2, "imagination_horizon": 3, "max_steps": 30, "train_steps_per_episode": 1,
+        "prefill_episodes": 1, "replay_capacity": 500, "eval_every": 1, "eval_episodes": 1, "video_every": 0,
+    }.items()
+)  # fmt: skip
+GRID = (TINY_FLAGS, TINY_FLAGS + " entropy_coef=0.3")
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory):
+    pytest.importorskip("ray")
+    import ray
+
+    root = tmp_path_factory.mktemp("sweep")
+    sweep = sweeps.Sweep(name="tiny", grid=GRID, seeds=(3,), updates=2, report_every=1, storage=str(root / "runs"),
+                         results=str(root / "results"), tracks=1)  # fmt: skip
+    try:
+        sweeps.main(sweep)
+        yield sweep
+    finally:
+        ray.shutdown()
+
+
+def trial_args(sweep, flags):
+    import dreamer_lstm
+
+    config = {"tag": sweeps.tag_of(flags), "variant": "lstm", "seed": 3}
+    spec = sweeps.trial_spec(sweep, flags, "lstm", 3)
+    run = sweeps.experiment.run_of(sweeps.experiment.trial_dir(spec, "single", "lstm", 3))
+    return config, dreamer_lstm.load_checkpoint(os.path.join(run, "checkpoints", "latest.pt"))
+
+
+def test_every_trial_runs_with_its_own_flags_to_its_updates(finished):
+    plain, lower = (trial_args(finished, flags)[1] for flags in GRID)
+    assert plain["args"]["entropy_coef"] == 1.0 and lower["args"]["entropy_coef"] == 0.3
+    for checkpoint in (plain, lower):
+        assert checkpoint["args"]["preset"] == "cpu" and checkpoint["args"]["stage"] == "single"
+        assert checkpoint["args"]["cnn_depth"] == TINY["cnn_depth"] and checkpoint["args"]["seed"] == 3
+        assert checkpoint["agents"][0]["num_updates"] == 2
+    assert sweeps.status_text(finished).count(": done") == 2
+
+
+def test_the_same_command_again_trains_nothing(finished):
+    import glob
+
+    import ray
+
+    files = glob.glob(os.path.join(finished.storage, "**", "*.pt"), recursive=True)
+    before = {path: os.path.getmtime(path) for path in files}
+    ray.shutdown()
+    sweeps.main(finished)
+    assert {path: os.path.getmtime(path) for path in glob.glob(os.path.join(finished.storage, "**", "*.pt"),
+                                                               recursive=True)} == before  # fmt: skip
+
+
+def test_another_grid_under_the_same_name_or_an_unknown_flag_is_refused(finished):
+    with pytest.raises(SystemExit, match="was started with other grid"):
+        sweeps.check(dataclasses.replace(finished, grid=GRID[:1]))
+    with pytest.raises(SystemExit, match="no_such_flag"):
+        sweeps.check(dataclasses.replace(finished, name="other", grid=("no_such_flag=1",)))
+    with pytest.raises(SystemExit, match="same tag"):
+        sweeps.check(dataclasses.replace(finished, name="other", grid=("default", "default")))
+
+
+def test_tags_name_flag_sets_and_stay_short():
+    assert sweeps.tag_of("default") == "default" and sweeps.flag_set("default") == ()
+    assert sweeps.tag_of("entropy_coef=0.3 return_norm=true") == "entropy-coef-0.3_return-norm-true"
+    long_a, long_b = sweeps.tag_of(TINY_FLAGS), sweeps.tag_of(TINY_FLAGS + " gamma=0.9")
+    assert len(long_a) == len(long_b) == sweeps.TAG_LENGTH and long_a != long_b
+
+
+def test_the_report_measures_each_finished_trial_once_with_both_policies(finished, monkeypatch):
+    text = readings.report(finished)
+    with open(os.path.join(finished.results, "sweep_tiny.csv")) as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["tag"], r["policy"]) for r in rows] == [
+        (sweeps.tag_of(flags), policy) for flags in GRID for policy in readings.POLICIES
+    ]
+    assert all(0 <= float(r["gas"]) <= 1 and float(r["speed"]) >= 0 and r["actor_sigma"] for r in rows)
+    assert "| tag | variant | seed | policy | return |" in text
+    monkeypatch.setattr(readings, "measure", lambda *a: pytest.fail("measured again"))
+    assert readings.report(finished) == text  # from readings.json
+
+
+def test_training_readings_average_the_last_window_of_updates(tmp_path):
+    """Rows logged at 400, 600 and 1000 updates: the window (500, 1000] holds the last two."""
+    rows = [
+        {"car_0/perf/updates": 400, "car_0/losses/actor_std": 9.0, "charts/cpu_hours": 0.1},
+        {"car_0/perf/updates": 600, "car_0/losses/actor_std": 0.5, "charts/cpu_hours": 0.2},
+        {"car_0/perf/updates": 1000, "car_0/losses/actor_std": 0.3, "car_0/losses/alpha": 0.2, "charts/cpu_hours": 0.4},
+    ]
+    columns = sorted({key for row in rows for key in row})
+    with open(tmp_path / "progress.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=columns)
+        writer.writeheader()
+        writer.writerows(rows)
+    out = readings.training(str(tmp_path), 1000)
+    assert out["actor_sigma"] == pytest.approx(0.4) and out["alpha"] == pytest.approx(0.2)
+    assert out["cpu_hours"] == pytest.approx(0.4) and out["entropy"] != out["entropy"]  # NaN: not logged
+    json.dumps(out)  # the cache holds it
