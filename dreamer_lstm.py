@@ -188,6 +188,10 @@ class Args:
     stays --entropy-coef"""
     entropy_lr: float = 1e-3
     """Adam learning rate of log alpha (--entropy-target)"""
+    action_penalty: float | None = None
+    """weight of log pi's extreme-action term -log(1 - tanh(a)^2) in the lambda-return, apart from alpha, which then
+    weighs the Gaussian part alone (and --entropy-target its entropy). None: alpha weighs both (the paper). The term
+    keeps actions off +-1: at a fixed weight it keeps the mean action smooth while a lower alpha narrows sigma"""
     return_norm: bool = False
     """DreamerV3's return normalisation: scale the task part of the lambda-return by 1 / max(1, S), S an EMA of
     its 95th - 5th percentile range; the entropy part stays unscaled (DreamerV3 pairs it with --entropy-coef 3e-4)"""
@@ -615,8 +619,13 @@ class Actor(nn.Module):
 
 def policy_log_prob(action: torch.Tensor, mean: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
     """log pi(a) = sum_d [log N(a_d; mean_d, sigma_d) - log(1 - tanh(a_d)^2 + 1e-6)] of the unclipped sample a
-    (paper 3.9): the Gaussian's log density plus a penalty that grows with |a|."""
+    (paper 3.9): the Gaussian's log density plus a penalty that grows with |a| (extreme_action_term)."""
     return (-gaussian_nll(action, mean, std) - torch.log(1 - torch.tanh(action).pow(2) + 1e-6)).sum(-1)
+
+
+def extreme_action_term(action: torch.Tensor) -> torch.Tensor:
+    """sum_d -log(1 - tanh(a_d)^2 + 1e-6): log pi's part that grows with |a| (0 at a = 0; --action-penalty)."""
+    return -torch.log(1 - torch.tanh(action).pow(2) + 1e-6).sum(-1)
 
 
 class Critic(nn.Module):
@@ -727,21 +736,20 @@ def frozen(*modules: nn.Module):
 def imagine_rollout(world_model: WorldModel, actor: Actor, state: tuple, h, z, horizon: int):
     """Roll the prior forward `horizon` steps from detached start states, acting with the actor.
 
-    Returns features s_0..s_H (H+1, N, F), log pi_0..log pi_{H-1} (H, N), actions (H, N, A) and the actor's
-    sigma at every step (H, N, A). Everything is reparameterised, so the actor loss backpropagates through
-    the learned dynamics.
+    Returns features s_0..s_H (H+1, N, F), log pi_0..log pi_{H-1} (H, N), the sampled actions before clipping
+    (H, N, A; the model is given them clipped to [-1, 1]) and the actor's sigma at every step (H, N, A).
+    Everything is reparameterised, so the actor loss backpropagates through the learned dynamics.
     """
-    features, log_pis, actions, stds = [torch.cat([z, h], -1)], [], [], []
+    features, log_pis, samples, stds = [torch.cat([z, h], -1)], [], [], []
     for _ in range(horizon):
         mean, std = actor(features[-1])
         action = mean + std * torch.randn_like(std)  # Actor.sample, keeping sigma for the diagnostics
         log_pis.append(policy_log_prob(action, mean, std))
-        action = action.clamp(-1.0, 1.0)
-        state, h, z = world_model.imagine_step(state, z, action)
+        samples.append(action)
+        state, h, z = world_model.imagine_step(state, z, action.clamp(-1.0, 1.0))
         features.append(torch.cat([z, h], -1))
-        actions.append(action)
         stds.append(std)
-    return torch.stack(features), torch.stack(log_pis), torch.stack(actions), torch.stack(stds)
+    return torch.stack(features), torch.stack(log_pis), torch.stack(samples), torch.stack(stds)
 
 
 # =====================================================================================
@@ -1009,15 +1017,18 @@ class Agent:
         wm.eval()
         self.actor.eval()
         with frozen(wm, self.critic):  # only the actor's parameters take gradient from the actor loss
-            features, log_pi, _, stds = imagine_rollout(wm, self.actor, state, h, z, args.imagination_horizon)
+            features, log_pi, samples, stds = imagine_rollout(wm, self.actor, state, h, z, args.imagination_horizon)
             rewards = head_gaussian(wm.reward(features[1:]), args.head_sigma)[0].squeeze(-1)  # r_1..r_H
             continues = torch.sigmoid(wm.cont(features[1:]).float().squeeze(-1))  # c_1..c_H
             values = bootstrap(features[1:])[0]  # V(s_1..s_H)
             weights = discount_weights(continues, args.gamma, start_cont)
-            gamma, lam, zero = args.gamma, args.lambda_, torch.zeros_like(rewards)
+            gamma, lam, zero, alpha = args.gamma, args.lambda_, torch.zeros_like(rewards), self.alpha()
+            # the bonus -alpha log pi_t comes with r_{t+1}; --action-penalty beta reweighs its extreme-action part:
+            # -alpha log pi + (alpha - beta) term = -alpha log N(a) - beta term (added where lambda_returns is linear)
+            extra = None if args.action_penalty is None else (alpha - args.action_penalty) * extreme_action_term(samples)
             if args.return_norm:  # scale the task part only (lambda_returns is linear in r, V and log pi)
                 task = lambda_returns(rewards, continues, values, torch.zeros_like(log_pi), gamma, lam, 0.0)
-                entropy = lambda_returns(zero, continues, zero, log_pi, gamma, lam, self.alpha())
+                entropy = lambda_returns(zero if extra is None else extra, continues, zero, log_pi, gamma, lam, alpha)
                 with torch.no_grad():  # (a non-finite batch leaves the scale alone)
                     spread = return_range(task)
                     moved = self.return_scale.lerp(spread, RETURN_NORM_RATE)
@@ -1025,7 +1036,8 @@ class Agent:
                 returns = task + entropy  # what the critic learns
                 objective = task / self.return_scale.clamp(min=1.0) + entropy
             else:
-                returns = lambda_returns(rewards, continues, values, log_pi, gamma, lam, self.alpha())
+                bonus_rewards = rewards if extra is None else rewards + extra
+                returns = lambda_returns(bonus_rewards, continues, values, log_pi, gamma, lam, alpha)
                 objective = returns
             actor_loss = -(weights * objective).mean()
         wm.train()
@@ -1038,8 +1050,10 @@ class Agent:
         }  # fmt: skip
         if args.return_norm:
             metrics["return_scale"] = self.return_scale.clone()
-        if self.log_alpha is not None:
+        if self.log_alpha is not None:  # and the entropy alpha weighs (without the extreme-action term if apart)
             metrics["alpha"] = self.log_alpha.detach().exp()
+            apart = 0 if args.action_penalty is None else extreme_action_term(samples.detach()).mean()
+            metrics["alpha_entropy"] = -log_pi.detach().mean() + apart
         return actor_loss, critic_loss, metrics
 
     def _step(self, optimizer: torch.optim.Optimizer, loss: torch.Tensor, params) -> bool:
@@ -1082,7 +1096,7 @@ class Agent:
         critic_ok = self._step(self.critic_optimizer, critic_loss, self.critic.parameters())
         alpha_ok = True
         if self.log_alpha is not None:  # SAC: alpha rises while the entropy is below its target, falls above it
-            shortfall = self.args.entropy_target * self.action_dim - behaviour_metrics["entropy"].detach()
+            shortfall = self.args.entropy_target * self.action_dim - behaviour_metrics["alpha_entropy"]
             alpha_ok = self._step(self.alpha_optimizer, -self.log_alpha * shortfall, [self.log_alpha])
         if self.args.target_critic and critic_ok:
             soft_update(self.targets["critic"], self.critic, self.args.tau)
@@ -1665,6 +1679,8 @@ def validate_args(args: Args) -> None:
     require(0 <= args.reward_nll_beta <= 1, "reward_nll_beta", "must lie in [0, 1]")
     require(args.head_sigma >= 0, "head_sigma", "must be >= 0 (0: learned)")
     require(args.entropy_lr > 0, "entropy_lr", "must be > 0")
+    if args.action_penalty is not None:
+        require(math.isfinite(args.action_penalty) and args.action_penalty >= 0, "action_penalty", "must be >= 0")
     if args.entropy_target is not None:
         require(math.isfinite(args.entropy_target), "entropy_target", "must be a finite number")
         require(args.entropy_coef > 0, "entropy_coef", "must be > 0 with --entropy-target (alpha starts there)")

@@ -106,3 +106,29 @@ def test_a_cpu_hour_budget_counts_every_sitting_and_ends_the_run(script, tmp_pat
     script.main(script.Args(resume=run_dir, total_episodes=3, cpu_hours_limit=0.0),
                 {"total_episodes", "cpu_hours_limit"})  # fmt: skip
     assert script.load_checkpoint(f"{run_dir}/checkpoints/latest.pt")["counters"]["episode"] == 3
+
+
+@pytest.mark.parametrize("penalty", [None, 0.0, 2.0])
+def test_the_action_penalty_reweighs_the_extreme_action_term_of_the_bonus(script, monkeypatch, penalty):
+    """A one-step imagination fixed by hand: reward 3, value 4, gamma 0.5, continue 1, log pi -1, both sampled action
+    dimensions 0.5. The bonus is -alpha log pi = 0.25; --action-penalty beta replaces alpha on the extreme-action
+    term, 2 * -log(1 - tanh(0.5)^2) = 0.48046, so R = 3 + 0.25 + (0.25 - beta) 0.48046 + 0.5 * 4."""
+    from test_dreamer import _Column, _Constant
+
+    agent = script.Agent(tiny_args(script, entropy_coef=0.25, action_penalty=penalty, gamma=0.5, imagination_horizon=1))
+    size = TINY["latent_size"] + TINY["deter_size"]
+    features = torch.zeros(2, 1, size)
+    features[1, :, 0], features[1, :, 1] = 3.0, 4.0
+    log_pi = torch.full((1, 1), -1.0)
+    samples = torch.full((1, 1, 2), 0.5)
+    monkeypatch.setattr(script, "imagine_rollout", lambda *a: (features, log_pi, samples, torch.ones(1, 1, 2)))
+    monkeypatch.setattr(agent, "imagination_starts", lambda post, terminated: (None, None, None, torch.ones(1)))
+    agent.world_model.reward = _Column(0, pair=False)
+    agent.world_model.cont = _Constant(100.0)
+    agent.targets["critic"] = _Column(1, pair=True)
+    post = {"z": torch.randn(1, 2, TINY["latent_size"]), "h": torch.randn(1, 2, TINY["deter_size"])}  # (BatchNorm: 2 rows)
+    _, _, metrics = agent.behaviour_losses(post, torch.zeros(1, 1))
+    term = 2 * -math.log(1 - math.tanh(0.5) ** 2 + 1e-6)
+    beta = 0.25 if penalty is None else penalty
+    expected = 3.0 + 0.25 + (0.25 - beta) * term + 0.5 * 4.0
+    assert metrics["imagined_return"].item() == pytest.approx(expected, rel=1e-6)
