@@ -12,8 +12,11 @@ Read top to bottom:
 4. Losses .......... Gaussian likelihoods and KL, free bits, lambda-returns (paper 3.8-3.9)
 5. Replay .......... per-agent ring buffer of uint8 frames, uniform sequence sampling
 6. Agent ........... world-model update, imagination, actor and critic updates, acting
-7. Training loop ... Algorithm 1: decentralized agents act, store, train; stages single / ghost / race
-8. Infrastructure .. validation, memory, set-up and resume, atomic checkpoints, command line
+7. Training loop ... Algorithm 1 in `main`: decentralized agents act, store, train; stages single / ghost / race
+8. Checkpoints ..... this script's readers of the checkpoint format
+
+The run plumbing around the method (arguments' checks, memory, run directory and resume, logging, atomic
+checkpoints and replay saves, the command line) is shared by both scripts: utils/run.py, utils/checkpoint.py.
 
 Everything that depends on the recurrent cell is inside `RecurrentCell` (its state is a tuple of
 tensors; the model state fed to every head is z||h). The GRU script (dreamer_gru.py) is this file
@@ -24,18 +27,12 @@ from __future__ import annotations
 
 import contextlib
 import copy
-import ctypes
 import dataclasses
-import glob
 import itertools
-import json
 import math
 import os
-import platform
-import random
 import sys
 import time
-from collections import deque
 from typing import Annotated, Literal
 
 import cv2
@@ -44,6 +41,10 @@ import torch
 import torch.nn.functional as F
 import tyro
 from torch import nn
+
+from utils import checkpoint as saved
+from utils.checkpoint import UsageError
+from utils.run import after_training, finish_run, log_race, log_updates, progress_callback, setup_run
 
 VARIANT = "lstm"  # written into every checkpoint, so race.py knows which script built the agent
 
@@ -68,7 +69,7 @@ class Args:
     torch_threads: int = 0
     """number of CPU threads of torch (0: torch's default)"""
     malloc_fix: bool = True
-    """keep freed memory in the process (glibc mallopt, docs/agent.md): halves update time on these VMs"""
+    """keep freed memory in the process (glibc mallopt, docs/agent.md): halved the update time on a 2-core CPU"""
     compile: bool = False
     """torch.compile the networks (same losses up to float rounding; minutes of compiling at the start)"""
     amp: Literal["auto", "on", "off"] = "auto"
@@ -138,10 +139,9 @@ class Args:
     """races per evaluation"""
     eval_policy: Literal["deterministic", "mean-action", "stochastic"] = "mean-action"
     """evaluation's policy: deterministic = posterior mean z and mean action; mean-action = sampled z, mean action;
-    stochastic = sampled z and action (the policy that was optimised). The mean action by default: a rule fixed
-    before it was measured found it drives better than the sampled action after 8,000 updates (six runs, paired,
-    95% interval above 0; early in training the mean-action car can stall where the sampled one drives:
-    docs/learning.md)"""
+    stochastic = sampled z and action (the policy that was optimised). The mean action by default: after 8,000
+    updates it drove better than the sampled action in five of six runs, a weak result (docs/learning.md); early
+    in training the mean-action car can stall where the sampled one drives"""
     eval_checkpoints: bool = False
     """also keep checkpoints/eval_<race>.pt at every evaluation (the policy as evaluated, for later analysis)"""
     eval_seed: int = 10_000
@@ -292,6 +292,13 @@ def dead_zone_at(episode: int, args: Args) -> float:
     return args.dead_zone_start + frac * (args.dead_zone_end - args.dead_zone_start)
 
 
+def next_dead_zone(args: Args, races_done: int) -> float:
+    """The dead zone to set after race `races_done` ended; the env applies it at its next reset. One race at a time
+    resets after this (start_race): the next race gets dead_zone_at(races_done). K > 1 races side by side have
+    already auto-reset the finished race's slot: the value is one race ahead, for the race that starts next."""
+    return dead_zone_at(races_done + (args.num_races > 1), args)
+
+
 def race_seed(seed: int, episode: int) -> int:
     """Track seed of training race `episode` (one race at a time): fixed by the run's seed and the episode number,
     so a resumed run drives the very tracks the uninterrupted run would have."""
@@ -436,7 +443,7 @@ class Decoder(nn.Module):
 
     def sigma(self) -> torch.Tensor:
         # A floor at 0 with log sigma starting at 0 fixes sigma = 1: the pixel term keeps its weight
-        # against the KL instead of growing as the reconstructions sharpen (docs/learning_history.md).
+        # against the KL instead of growing as the reconstructions sharpen (docs/deviations.md, --preset cpu).
         return self.log_sigma.clamp(self.min_log_sigma, LOG_SIGMA_RANGE[1]).exp()
 
 
@@ -594,7 +601,7 @@ class Actor(nn.Module):
 
     The noise lives in action space with sigma softly bounded below by 0.1, so the policy keeps exploring
     even where its mean saturates; a tanh-squashed Gaussian has no such floor (the std of tanh(N(2, 0.05))
-    is 0.004), and it collapsed to bang-bang steering in our runs (docs/learning_history.md).
+    is 0.004), and an earlier version of these scripts with it steered bang-bang (docs/deviations.md).
     """
 
     def __init__(self, feature_size: int, mlp_size: int, action_dim: int, norm: str):
@@ -684,6 +691,7 @@ def lambda_returns(rewards, continues, values, log_pi, gamma: float, lam: float,
     lambda_returns(r, c, V, log_pi) = lambda_returns(r, c, V, 0) + lambda_returns(0, c, 0, log_pi): the task
     part and the entropy part, which --return-norm scales apart.
     """
+    assert rewards.shape == continues.shape == values.shape == log_pi.shape, (rewards.shape, values.shape, log_pi.shape)
     next_return = values[-1]
     returns = []
     for t in reversed(range(rewards.shape[0])):
@@ -772,9 +780,7 @@ class Replay:
         self.is_first = np.zeros(self.capacity, dtype=bool)
         self.terminated = np.zeros(self.capacity, dtype=bool)
         self.next_index, self.size, self.total_steps, self.episodes = 0, 0, 0, 0
-        self._dirty: set[int] = set()
-        self._saved_to: str | None = None
-        self._files: dict[int, str] = {}  # chunk -> its file in _saved_to
+        self.saver = None  # utils.checkpoint.ReplaySaver: what was saved of this buffer, and where
 
     @staticmethod
     def bytes_per_step(image_size: int, action_dim: int = 2) -> int:
@@ -792,7 +798,6 @@ class Replay:
         self.obs[idx], self.action[idx], self.reward[idx], self.terminated[idx] = obs, action, reward, terminated
         self.is_first[idx] = False
         self.is_first[idx[0]] = True
-        self._dirty.update(np.unique(idx // self.chunk_size).tolist())
         self.next_index = int((self.next_index + length) % self.capacity)
         self.size = min(self.capacity, self.size + length)
         self.total_steps += length
@@ -813,76 +818,6 @@ class Replay:
             "is_first": self.is_first[idx],
             "terminated": self.terminated[idx],
         }
-
-    def save(self, directory: str) -> dict:
-        """Save as chunked compressed .npz files; returns the manifest (counters and chunk files) that `load` takes.
-
-        Only chunks changed since the last save to the same directory are written, each to a new file (named by
-        total_steps), then meta.npz with the manifest; every write is atomic. Files of earlier saves stay until
-        `prune`, so a checkpoint holding an earlier manifest still loads: a kill at any moment loses nothing saved.
-        """
-        os.makedirs(directory, exist_ok=True)
-        num_chunks = math.ceil(self.size / self.chunk_size)  # filled steps: [0, size) until the buffer wraps
-        if self._saved_to != directory:
-            self._files, changed = {}, range(num_chunks)
-        else:
-            changed = sorted(c for c in self._dirty if c < num_chunks)
-        for c in changed:
-            name = f"chunk_{c:05d}_{self.total_steps:012d}.npz"
-            part = slice(c * self.chunk_size, min(self.size, (c + 1) * self.chunk_size))
-            _atomic_npz(
-                os.path.join(directory, name),
-                obs=self.obs[part], action=self.action[part], reward=self.reward[part],
-                is_first=self.is_first[part], terminated=self.terminated[part],
-            )  # fmt: skip
-            self._files[c] = name
-        manifest = self.manifest()
-        meta = {k: np.asarray(v, dtype=str) if k == "files" else np.asarray(v) for k, v in manifest.items()}
-        _atomic_npz(os.path.join(directory, "meta.npz"), **meta)
-        self._dirty.clear()
-        self._saved_to = directory
-        return manifest
-
-    def load(self, directory: str, manifest: dict | None = None) -> None:
-        """Restore a save: `manifest` (as a checkpoint holds it) or else the directory's meta.npz (the newest save)."""
-        if manifest is None:
-            with np.load(os.path.join(directory, "meta.npz")) as meta:
-                manifest = {k: meta[k].tolist() for k in meta.files}
-        if int(manifest["capacity"]) != self.capacity:
-            raise ValueError(f"replay in {directory} has capacity {manifest['capacity']}, this buffer {self.capacity}")
-        chunk_size = int(manifest["chunk_size"])
-        if "files" in manifest:
-            files = list(manifest["files"])
-        else:  # the layout before chunk files were versioned
-            files = [f"chunk_{c:05d}.npz" for c in range(manifest["num_chunks"])]
-        for c, name in enumerate(files):
-            with np.load(os.path.join(directory, name)) as chunk:
-                start = c * chunk_size
-                for key in ("obs", "action", "reward", "is_first", "terminated"):
-                    getattr(self, key)[start : start + len(chunk[key])] = chunk[key]
-        self.next_index, self.size = int(manifest["next_index"]), int(manifest["size"])
-        self.total_steps, self.episodes = int(manifest["total_steps"]), int(manifest["episodes"])
-        self.chunk_size = chunk_size
-        self._files = dict(enumerate(files))
-        self._dirty.clear()
-        self._saved_to = directory
-
-    def manifest(self) -> dict:
-        """What the last save holds, in plain types (a checkpoint names it): counters and chunk files."""
-        return {
-            "capacity": self.capacity, "chunk_size": self.chunk_size, "next_index": self.next_index,
-            "size": self.size, "total_steps": self.total_steps, "episodes": self.episodes,
-            "files": [self._files[c] for c in range(len(self._files))],
-        }  # fmt: skip
-
-    @staticmethod
-    def prune(directory: str, keep: dict) -> None:
-        """Delete the chunk files (and leftover temporary files) of `directory` that manifest `keep` does not name."""
-        keep_files = set(keep["files"])
-        for path in glob.glob(os.path.join(directory, "chunk_*.npz*")):
-            if os.path.basename(path) not in keep_files:
-                with contextlib.suppress(OSError):
-                    os.remove(path)
 
 
 # =====================================================================================
@@ -998,6 +933,7 @@ class Agent:
         if 0 < num < h.shape[0]:
             idx = torch.randperm(h.shape[0], device=h.device)[:num]
             state, h, z, cont = tuple(s[idx] for s in state), h[idx], z[idx], cont[idx]
+        assert all(s.shape[0] == h.shape[0] for s in state) and z.shape[0] == cont.shape[0] == h.shape[0]
         return state, h, z, cont
 
     def behaviour_losses(self, post: dict, terminated: torch.Tensor):
@@ -1025,7 +961,9 @@ class Agent:
             gamma, lam, zero, alpha = args.gamma, args.lambda_, torch.zeros_like(rewards), self.alpha()
             # the bonus -alpha log pi_t comes with r_{t+1}; --action-penalty beta reweighs its extreme-action part:
             # -alpha log pi + (alpha - beta) term = -alpha log N(a) - beta term (added where lambda_returns is linear)
-            extra = None if args.action_penalty is None else (alpha - args.action_penalty) * extreme_action_term(samples)
+            beta, extra = args.action_penalty, None
+            if beta is not None:
+                extra = (alpha - beta) * extreme_action_term(samples)
             if args.return_norm:  # scale the task part only (lambda_returns is linear in r, V and log pi)
                 task = lambda_returns(rewards, continues, values, torch.zeros_like(log_pi), gamma, lam, 0.0)
                 entropy = lambda_returns(zero if extra is None else extra, continues, zero, log_pi, gamma, lam, alpha)
@@ -1081,6 +1019,10 @@ class Agent:
         rewards = torch.as_tensor(batch["reward"], device=dev, dtype=torch.float32)
         is_first = torch.as_tensor(batch["is_first"], device=dev, dtype=torch.bool)
         terminated = torch.as_tensor(batch["terminated"], device=dev, dtype=torch.float32)
+        b, l, size = *is_first.shape, self.args.image_size  # B sequences of L steps
+        assert obs.shape == (b, l, size, size, 3), obs.shape
+        assert actions.shape == (b, l, self.action_dim), actions.shape
+        assert rewards.shape == terminated.shape == (b, l), (rewards.shape, terminated.shape)
         self._set_training(True)
         statistics = {m: [b.clone() for b in m.buffers()] for m in (self.world_model, self.actor)}  # BatchNorm
 
@@ -1218,12 +1160,6 @@ class Agent:
         self.nonfinite_updates = int(state.get("nonfinite_updates", 0))
         self.nonfinite_in_a_row = int(state.get("nonfinite_in_a_row", 0))
 
-    def save(self, path: str) -> None:
-        _atomic_torch_save(self.state_dict(), path)
-
-    def load(self, path: str) -> None:
-        self.load_state_dict(torch.load(path, map_location=self.device, weights_only=True))
-
 
 # =====================================================================================
 # 7. Training loop (Algorithm 1)
@@ -1303,11 +1239,12 @@ def drive_races(agents: list[Agent], args: Args, eval_envs, policy: str | None =
 
 
 def train_agent(agent: Agent, replay: Replay, args: Args, logger, prefix: str, on_update=None) -> float:
-    """--train-steps-per-episode updates on uniformly sampled sequences; returns updates per second.
+    """Algorithm 1's training step of one agent: K = --train-steps-per-episode updates, each on B sequences of length
+    L sampled uniformly from its own replay; returns updates per second.
 
     Each update's losses go to the logger as running means (SB3's record_mean; non-finite values are left out).
     `on_update(done, seconds)` is called after every update (progress display). Stops early once the agent has
-    had --max-nonfinite-updates updates in a row with a non-finite loss or gradient (main then ends the run)."""
+    had --max-nonfinite-updates updates in a row with a non-finite loss or gradient (the run then ends)."""
     started, done = time.time(), 0
     for done in range(1, args.train_steps_per_episode + 1):
         t_update = time.time()
@@ -1321,64 +1258,7 @@ def train_agent(agent: Agent, replay: Replay, args: Args, logger, prefix: str, o
     return done / max(time.time() - started, 1e-9)
 
 
-@dataclasses.dataclass
-class Run:
-    """What a training run carries from race to race; `setup_run` builds it, `save_latest` writes it."""
-
-    args: Args
-    run_dir: str
-    device: torch.device
-    agents: list[Agent]
-    replays: list[Replay]
-    counters: dict  # episode (races finished), global_step (env steps), best_eval_return
-    logger: object
-    envs: object
-    eval_envs: object = None  # made at the first evaluation
-    ghosts: dict = dataclasses.field(default_factory=dict)  # ghost stage: track seed -> the best run on it so far
-    wins: list = dataclasses.field(default_factory=list)  # per agent, its last 100 race results
-    manifests: list = dataclasses.field(default_factory=list)  # per agent, the replay save that latest.pt names
-    from_checkpoint: bool = False  # the agents started from --checkpoint: no random prefill
-    started: float = dataclasses.field(default_factory=time.time)
-    cpu_started: float = dataclasses.field(default_factory=time.process_time)
-    cpu_before: float = 0.0  # CPU seconds of the run's earlier sittings (a resumed run)
-    fault: str | None = None  # set when an agent had --max-nonfinite-updates faulty updates in a row
-    update_seconds: list = dataclasses.field(default_factory=list)  # the first two updates' times (CPU report)
-    pbar: object = None
-
-    def cpu_seconds(self) -> float:
-        """Process CPU time of the run so far, over all its sittings (--cpu-hours-limit)."""
-        return self.cpu_before + time.process_time() - self.cpu_started
-
-    @property
-    def checkpoint_dir(self) -> str:
-        return os.path.join(self.run_dir, "checkpoints")
-
-    def replay_dir(self, j: int) -> str:
-        return os.path.join(self.checkpoint_dir, f"replay_car_{j}")
-
-    def finished(self) -> bool:
-        """The run's end: --total-episodes races, --total-updates updates, the time limit, or a numerical fault."""
-        args = self.args
-        return (
-            self.counters["episode"] >= args.total_episodes
-            or (args.total_updates > 0 and min(agent.num_updates for agent in self.agents) >= args.total_updates)
-            or (args.time_limit_hours > 0 and time.time() - self.started > 3600 * args.time_limit_hours)
-            or (args.cpu_hours_limit > 0 and self.cpu_seconds() > 3600 * args.cpu_hours_limit)
-            or self.fault is not None
-        )
-
-    def acts_randomly(self) -> bool:
-        """Random actions in the prefill races of a new single or race stage (also when resumed during them)."""
-        args = self.args
-        return self.counters["episode"] < args.prefill_episodes and not self.from_checkpoint and args.stage != "ghost"
-
-    def learning_starts(self) -> int:
-        """Updates start after the prefill races; a ghost-stage run first races every ghost track once with the
-        starting policy (those runs are the first ghosts)."""
-        return self.args.ghost_tracks if self.args.stage == "ghost" else self.args.prefill_episodes
-
-
-def start_race(run: Run) -> tuple[np.ndarray, int]:
+def start_race(run) -> tuple[np.ndarray, int]:
     """One race at a time (K = 1): reset on the next race's track, a ghost track with its ghost (if it has one yet)
     in the ghost stage, else the track race_seed(seed, episode), so a resumed run drives the same tracks."""
     args, episode = run.args, run.counters["episode"]
@@ -1391,170 +1271,20 @@ def start_race(run: Run) -> tuple[np.ndarray, int]:
     return run.envs.reset(), seed
 
 
-def log_race(run: Run, cars: list[CarEpisode], track_seed: int | None) -> None:
-    """Per car: return, progress, lap time and win rate (race stages; the ghost stage: beating the ghost, whose
-    record is replaced when beaten)."""
-    from envs import race_winners
-
-    args, logger = run.args, run.logger
-    final_infos = [car.final_info or {} for car in cars]
-    racing = args.env_id == "multi_car_racing"
-    won = race_winners(final_infos) if len(cars) > 1 and racing else None  # (highway-env has no ranks)
-    if args.stage == "ghost":  # a win is beating the ghost (races without a ghost yet do not count)
-        won = [bool(final_infos[0]["ghost_beaten"])] if "ghost_beaten" in final_infos[0] else None
-        if track_seed not in run.ghosts or (won and won[0]):  # the first run on the track, or the ghost beaten
-            run.ghosts[track_seed] = final_infos[0]["trajectory"].to_dict()
-        logger.record("ghost/track_seed", track_seed)
-        logger.record("ghost/ghosts_recorded", len(run.ghosts))
-    for j, car in enumerate(cars):
-        logger.record(f"car_{j}/charts/episodic_return", car.ret)
-        logger.record(f"car_{j}/charts/progress", float(final_infos[j].get("progress", 0.0)))
-        if final_infos[j].get("lap_finished"):
-            logger.record(f"car_{j}/charts/lap_time", int(final_infos[j]["finish_step"]))
-        if won is not None:
-            run.wins[j].append(float(won[j]))
-            logger.record(f"car_{j}/charts/win_rate", float(np.mean(run.wins[j])))
-    logger.record("charts/episode", run.counters["episode"])
-    if racing:
-        logger.record("charts/dead_zone", dead_zone_at(run.counters["episode"], args))
-
-
-def train_all(run: Run) -> None:
-    """Every agent trains on its own replay (Algorithm 1, after each race); the burst shows in the progress bar,
-    and on a CPU the time of one update is reported after the first few."""
-    args = run.args
-    for j, (agent, replay) in enumerate(zip(run.agents, run.replays)):
-
-        burst_start = time.time()
-
-        def on_update(done: int, seconds: float, j=j) -> None:
-            if len(run.update_seconds) < 2:
-                run.update_seconds.append(seconds)
-                if len(run.update_seconds) == 2 and run.device.type == "cpu":
-                    report_update_time(run)
-            if run.pbar is not None:
-                rate = done / max(time.time() - burst_start, 1e-9)
-                run.pbar.set_postfix_str(f"training car_{j}: {done}/{args.train_steps_per_episode} updates, "
-                                         f"{rate:.2f} updates/s", refresh=True)  # fmt: skip
-
-        updates_per_s = train_agent(agent, replay, args, run.logger, f"car_{j}/", on_update)
-        run.logger.record(f"car_{j}/perf/updates_per_s", updates_per_s)
-        run.logger.record(f"car_{j}/perf/updates", agent.num_updates)
-        run.logger.record(f"car_{j}/faults/nonfinite_updates", agent.nonfinite_updates)
-        if agent.nonfinite_in_a_row >= args.max_nonfinite_updates:
-            run.fault = (f"car_{j}: {agent.nonfinite_in_a_row} updates in a row had a non-finite loss or gradient"
-                         f" (--max-nonfinite-updates {args.max_nonfinite_updates})")  # fmt: skip
-            return
-
-
-def report_update_time(run: Run) -> None:
-    """Say how long one update takes on this CPU (the second update: the first warms up) and what that means per
-    race, as soon as it is known (at the paper's size within a minute or two of the start)."""
-    args, n = run.args, len(run.agents)
-    per_update = run.update_seconds[1]
-    minutes = per_update * args.train_steps_per_episode * n / 60
-    message = (f"On this CPU one update takes {per_update:.2f} s: {args.train_steps_per_episode} updates x {n}"
-               f" agent(s) = {minutes:.1f} min of training per race.")  # fmt: skip
-    if args.preset == "paper":
-        message += f" For a CPU-sized run: python {os.path.basename(__file__)} --preset cpu --seed 1 (README.md)"
-    _print(run, message)
-
-
-def log_videos(run: Run, cars: list[CarEpisode]) -> None:
-    """Each car's race so far beside the model's reconstruction and an open-loop imagination."""
-    from utils.logger import log_video
-
-    for j, (agent, car) in enumerate(zip(run.agents, cars)):
-        obs, actions, _, _ = car.arrays()
-        length = min(len(obs), run.args.video_length)
-        first = np.zeros(length, dtype=bool)
-        first[0] = True
-        video = agent.video(obs[:length], actions[:length], first)
-        log_video(run.logger, f"car_{j}/videos/real_reconstruction_imagination", video, run.counters["global_step"], 25)
-
-
-def evaluate_and_keep_best(run: Run) -> None:
-    """Evaluate on the held-out tracks, log it, print one line, keep best.pt (and eval_<race>.pt if asked)."""
-    from utils import make_vec_env
-
-    args, counters = run.args, run.counters
-    if run.eval_envs is None:
-        run.eval_envs = make_vec_env(args.env_id, 1, None, **env_kwargs(args, args.dead_zone_end))
-    returns, progress, abs_steer = evaluate(run.agents, args, run.eval_envs)
-    for j in range(len(run.agents)):
-        run.logger.record(f"car_{j}/eval/episodic_return", float(returns[:, j].mean()))
-        run.logger.record(f"car_{j}/eval/progress", float(progress[:, j].mean()))
-        if args.env_id == "multi_car_racing":  # highway-env's action 0 is the acceleration
-            run.logger.record(f"car_{j}/eval/mean_abs_steer", float(abs_steer[:, j].mean()))
-    updates = run.agents[0].num_updates
-    _print(run, f"evaluation after race {counters['episode']} ({updates} updates, {counters['global_step']} env steps):"
-                f" return {returns.mean():.1f}, progress {progress.mean():.2f}, |steer| {abs_steer.mean():.2f}"
-                f" ({args.eval_policy}, {len(returns)} held-out tracks)")  # fmt: skip
-    extra = _extra(run)
-    if args.eval_checkpoints:
-        path = os.path.join(run.checkpoint_dir, f"eval_{counters['episode']:06d}.pt")
-        save_checkpoint(path, args, run.agents, counters, extra)
-    if returns.mean() > counters["best_eval_return"]:
-        counters["best_eval_return"] = float(returns.mean())
-        save_checkpoint(os.path.join(run.checkpoint_dir, "best.pt"), args, run.agents, counters, extra)
-
-
-def save_latest(run: Run) -> str:
-    """checkpoints/latest.pt, naming each agent's replay save; then the replay files it does not name go."""
-    path = os.path.join(run.checkpoint_dir, "latest.pt")
-    save_checkpoint(path, run.args, run.agents, run.counters, _extra(run))
-    for j, manifest in enumerate(run.manifests):
-        if manifest is not None:
-            Replay.prune(run.replay_dir(j), manifest)
-    return path
-
-
-def end_race(run: Run, cars: list[CarEpisode], track_seed: int | None, env_sps: float) -> None:
-    """After race `episode` ended: log it, train every agent, then video, evaluation, replay save, checkpoint."""
-    args, counters = run.args, run.counters
-    counters["episode"] += 1
-    episode = counters["episode"]
-    log_race(run, cars, track_seed)
-    for j in range(len(cars)):
-        run.logger.record(f"car_{j}/perf/env_sps", env_sps)
-    if args.env_id == "multi_car_racing":  # the dead-zone schedule, applied at the env's next reset: one race at
-        # a time resets after this (start_race); K races have already auto-reset this slot, so K > 1 sets the value
-        # one race ahead, for the race that starts when the next one ends (main sets it for the first)
-        run.envs.env_method("set_dead_zone", dead_zone_at(episode + (args.num_races > 1), args))
-    if episode >= run.learning_starts() and all(r.can_sample(args.seq_len) for r in run.replays):
-        train_all(run)
-    if run.fault is None:
-        if args.video_every and episode % args.video_every == 0:
-            log_videos(run, cars)
-        if args.eval_every and episode % args.eval_every == 0:
-            evaluate_and_keep_best(run)
-        # The replay first, then latest.pt naming it: a kill between the two leaves the previous pair intact.
-        if args.replay_save_every and episode % args.replay_save_every == 0:
-            run.manifests = [replay.save(run.replay_dir(j)) for j, replay in enumerate(run.replays)]
-        if args.checkpoint_every and episode % args.checkpoint_every == 0:
-            save_latest(run)
-    run.logger.record("charts/cpu_hours", run.cpu_seconds() / 3600)  # after the race's training and evaluation
-    run.logger.dump(counters["global_step"])
-    if run.pbar is not None:
-        run.pbar.update(1)
-        run.pbar.set_postfix_str(f"race {episode}: return {np.mean([c.ret for c in cars]):.1f}, "
-                                 f"{env_sps:.0f} env steps/s, {run.agents[0].num_updates} updates")  # fmt: skip
-
-
 def main(args: Args, overrides=()) -> str:
     """Train with `args` (Algorithm 1); returns the run directory. With args.resume the run continues with the
     settings it was started with, except the fields named in `overrides`, which come from `args`.
 
     Bad input (an impossible argument, an unreadable checkpoint, a replay that cannot fit in memory) raises
     UsageError before anything is written. --max-nonfinite-updates faulty updates in a row end the run with a
-    checkpoint and raise NumericalFault."""
+    checkpoint and raise NumericalFault. The run's set-up, logging and checkpoints: utils/run.py."""
     from tqdm import tqdm
 
-    run = setup_run(args, overrides)
+    run = setup_run(sys.modules[__name__], args, overrides)  # a new run, or a saved one exactly as it stopped
     args, n, k_races = run.args, run.args.num_agents, run.args.num_races
     slots = k_races * n  # agent i drives car i of every race: slots i, i + n, ...
     # One race at a time starts on its own track (start_race); K races side by side auto-reset on the tracks of
-    # each race's seeded stream, with the dead zone set ahead for the race that starts next (end_race).
+    # each race's seeded stream, with the dead zone set ahead for the race that starts next (below).
     obs, track_seed = start_race(run) if k_races == 1 else (run.envs.reset(), None)
     if args.env_id == "multi_car_racing" and k_races > 1:
         run.envs.env_method("set_dead_zone", dead_zone_at(run.counters["episode"] + 1, args))
@@ -1591,11 +1321,24 @@ def main(args: Args, overrides=()) -> str:
                 episodes[slot].add(frames[slot], actions[slot], rewards[slot], terminated=False)
         is_first = np.array([info["is_first"] for info in infos], dtype=bool)
         env_time += time.time() - t0
-        # --- train: after every race that ended, each agent updates on its own replay --------------------
         if is_first.any():  # env steps per second while the agents acted, since the last race ended
             env_sps, env_time, env_steps = env_steps / max(env_time, 1e-9), 0.0, 0
+        # --- train: after every race that ended, each agent updates on its own replay --------------------
         for race in np.flatnonzero(is_first[::n]):
-            end_race(run, episodes[race * n : (race + 1) * n], track_seed, env_sps)
+            cars = episodes[race * n : (race + 1) * n]
+            run.counters["episode"] += 1
+            log_race(run, cars, track_seed)
+            for j in range(n):
+                run.logger.record(f"car_{j}/perf/env_sps", env_sps)
+            if args.env_id == "multi_car_racing":
+                run.envs.env_method("set_dead_zone", next_dead_zone(args, run.counters["episode"]))
+            if run.learns_now():
+                for j, (agent, replay) in enumerate(zip(run.agents, run.replays)):
+                    updates_per_s = train_agent(agent, replay, args, run.logger, f"car_{j}/", progress_callback(run, j))
+                    log_updates(run, j, updates_per_s)
+                    if run.fault is not None:
+                        break
+            after_training(run, cars, env_sps)  # video, evaluation and best.pt, replay save, latest.pt, logs
             if run.finished():
                 break
         if k_races == 1 and is_first.any() and not run.finished():
@@ -1605,548 +1348,24 @@ def main(args: Args, overrides=()) -> str:
 
 
 # =====================================================================================
-# 8. Run infrastructure: arguments, memory, set-up and resume, checkpoints, command line
+# 8. This script's checkpoints (the formats and the run plumbing: utils/checkpoint.py, utils/run.py)
 # =====================================================================================
-# Arguments that fix the networks' shapes (a --checkpoint brings its own; a resumed run cannot change them),
-# and what a run is (a resumed run cannot change those either).
-ARCHITECTURE = ("image_size", "cnn_depth", "deter_size", "hidden_size", "mlp_size", "latent_size", "norm")
-IDENTITY = ("env_id", "num_agents", "num_races", "stage", "seed", "exp_name", "runs_dir", "checkpoint", "preset")
-
-
-def explicit_fields(argv: list[str]) -> set[str]:
-    """Names of the Args fields that a command line sets explicitly (`--flag v`, `--flag=v`, `--[no-]flag`)."""
-    fields = {field.name: field for field in dataclasses.fields(Args)}
-    names = {_flag(name)[2:]: name for name in fields}
-    found = set()
-    for token in argv:
-        if not token.startswith("--"):
-            continue
-        flag = token[2:].split("=", 1)[0].replace("_", "-")
-        if flag in names:
-            found.add(names[flag])
-        elif flag.startswith("no-") and flag[3:] in names and fields[names[flag[3:]]].type in (bool, "bool"):
-            found.add(names[flag[3:]])
-    return found
-
-
-class UsageError(ValueError):
-    """Bad input (an argument, a checkpoint file, a memory budget), found before any work starts; one-line message."""
-
-
-class CheckpointError(UsageError):
-    """A missing, truncated or foreign checkpoint (or replay) file; the message names the file."""
-
-
-class WrongVariant(CheckpointError):
-    """A checkpoint of the other variant's script (race.py then asks that script)."""
-
-
-class NumericalFault(RuntimeError):
-    """--max-nonfinite-updates updates in a row had a non-finite loss or gradient; the run stopped with a checkpoint."""
-
-
-def _flag(name: str) -> str:
-    return "--lambda" if name == "lambda_" else "--" + name.replace("_", "-")
-
-
-def validate_args(args: Args) -> None:
-    """Refuse impossible arguments before any work starts: raises UsageError (a ValueError) naming the flag."""
-
-    def require(ok: bool, name: str, requirement: str) -> None:
-        if not ok:
-            raise UsageError(f"{_flag(name)} {requirement}, got {getattr(args, name)!r}")
-
-    for field in dataclasses.fields(args):
-        value = getattr(args, field.name)
-        if isinstance(value, float):
-            require(math.isfinite(value), field.name, "must be a finite number")
-    for minimum, names in {
-        1: ("num_agents", "num_races", "max_steps", "action_repeat", "total_episodes", "replay_capacity", "batch_size",
-            "imagination_horizon", "eval_episodes", "ghost_tracks", "video_length", "max_nonfinite_updates",
-            "cnn_depth", "deter_size", "hidden_size", "mlp_size", "latent_size"),
-        2: ("seq_len",),  # a sequence model learns from transitions: at least two steps
-        0: ("torch_threads", "stall_steps", "dead_zone_episodes", "prefill_episodes", "train_steps_per_episode",
-            "eval_every", "video_every", "checkpoint_every", "replay_save_every", "imagination_starts",
-            "time_limit_hours", "cpu_hours_limit", "entropy_coef", "free_bits", "kl_dyn_scale", "kl_rep_scale", "brake_speed_threshold",
-            "collision_penalty", "offroad_penalty", "eval_seed", "ghost_seed"),
-    }.items():  # fmt: skip
-        for name in names:
-            require(getattr(args, name) >= minimum, name, f"must be >= {minimum}")
-    for name in ("model_lr", "critic_lr", "actor_lr", "grad_clip"):
-        require(getattr(args, name) > 0, name, "must be > 0")
-    require(0 < args.gamma <= 1, "gamma", "must lie in (0, 1]")
-    require(0 <= args.lambda_ <= 1, "lambda_", "must lie in [0, 1]")
-    require(0 <= args.reward_nll_beta <= 1, "reward_nll_beta", "must lie in [0, 1]")
-    require(args.head_sigma >= 0, "head_sigma", "must be >= 0 (0: learned)")
-    require(args.entropy_lr > 0, "entropy_lr", "must be > 0")
-    if args.action_penalty is not None:
-        require(math.isfinite(args.action_penalty) and args.action_penalty >= 0, "action_penalty", "must be >= 0")
-    if args.entropy_target is not None:
-        require(math.isfinite(args.entropy_target), "entropy_target", "must be a finite number")
-        require(args.entropy_coef > 0, "entropy_coef", "must be > 0 with --entropy-target (alpha starts there)")
-    require(0 < args.tau <= 1, "tau", "must lie in (0, 1]")
-    low, high = LOG_SIGMA_RANGE
-    require(low <= args.decoder_min_log_sigma <= high, "decoder_min_log_sigma", f"must lie in [{low:g}, {high:g}]")
-    for name in ("dead_zone_start", "dead_zone_end"):
-        require(-1 <= getattr(args, name) <= 0, name, "must lie in [-1, 0]")
-    require(0 <= args.seed < 2**32, "seed", "must lie in [0, 2**32)")
-    starts = args.batch_size * args.seq_len
-    require(args.imagination_starts <= starts, "imagination_starts", f"must be <= batch-size * seq-len = {starts}")
-    require(args.replay_capacity >= args.seq_len, "replay_capacity", f"must be >= --seq-len ({args.seq_len})")
-    from utils.vec_env import ENV_IDS
-
-    require(args.env_id in ENV_IDS, "env_id", f"must be one of {sorted(ENV_IDS)}")
-    if args.stage == "ghost":
-        require(args.env_id == "multi_car_racing", "env_id", "must be multi_car_racing for --stage ghost")
-        if not args.checkpoint and not args.resume:
-            raise UsageError("--stage ghost needs --checkpoint (e.g. runs/<run>/checkpoints/best.pt)")
-    if args.resume is not None:
-        require(os.path.isfile(resolve_checkpoint(args.resume)), "resume", "must be a run directory with "
-                "checkpoints/latest.pt or a checkpoint file")  # fmt: skip
-    elif args.checkpoint is not None:  # (a resumed run has its networks already)
-        require(os.path.isfile(args.checkpoint), "checkpoint", "must be a checkpoint file")
-    elif args.fresh_replay:
-        raise UsageError("--fresh-replay applies to a run started from --checkpoint (give one, or drop the flag)")
-
-
-def available_memory() -> tuple[int | None, str]:
-    """Bytes of memory a new allocation can use, and where the number comes from: MemAvailable of /proc/meminfo
-    (capped by a cgroup memory limit), else free physical pages (sysconf), else (None, "unknown")."""
-    available, source = None, "unknown"
-    with contextlib.suppress(OSError, ValueError):
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    available, source = int(line.split()[1]) * 1024, "MemAvailable in /proc/meminfo"
-    if available is None:
-        with contextlib.suppress(OSError, ValueError, AttributeError):
-            available, source = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"), "free pages (sysconf)"
-    cgroup_files = [("memory.max", "memory.current"), ("memory/memory.limit_in_bytes", "memory/memory.usage_in_bytes")]
-    for limit_file, usage_file in cgroup_files:
-        with contextlib.suppress(OSError, ValueError):  # a container's limit ("max": none)
-            with open(f"/sys/fs/cgroup/{limit_file}") as f, open(f"/sys/fs/cgroup/{usage_file}") as g:
-                room = int(f.read()) - int(g.read())
-            if available is None or room < available:
-                available, source = room, f"cgroup limit /sys/fs/cgroup/{limit_file}"
-    return available, source
-
-
-def _size(num_bytes: float) -> str:
-    return f"{num_bytes / 1e9:,.2f} GB" if num_bytes >= 1e9 else f"{num_bytes / 1e6:,.1f} MB"
-
-
-def check_replay_memory(args: Args) -> int:
-    """Print the replay buffers' size (all agents) and refuse a capacity that cannot fit in available memory.
-
-    The buffers are allocated lazily (pages are touched as they fill), so a run that does not fit would only
-    fail hours later; returns their size in bytes."""
-    step_bytes = Replay.bytes_per_step(args.image_size)
-    per_agent = args.replay_capacity * step_bytes
-    total = args.num_agents * per_agent
-    available, source = available_memory()
-    room = "unknown" if available is None else _size(available)
-    print(f"replay buffers: {args.num_agents} x {args.replay_capacity:,} steps x {step_bytes:,} B = {_size(total)}"
-          f" (memory available: {room}, {source})")  # fmt: skip
-    if available is not None and total > available:
-        raise UsageError(
-            f"--replay-capacity {args.replay_capacity}: the replay buffers need {args.num_agents} x {_size(per_agent)}"
-            f" = {_size(total)} but only {_size(available)} of memory is available ({source}); lower --replay-capacity"
-        )
-    return total
-
-
-def keep_freed_memory() -> bool:
-    """Stop glibc from returning freed memory to the OS (docs/agent.md, update time).
-
-    Every update allocates and frees the same large blocks; by default glibc unmaps them and the
-    kernel page-faults them in again on the next update (~45% of wall time measured here).
-    mallopt(M_TRIM_THRESHOLD, 2**31-1) and mallopt(M_MMAP_MAX, 0) keep them in the process.
-    Linux/glibc only; returns whether both settings took effect.
-    """
-    if not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc":
-        return False
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-    except OSError:
-        return False
-    M_TRIM_THRESHOLD, M_MMAP_MAX = -1, -4  # from glibc's malloc.h
-    return libc.mallopt(M_TRIM_THRESHOLD, 2**31 - 1) == 1 and libc.mallopt(M_MMAP_MAX, 0) == 1
-
-
-def setup_run(args: Args, overrides=()) -> Run:
-    """Check everything, then build the run: a new one, or (args.resume) the saved one exactly as it stopped.
-    Nothing is written before every check has passed."""
-    from utils import make_vec_env
-    from utils.logger import configure_logger, make_run_name
-
-    validate_args(args)
-    resumed = start = None
-    if args.resume:
-        checkpoint_path = resolve_checkpoint(args.resume)
-        resumed = load_checkpoint(checkpoint_path, training=True)
-        args = resumed_args(resumed, checkpoint_path, args, overrides)
-        validate_args(args)
-        run_dir = os.path.dirname(os.path.dirname(os.path.abspath(checkpoint_path)))
-    else:
-        args, start = new_run_args(args)
-        run_dir = os.path.join(args.runs_dir, make_run_name(args.env_id, args.exp_name, args.seed))
-    check_replay_memory(args)
-    if args.malloc_fix:
-        keep_freed_memory()
-    if args.torch_threads > 0:
-        torch.set_num_threads(args.torch_threads)
-    random.seed(args.seed)
-    np.random.seed(args.seed)
-    torch.manual_seed(args.seed)
-    torch.backends.cudnn.deterministic = args.torch_deterministic
-    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
-
-    n, episode = args.num_agents, int(resumed["counters"]["episode"]) if resumed else 0
-    kwargs = env_kwargs(args, dead_zone_at(episode, args))
-    envs = make_vec_env(args.env_id, args.num_races, args.seed + episode, args.use_subprocess, **kwargs)
-    action_dim = int(envs.action_space.shape[0])
-    run = Run(
-        args, run_dir, device,
-        agents=[Agent(args, action_dim, device) for _ in range(n)],
-        replays=[Replay(args.replay_capacity, args.image_size, action_dim) for _ in range(n)],
-        counters={"episode": 0, "global_step": 0, "best_eval_return": -math.inf},
-        logger=None, envs=envs, wins=[deque(maxlen=100) for _ in range(n)], manifests=[None] * n,
-        from_checkpoint=args.checkpoint is not None,
-    )  # fmt: skip
-    if resumed is not None:
-        restore_run(run, resumed, checkpoint_path)
-    elif start is not None:
-        for i, agent in enumerate(run.agents):
-            source = i % len(start["agents"])
-            load_agent_state(agent, start["agents"][source], args.checkpoint, source)
-            directory = replay_dir_of(args.checkpoint, source)
-            if not args.fresh_replay and os.path.isfile(os.path.join(directory, "meta.npz")):
-                # The agent keeps learning from all it has seen: the newest save beside the checkpoint (for a
-                # best.pt, its run's replay at the end, which holds all best.pt had seen and what came after).
-                with np.load(os.path.join(directory, "meta.npz")) as meta:
-                    capacity = int(meta["capacity"])
-                if capacity != args.replay_capacity:
-                    raise UsageError(f"--replay-capacity {args.replay_capacity}: the replay beside --checkpoint "
-                                     f"({directory}) holds {capacity}; give --replay-capacity {capacity}, or "
-                                     "--fresh-replay to start with an empty one")  # fmt: skip
-                restore_replay(run.replays[i], directory, None, races=0)
-                print(f"car {i}: continues with the replay in {directory} ({len(run.replays[i]):,} steps)")
-                # (run.manifests stay None: the run's own replay directory holds no save until its first one)
-    formats = ("stdout", "csv", "tensorboard") if args.print_table else ("csv", "tensorboard")
-    run.logger = configure_logger(run_dir, dataclasses.asdict(args), formats)
-    with open(os.path.join(run_dir, "config.json"), "w") as f:  # plot.py groups runs by variant and stage
-        json.dump({"variant": VARIANT, **dataclasses.asdict(args)}, f, indent=1)
-    print(f"run directory: {run_dir} (device {device}); tensorboard --logdir {args.runs_dir}")
-    if resumed is not None:
-        print(f"resumed from {checkpoint_path} at race {run.counters['episode']}, step {run.counters['global_step']}")
-        set_rng_state(resumed["rng"])  # last of the set-up: the random streams continue where they stopped
-    elif args.checkpoint:
-        print(f"agents start from {args.checkpoint}")
-    return run
-
-
-def new_run_args(args: Args) -> tuple[Args, dict | None]:
-    """A new run's Args with what its stage implies (one car for single and ghost, one race at a time for ghost)
-    and the network sizes of --checkpoint, and that checkpoint (or None)."""
-    if args.stage in ("single", "ghost") and args.num_agents != 1:
-        print(f"stage {args.stage!r} races one car: --num-agents {args.num_agents} -> 1")
-        args = dataclasses.replace(args, num_agents=1)
-    if args.stage == "ghost" and args.num_races != 1:
-        print(f"stage 'ghost' races one track at a time: --num-races {args.num_races} -> 1")
-        args = dataclasses.replace(args, num_races=1)
-    if not args.checkpoint:
-        return args, None
-    start = load_checkpoint(args.checkpoint, training=True)
-    sizes = args_from_checkpoint(start, args.checkpoint)
-    changed = {key: getattr(sizes, key) for key in ARCHITECTURE if getattr(sizes, key) != getattr(args, key)}
-    if changed:  # the networks must have the sizes they were trained with
-        print(f"network sizes from {args.checkpoint}: {changed}")
-        args = dataclasses.replace(args, **changed)
-    return args, start
-
-
-def restore_run(run: Run, resumed: dict, path: str) -> None:
-    """Put a checkpoint's agents, counters, ghosts, recent wins and replays into `run`."""
-    n = run.args.num_agents
-    if len(resumed["agents"]) != n:
-        raise CheckpointError(f"{path}: holds {len(resumed['agents'])} agent(s), its arguments {n}")
-    for i, (agent, state) in enumerate(zip(run.agents, resumed["agents"])):
-        load_agent_state(agent, state, path, i)
-    run.counters.update(resumed["counters"])
-    extra = resumed.get("extra") or {}
-    run.ghosts = {int(s): ghost_from_tensors(g) for s, g in extra.get("ghosts", {}).items()}
-    for j, history in enumerate(extra.get("wins", [])[:n]):
-        run.wins[j].extend(history)
-    run.cpu_before = float(extra.get("cpu_seconds", 0.0))  # (0 for a checkpoint written before it was kept)
-    saved = list(extra.get("replays") or []) + [None] * n
-    for j, replay in enumerate(run.replays):
-        run.manifests[j] = restore_replay(replay, run.replay_dir(j), saved[j], run.counters["episode"])
-
-
-def finish_run(run: Run) -> str:
-    """Save the replays and latest.pt, close everything; raise NumericalFault if that is why the run ended."""
-    run.manifests = [replay.save(run.replay_dir(j)) for j, replay in enumerate(run.replays)]
-    latest = save_latest(run)
-    if run.pbar is not None:
-        run.pbar.close()
-    run.envs.close()
-    if run.eval_envs is not None:
-        run.eval_envs.close()
-    run.logger.close()
-    if run.fault is not None:
-        raise NumericalFault(f"{run.fault}; stopped after race {run.counters['episode']} with the checkpoint {latest}")
-    return run.run_dir
-
-
-def _print(run: Run, message: str) -> None:
-    """A line on stdout that does not break the progress bar."""
-    if run.pbar is not None:
-        run.pbar.write(message)
-    else:
-        print(message)
-
-
-def resolve_checkpoint(path: str) -> str:
-    """A run directory means its checkpoints/latest.pt."""
-    return os.path.join(path, "checkpoints", "latest.pt") if os.path.isdir(path) else path
-
-
-def replay_dir_of(path: str, index: int) -> str:
-    """The replay of agent `index` saved beside a checkpoint: ``<stem>_replay_car_<index>`` (race.py --train) or
-    ``replay_car_<index>`` (a training run's ``checkpoints/``)."""
-    own = f"{os.path.splitext(path)[0]}_replay_car_{index}"
-    return own if os.path.isdir(own) else os.path.join(os.path.dirname(os.path.abspath(path)), f"replay_car_{index}")
-
-
-def restore_replay(replay: Replay, directory: str, manifest: dict | None, races: int) -> dict | None:
-    """Resume: load an agent's replay as the checkpoint names it (else the newest save in `directory`), say what
-    it lacks, and return the manifest loaded (None: nothing saved, the replay starts empty)."""
-    if manifest is not None and not all(os.path.isfile(os.path.join(directory, f)) for f in manifest["files"]):
-        print(f"note: {directory} no longer holds the replay save the checkpoint names; loading its newest save")
-        manifest = None
-    if manifest is None and not os.path.isfile(os.path.join(directory, "meta.npz")):
-        print(f"note: no replay saved in {directory}: it starts empty")
-        return None
-    try:
-        replay.load(directory, manifest)
-    except Exception as e:  # a chunk file damaged outside this program (the writes themselves are atomic)
-        raise CheckpointError(f"{directory}: replay not readable: {_first_line(e)}") from None
-    if replay.episodes < races:
-        print(f"note: {directory} was saved {races - replay.episodes} race(s) before the checkpoint"
-              " (--replay-save-every): the transitions of those races are not restored")  # fmt: skip
-    return replay.manifest()
-
-
-def resumed_args(checkpoint: dict, path: str, args: Args, overrides) -> Args:
-    """The Args of a resumed run: every setting it was started with, except the fields named in `overrides` (those
-    the resuming command line set explicitly), which come from `args`; prints each change (old -> new)."""
-    saved = args_from_checkpoint(checkpoint, path)
-    changes = {name: getattr(args, name) for name in overrides if name != "resume"}
-    fixed = sorted(n for n in changes if n in ARCHITECTURE + IDENTITY and changes[n] != getattr(saved, n))
-    if fixed:
-        raise UsageError(f"--resume: {', '.join(_flag(n) for n in fixed)} cannot change in a resumed run")
-    for name, value in changes.items():
-        if value != getattr(saved, name):
-            print(f"resume: {_flag(name)} {getattr(saved, name)!r} -> {value!r}")
-    return dataclasses.replace(saved, resume=args.resume, **changes)
-
-
-def _atomic_write(path: str, write) -> None:
-    """Write a file so that a kill at any moment leaves the old file or the new one, never a part: write(f) into a
-    temporary file beside it, flush and fsync it, rename it over `path` (os.replace), fsync the directory."""
-    directory = os.path.dirname(os.path.abspath(path))
-    os.makedirs(directory, exist_ok=True)
-    tmp = path + ".tmp"
-    try:
-        with open(tmp, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.remove(tmp)
-        raise
-    with contextlib.suppress(OSError):  # the rename itself reaches the disk (not possible on every platform)
-        fd = os.open(directory, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-
-
-def _atomic_npz(path: str, **arrays) -> None:
-    _atomic_write(path, lambda f: np.savez_compressed(f, **arrays))
-
-
-def _atomic_torch_save(obj, path: str) -> None:
-    _atomic_write(path, lambda f: torch.save(obj, f))
-
-
-def rng_state() -> dict:
-    """python, numpy and torch RNG states as tensors (restorable with set_rng_state)."""
-    np_state = np.random.get_state()
-    py_state = random.getstate()
-    state = {
-        "torch": torch.get_rng_state(),
-        "numpy_key": torch.from_numpy(np_state[1].astype(np.int64)),
-        "numpy_meta": torch.tensor([np_state[2], np_state[3]], dtype=torch.int64),
-        "numpy_gauss": torch.tensor(np_state[4], dtype=torch.float64),
-        "python": torch.tensor(py_state[1], dtype=torch.int64),
-        "python_gauss": torch.tensor(float("nan") if py_state[2] is None else py_state[2], dtype=torch.float64),
-    }
-    if torch.cuda.is_available():
-        state["cuda"] = torch.stack(torch.cuda.get_rng_state_all())
-    return state
-
-
-def set_rng_state(state: dict) -> None:
-    torch.set_rng_state(state["torch"])
-    meta = state["numpy_meta"].tolist()
-    key = state["numpy_key"].numpy().astype(np.uint32)
-    np.random.set_state(("MT19937", key, meta[0], meta[1], float(state["numpy_gauss"])))
-    gauss = float(state["python_gauss"])
-    random.setstate((3, tuple(state["python"].tolist()), None if math.isnan(gauss) else gauss))
-    if "cuda" in state and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(list(state["cuda"]))
-
-
-def save_checkpoint(path: str, args: Args, agents: list[Agent], counters: dict, extra: dict | None = None) -> None:
-    """The one checkpoint format: variant, args (dict), counters, every agent's networks and optimisers, RNG states."""
-    checkpoint = {
-        "variant": VARIANT,
-        "args": dataclasses.asdict(args),
-        "counters": dict(counters),
-        "agents": [agent.state_dict() for agent in agents],
-        "rng": rng_state(),
-        "extra": extra or {},
-    }
-    _atomic_torch_save(checkpoint, path)
-
-
-def export_policy(checkpoint_path: str, out: str, index: int = 0) -> int:
-    """Write agent `index` of a checkpoint as an acting-only export (Agent.acting_state_dict, with its args and
-    counters): what race.py and `learning.py --evaluate` need to drive, small enough for git. Returns its size."""
-    checkpoint = load_checkpoint(checkpoint_path)
-    agent = agent_from_checkpoint(checkpoint_path, index)
-    export = {
-        "variant": VARIANT, "kind": "policy", "args": checkpoint["args"], "counters": checkpoint["counters"],
-        "agents": [agent.acting_state_dict()],
-    }  # fmt: skip
-    _atomic_torch_save(export, out)
-    return os.path.getsize(out)
-
-
-CHECKPOINT_KEYS = ("variant", "args", "counters", "agents")  # and "rng", except in an acting-only export
-
-
-def _first_line(error: BaseException) -> str:
-    text = str(error).strip()
-    return text.splitlines()[0] if text else type(error).__name__
-
-
 def load_checkpoint(path: str, map_location="cpu", training: bool = False) -> dict:
-    """Load a checkpoint (or an acting-only export) of this script with weights_only=True; a missing, truncated or
-    foreign file (or one of the other variant, or an export when `training`) raises CheckpointError, whose
-    one-line message names the file."""
-    if not os.path.isfile(path):
-        raise CheckpointError(f"{path}: no such checkpoint file")
-    try:
-        checkpoint = torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as e:  # truncated zip, not a torch file, a pickle weights_only refuses, ...
-        reason = _first_line(e)
-        raise CheckpointError(f"{path}: not a readable checkpoint (truncated or not a torch file): {reason}") from None
-    export = isinstance(checkpoint, dict) and checkpoint.get("kind") == "policy"
-    keys = CHECKPOINT_KEYS if export else (*CHECKPOINT_KEYS, "rng")
-    if not isinstance(checkpoint, dict) or not all(key in checkpoint for key in keys):
-        raise CheckpointError(f"{path}: not a checkpoint of these scripts (needs entries {', '.join(keys)})")
-    if checkpoint["variant"] != VARIANT:
-        raise WrongVariant(f"{path}: holds a {checkpoint['variant']!r} agent, this script builds {VARIANT!r}")
-    if not isinstance(checkpoint["agents"], list) or not checkpoint["agents"]:
-        raise CheckpointError(f"{path}: holds no agents")
-    if training and checkpoint.get("kind") == "policy":
-        raise CheckpointError(f"{path}: is an acting-only export (no critic, optimisers or replay): it cannot train")
-    return checkpoint
+    """A checkpoint or acting-only export of this script, loaded with weights_only=True (utils.checkpoint)."""
+    return saved.load_checkpoint(path, VARIANT, map_location, training)
 
 
 def args_from_checkpoint(checkpoint: dict, path: str, **overrides) -> Args:
     """The Args a checkpoint was trained with (new flags keep their defaults, flags removed since are dropped)."""
-    names = {field.name for field in dataclasses.fields(Args)}
-    saved = checkpoint["args"] if isinstance(checkpoint["args"], dict) else {}
-    dropped = sorted(set(saved) - names)
-    if dropped:
-        print(f"note: {path} has arguments this script does not know (ignored): {', '.join(dropped)}")
-    try:
-        return Args(**{**{k: v for k, v in saved.items() if k in names}, **overrides})
-    except TypeError as e:
-        raise CheckpointError(f"{path}: its arguments do not fit this script: {_first_line(e)}") from None
-
-
-def load_agent_state(agent: Agent, state, path: str, index: int) -> None:
-    """agent.load_state_dict, with a one-line CheckpointError naming the file when the state does not fit."""
-    try:
-        agent.load_state_dict(state)
-    except (RuntimeError, KeyError, TypeError, ValueError, AttributeError) as e:
-        raise CheckpointError(f"{path}: agent {index} does not fit the networks it names: {_first_line(e)}") from None
+    return saved.args_from_checkpoint(Args, checkpoint, path, **overrides)
 
 
 def agent_from_checkpoint(path: str, index: int = 0, device="cpu") -> Agent:
-    """Build agent `index` of a checkpoint with the sizes it was trained with (used by race.py)."""
-    checkpoint = load_checkpoint(path, map_location=device)
-    if not 0 <= index < len(checkpoint["agents"]):
-        raise CheckpointError(f"{path}: has {len(checkpoint['agents'])} agent(s), asked for agent {index}")
-    state = checkpoint["agents"][index]
-    agent = Agent(args_from_checkpoint(checkpoint, path), action_dim_of(state), device=device)
-    load_agent_state(agent, state, path, index)
-    return agent
-
-
-def action_dim_of(agent_state: dict) -> int:
-    """The action size a saved agent was built for: its actor's output layer gives a mean and a sigma per action."""
-    try:
-        last = max((k for k in agent_state["actor"] if k.endswith(".bias")), key=lambda k: int(k.split(".")[2]))
-        return int(agent_state["actor"][last].shape[0]) // 2
-    except (KeyError, TypeError, ValueError, IndexError, AttributeError):
-        return 2  # not an agent's state: load_agent_state names the file and what does not fit
-
-
-def ghost_to_tensors(trajectory: dict) -> dict:
-    return {k: torch.as_tensor(np.asarray(v)) if isinstance(v, np.ndarray) else v for k, v in trajectory.items()}
-
-
-def ghost_from_tensors(trajectory: dict) -> dict:
-    return {k: v.numpy() if isinstance(v, torch.Tensor) else v for k, v in trajectory.items()}
-
-
-def _extra(run: Run) -> dict:
-    """The checkpoint's extra state: ghosts (ghost stage), the replay save of every agent, recent wins, CPU time."""
-    return {
-        "ghosts": {str(seed): ghost_to_tensors(g) for seed, g in run.ghosts.items()},
-        "replays": list(run.manifests),
-        "wins": [list(w) for w in run.wins],
-        "cpu_seconds": run.cpu_seconds(),
-    }
-
-
-def parse_args(argv: list[str] | None = None) -> tuple[Args, set[str]]:
-    """Args of a command line, with its --preset applied under the flags it sets, and the fields it sets."""
-    argv = sys.argv[1:] if argv is None else list(argv)
-    args = tyro.cli(Args, args=argv)
-    explicit = explicit_fields(argv)
-    if not args.resume:
-        args = dataclasses.replace(args, **{k: v for k, v in PRESETS[args.preset].items() if k not in explicit})
-    return args, explicit
-
-
-def cli(argv: list[str] | None = None) -> str:
-    """The command line: bad input and a run stopped by numerical faults end with a one-line error, no traceback."""
-    args, explicit = parse_args(argv)
-    try:
-        return main(args, explicit)
-    except (UsageError, NumericalFault) as e:
-        message = " ".join(str(e).split())
-        raise SystemExit(f"{os.path.basename(__file__)}: error: {message}") from None
+    """Agent `index` of a checkpoint of this script, built with the sizes it was trained with (race.py)."""
+    return saved.agent_from_checkpoint(sys.modules[__name__], path, index, device)
 
 
 if __name__ == "__main__":
-    cli()
+    from utils.run import cli
+
+    cli(sys.modules[__name__])

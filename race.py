@@ -42,6 +42,7 @@ import tyro
 
 from envs import MultiCarRacing, race_winners
 from envs.pursuit import PursuitDriver, lane_of
+from utils import checkpoint as saved
 
 VARIANT_SCRIPTS = {"lstm": "dreamer_lstm", "gru": "dreamer_gru"}
 WILSON_Z = 1.959963984540054  # two-sided 95%
@@ -59,7 +60,7 @@ class Args:
     """a scripted pure-pursuit driver to add: pursuit or pursuit:SPEED (default speed 70); repeatable"""
     policy: Literal["deterministic", "mean-action", "stochastic"] = "mean-action"
     """how Dreamer racers act: deterministic = posterior-mean latent and mean action; mean-action = sampled latent,
-    mean action (the default: the trained agents drive better with it, docs/learning.md); stochastic = sampled
+    mean action (the default, as the scripts' evaluation: docs/learning.md); stochastic = sampled
     latent and action, as trained (--train always samples)"""
     out: str | None = None
     """directory of results.csv/json and race.mp4 (default races/<time>)"""
@@ -108,9 +109,9 @@ def read_checkpoint(path: str, device="cpu", training: bool = False) -> tuple:
         script = importlib.import_module(name)
         try:
             return script, script.load_checkpoint(path, device, training)
-        except script.WrongVariant:
+        except saved.WrongVariant:
             continue  # the other script's file
-        except script.CheckpointError as e:
+        except saved.CheckpointError as e:
             raise CheckpointError(str(e)) from None
     raise CheckpointError(f"{path}: unknown variant; known: {sorted(VARIANT_SCRIPTS)}")
 
@@ -132,8 +133,8 @@ class DreamerRacer:
             message = text if text.startswith(path) else f"{path}: does not build an agent: {text}"
             raise CheckpointError(message) from None
         self.policy, self.counters = policy, dict(checkpoint.get("counters") or {})
-        saved = list((checkpoint.get("extra") or {}).get("replays") or [])
-        self.replay_manifest = saved[self.index] if self.index < len(saved) else None  # the replay save it names
+        manifests = list((checkpoint.get("extra") or {}).get("replays") or [])
+        self.replay_manifest = manifests[self.index] if self.index < len(manifests) else None  # the save it names
         folder = os.path.dirname(os.path.abspath(path))  # a run's checkpoints/ is named by its run directory
         owner = os.path.dirname(folder) if os.path.basename(folder) == "checkpoints" else folder
         self.name = f"{self.variant}:{os.path.basename(owner)}/{os.path.basename(path)}:{self.index}"
@@ -419,10 +420,10 @@ def train(args: Args, racers: list, device) -> str:
     for i in learners:
         r = racers[i]
         replays[i] = r.module.Replay(r.args.replay_capacity, r.args.image_size, r.agent.action_dim)
-        saved = r.module.replay_dir_of(r.path, r.index)
-        if not args.fresh_replay and os.path.isdir(saved):  # the agent keeps learning from all it has seen
-            r.module.restore_replay(replays[i], saved, r.replay_manifest, races=0)
-            print(f"{r.name}: continues with the replay in {saved} ({len(replays[i]):,} steps)")
+        kept = saved.replay_dir_of(r.path, r.index)
+        if not args.fresh_replay and os.path.isdir(kept):  # the agent keeps learning from all it has seen
+            saved.restore_replay(replays[i], kept, r.replay_manifest, races=0)
+            print(f"{r.name}: continues with the replay in {kept} ({len(replays[i]):,} steps)")
         steps = r.args.train_steps_per_episode if args.train_steps is None else args.train_steps
         train_args[i] = dataclasses.replace(r.args, train_steps_per_episode=steps)
     wins = {i: [] for i in range(len(racers))}
@@ -479,15 +480,16 @@ def save_racers(learning: dict, checkpoint_dir: str, races: int, env_steps: int)
     pending = {}
     for i, (racer, replay) in learning.items():
         path = os.path.join(checkpoint_dir, f"racer_{i}.pt")
-        manifest = replay.save(f"{os.path.splitext(path)[0]}_replay_car_0")
+        manifest = saved.save_replay(replay, f"{os.path.splitext(path)[0]}_replay_car_0")
         before = int(racer.counters.get("race_episodes", 0))  # races of earlier head-to-head sittings
         counters = {**racer.counters, "episode": races, "race_episodes": before + races, "race_env_steps": env_steps}
-        racer.module.save_checkpoint(path + ".pending", racer.args, [racer.agent], counters, {"replays": [manifest]})
+        saved.save_checkpoint(path + ".pending", racer.variant, racer.args, [racer.agent], counters,
+                              {"replays": [manifest]})  # fmt: skip
         pending[i] = (path, manifest)
     for path, _ in pending.values():
         os.replace(path + ".pending", path)
     for i, (path, manifest) in pending.items():
-        learning[i][0].module.Replay.prune(f"{os.path.splitext(path)[0]}_replay_car_0", manifest)
+        saved.prune_replay(f"{os.path.splitext(path)[0]}_replay_car_0", manifest)
 
 
 def main(argv=None):

@@ -27,8 +27,10 @@ restores each stage's experiment). The stages follow the paper and run one after
 
 Then it writes ``benchmarks/results/ghost_vs_control.csv``, ``head_to_head.csv`` and ``experiment.md`` (IQM and
 mean of the single-stage final returns per variant with stratified-bootstrap intervals, and the probability that
-the LSTM's head-to-head win rate exceeds the GRU's across seed pairs, both with rliable), and the table of the
-paper's claims; with ``--second-policy`` the head-to-head claims again, every tournament raced with that policy too.
+the LSTM's head-to-head win rate exceeds the GRU's across seed pairs, both with rliable: descriptions), and the
+table of the paper's claims, each judged by an exact permutation test and a t interval (stats.paired_claim,
+stats.two_group_claim: a bootstrap is too narrow over so few runs); with ``--second-policy`` the head-to-head claims
+again, every tournament raced with that policy too.
 """
 
 from __future__ import annotations
@@ -388,28 +390,35 @@ def trial_name(trial) -> str:
 
 def run_stage(spec: Spec, stage: str):
     """One Tune experiment per stage; an existing one is restored (finished trials are skipped)."""
-    from ray import tune
-
     trainable = race_trial if stage == "race" else dreamer_trial
     resources = {"cpu": spec.torch_threads, **({"gpu": spec.gpus_per_trial} if spec.gpus_per_trial else {})}
-    trainable = tune.with_resources(trainable, resources)
     path = os.path.join(os.path.abspath(spec.storage), "tune", f"{spec.name}_{stage}")
+    return fit_trials(trainable, resources, path, stage_configs(spec, stage), trial_name, spec.max_failures)
+
+
+def fit_trials(trainable, resources: dict, path: str, configs: list[dict], name, max_failures: int):
+    """Run `trainable` once per config (each under config "trial") as the Tune experiment at `path`, named per trial
+    by `name`; an experiment already at `path` is restored, its finished trials skipped and the others resumed.
+    Raises RuntimeError naming the first trial that failed after `max_failures` retries."""
+    from ray import tune
+
+    trainable = tune.with_resources(trainable, resources)
     if tune.Tuner.can_restore(path):
         tuner = tune.Tuner.restore(path, trainable, resume_unfinished=True, resume_errored=True)
     else:
         tuner = tune.Tuner(
             trainable,
-            param_space={"trial": tune.grid_search(stage_configs(spec, stage))},
-            tune_config=tune.TuneConfig(trial_name_creator=trial_name, trial_dirname_creator=trial_name),
+            param_space={"trial": tune.grid_search(configs)},
+            tune_config=tune.TuneConfig(trial_name_creator=name, trial_dirname_creator=name),
             run_config=tune.RunConfig(
-                name=f"{spec.name}_{stage}", storage_path=os.path.dirname(path), verbose=1,
-                failure_config=tune.FailureConfig(max_failures=spec.max_failures),
+                name=os.path.basename(path), storage_path=os.path.dirname(path), verbose=1,
+                failure_config=tune.FailureConfig(max_failures=max_failures),
             ),
         )  # fmt: skip
     results = tuner.fit()
     errors = [r.error for r in results if r.error]
     if errors:
-        raise RuntimeError(f"stage {stage}: {len(errors)} trial(s) failed: {errors[0]}")
+        raise RuntimeError(f"{os.path.basename(path)}: {len(errors)} trial(s) failed: {errors[0]}")
     return results
 
 
@@ -774,13 +783,32 @@ def second_policy_claims(spec: Spec, head_rows: list[dict]) -> str:
     shift = ""
     if ends:
         rate = lambda r: int(r["lstm_wins"]) / int(r["eval_races"])  # noqa: E731
-        diffs = [rate(a) - rate(b) for a, b in ends]
-        mean, (low, high) = paired_mean(diffs)
-        shift = (f" In the last tournaments the LSTM's win rate with the {spec.eval_policy} policy - with the "
-                 f"{policy} policy is {mean:.2f} [{low:.2f}, {high:.2f}] over "
-                 f"{len(diffs)} seed pairs ({', '.join(f'{d:+.2f}' for d in diffs)}).")  # fmt: skip
+        shift = policy_shift([rate(a) - rate(b) for a, b in ends], spec.eval_policy, policy)
     return (f"\nThe same tournaments raced again with the {policy} policy (the same checkpoints, held-out tracks and "
             f"starts; head_to_head_{policy}.csv).{shift}\n\n{table}")
+
+
+def policy_shift(diffs: list[float], policy: str, second: str) -> str:
+    """A sentence: the LSTM's win rate in the last tournaments with `policy` minus with `second`, per seed pair, its
+    mean with the t 95% interval and the exact sign-flip test, two-sided (no side is claimed beforehand): whether the
+    policy changes the win rate ("weak" while the test does not reach stats.ALPHA or the interval includes 0)."""
+    from stats import ALPHA, MIN_RUNS, sign_flip_test, t_interval
+
+    mean, (low, high) = t_interval(diffs)
+    p, n = sign_flip_test(diffs, "two-sided"), len(diffs)
+    interval = "no interval" if n < MIN_RUNS else f"t 95% [{low:+.2f}, {high:+.2f}]"
+    if n < MIN_RUNS:
+        judged = f"too few pairs to judge (n = {n})"
+    elif p < ALPHA and (low > 0 or high < 0):
+        judged = "the policy changes the win rate"
+    elif mean != 0:
+        why = f"p = {p:.3f} is not below {ALPHA}" if p >= ALPHA else "the t interval includes 0"
+        judged = f"weak evidence that the policy changes the win rate ({why})"
+    else:
+        judged = "no sign that the policy changes the win rate"
+    return (f" In the last tournaments the LSTM's win rate with the {policy} policy - with the {second} policy is "
+            f"{mean:+.2f} (sign-flip p={p:.3f} two-sided, {interval}, n={n}) over {n} seed pairs "
+            f"({', '.join(f'{d:+.2f}' for d in diffs)}): {judged}.")  # fmt: skip
 
 
 def kept_ghost_rows(spec: Spec) -> list[dict]:
@@ -875,45 +903,46 @@ def summarize(single_returns: dict[str, list[float]], final_rates: dict[str, lis
     return "\n".join(lines) + "\n"
 
 
-def paired_mean(diffs: list[float], reps: int = 2000) -> tuple[float, tuple[float, float]]:
-    """The mean of paired differences (one per run) with its stratified-bootstrap 95% interval (rliable)."""
-    from stats import interval_estimates
+def paired_mean(diffs: list[float]) -> dict:
+    """The claim "the mean of paired differences (one per run) is positive", judged by the exact sign-flip test over
+    all 2^n sign assignments and the t 95% interval of the differences (stats.paired_claim): ``estimate``, ``ci``,
+    ``p`` (one-sided), ``n`` and ``verdict``."""
+    from stats import paired_claim
 
-    est = interval_estimates({"d": np.asarray(diffs, float)[:, None]}, reps=reps)["d"]
-    return est["mean"], est["mean_ci"]
+    return paired_claim(diffs)
 
 
 def claims_table(single_returns: dict[str, list[float]], ghost_rows: list[dict], head_rows: list[dict],
-                 race_episodes: int, reps: int = 2000) -> str:  # fmt: skip
-    """Markdown: each claim of the paper, what measures it here, the estimate with its 95% interval, and what the
-    interval says (stats.judge: "too few runs" below stats.MIN_RUNS). Solo: LSTM mean - GRU mean of the single-stage
-    final returns (independent runs, stratified bootstrap). Head to head, over the seed pairs that finished
-    `race_episodes` races: per pair the LSTM's minus the GRU's win rate in the last tournament (the same races:
-    paired); each agent's progress in the tournament before head-to-head training minus in the first after it (both
-    must drop: one row per agent); the LSTM's win rate at the last tournament minus at the first after training
-    began; the mean over pairs with a bootstrap over pairs (each pair's Wilson interval is in head_to_head.csv).
-    Ghost: return after the ghost stage minus after its control, per variant and seed. A note under the table says
-    when a paired mean is over so few runs (n <= 3) that its bootstrap 95% interval is their range."""
-    from stats import MIN_RUNS, SMALL_SAMPLE_NOTE, interval_estimates, judge, mean_difference
+                 race_episodes: int) -> str:  # fmt: skip
+    """Markdown: each claim of the paper, what measures it here, the estimate, its test (the exact one-sided p of the
+    claim, the t 95% interval, the units) and the verdict (stats.judge: "supported" needs p < 0.05 and the interval
+    above 0, "weak" a positive estimate short of that; "too few runs" below stats.MIN_RUNS). Solo: LSTM mean - GRU
+    mean of the single-stage final returns (independent runs: the exact permutation test over every split of the
+    runs, Welch's t interval). Head to head, over the seed pairs that finished `race_episodes` races: per pair the
+    LSTM's minus the GRU's win rate in the last tournament (the same races: paired); each agent's progress in the
+    tournament before head-to-head training minus in the first after it (both must drop: one row per agent); the
+    LSTM's win rate at the last tournament minus at the first after training began; the mean over pairs with the
+    exact sign-flip test and the t interval of the differences (each pair's Wilson interval is in
+    head_to_head.csv). Ghost: return after the ghost stage minus after its control, per variant and seed (paired
+    likewise). A note under the table says when a row is over so few units that its exact test cannot reach 0.05
+    (stats.SMALL_SAMPLE_NOTE)."""
+    from stats import ALPHA, MIN_RUNS, SMALL_SAMPLE_NOTE, describe, two_group_claim
 
-    sizes = []
+    floors = []
 
-    def paired(diffs: list[float]) -> tuple[float, tuple[float, float]]:
-        sizes.append(len(diffs))
-        return paired_mean(diffs, reps)
+    def row(claim: str, measured: str, judged: dict, digits: int = 1) -> str:
+        floors.append(judged["min_p"] if judged["n"] >= MIN_RUNS else 0.0)
+        return (f"| {claim} | {measured} | {judged['estimate']:.{digits}f} | {describe(judged, digits)} "
+                f"| {judged['verdict']} |")  # fmt: skip
 
-    def row(claim: str, measured: str, estimate: float, ci: tuple[float, float], n: int, digits: int = 1) -> str:
-        judged = judge(ci, n)
-        return f"| {claim} | {measured} | {estimate:.{digits}f} [{ci[0]:.{digits}f}, {ci[1]:.{digits}f}] | {judged} |"
-
-    lines = ["| claim of the paper | what we measured | estimate [95% CI] | verdict |", "|---|---|---|---|"]
+    lines = ["| claim of the paper | what we measured | estimate | test (one-sided p of the claim) | verdict |",
+             "|---|---|---|---|---|"]  # fmt: skip
     lstm, gru = single_returns.get("lstm", []), single_returns.get("gru", [])
     if lstm and gru:
-        d = mean_difference(np.asarray(lstm)[:, None], np.asarray(gru)[:, None], reps=reps)
         lines.append(row(
             "the LSTM-Dreamer beats the GRU-Dreamer as a solo agent",
             f"final single-stage return on the fresh tracks, LSTM mean - GRU mean ({len(lstm)} and {len(gru)} seeds)",
-            d["diff"], d["ci"], min(len(lstm), len(gru)),
+            two_group_claim(lstm, gru),
         ))  # fmt: skip
     ends = list(finished_pairs(head_rows, race_episodes).values())
     ends = [rs for rs in ends if any(int(r["races_trained"]) > 0 for r in rs)]  # (race_episodes 0: no training)
@@ -921,42 +950,39 @@ def claims_table(single_returns: dict[str, list[float]], ghost_rows: list[dict],
         rate = {"lstm": lambda r: int(r["lstm_wins"]) / int(r["eval_races"]),
                 "gru": lambda r: int(r["gru_wins"]) / int(r["eval_races"])}  # fmt: skip
         above = sum(float(rs[-1]["lstm_win_rate_ci_low"]) > 0.5 for rs in ends)
-        mean, ci = paired([rate["lstm"](rs[-1]) - rate["gru"](rs[-1]) for rs in ends])
         lines.append(row(
             "the LSTM-Dreamer beats the GRU-Dreamer head to head",
             f"last tournament (after {race_episodes} races): LSTM win rate - GRU win rate, mean over {len(ends)} seed "
             f"pairs; the LSTM's Wilson interval above 0.5 in {above} of {len(ends)}",
-            mean, ci, len(ends), digits=2,
+            paired_mean([rate["lstm"](rs[-1]) - rate["gru"](rs[-1]) for rs in ends]), digits=2,
         ))  # fmt: skip
         # the first tournament after head-to-head training began (the one at 0 is before it)
         firsts = [next(r for r in rs if int(r["races_trained"]) > 0) for rs in ends]
         before = [(rs[0], first) for rs, first in zip(ends, firsts) if int(rs[0]["races_trained"]) == 0]
         for v, name in (("lstm", "LSTM"), ("gru", "GRU")) if before else ():
-            mean, ci = paired([float(r0[f"{v}_progress"]) - float(r1[f"{v}_progress"]) for r0, r1 in before])
             lines.append(row(
                 f"head-to-head training first perturbs both agents: the {name}",
                 f"the {name}'s mean progress in the tournament before head-to-head training - in the first after it "
                 f"(races 0 to {firsts[0]['races_trained']}), mean over {len(before)} seed pairs",
-                mean, ci, len(before), digits=2,
+                paired_mean([float(r0[f"{v}_progress"]) - float(r1[f"{v}_progress"]) for r0, r1 in before]),
+                digits=2,
             ))  # fmt: skip
-        mean, ci = paired([rate["lstm"](rs[-1]) - rate["lstm"](first) for rs, first in zip(ends, firsts)])
         lines.append(row(
             "trained against each other, the LSTM recovers (about race 120) and outperforms",
             f"LSTM win rate at the last tournament - at the first after training began (races "
             f"{firsts[0]['races_trained']} to {race_episodes}), mean over {len(ends)} seed pairs",
-            mean, ci, len(ends), digits=2,
+            paired_mean([rate["lstm"](rs[-1]) - rate["lstm"](first) for rs, first in zip(ends, firsts)]), digits=2,
         ))  # fmt: skip
     if ghost_rows:
         diffs = [float(r["return_after_ghost"]) - float(r["return_after_control"]) for r in ghost_rows]
-        mean, ci = paired(diffs)
         lines.append(row(
             "racing a ghost of its best run improves an agent (the curriculum's second stage)",
             f"return on the fresh tracks after the ghost stage - after its control (same start, same updates), "
             f"{len(diffs)} (variant, seed) pairs",
-            mean, ci, len(diffs),
+            paired_mean(diffs),
         ))  # fmt: skip
-    if any(MIN_RUNS <= n <= 3 for n in sizes):
-        lines += ["", f"{SMALL_SAMPLE_NOTE} (The paired rows.)"]
+    if any(floor >= ALPHA for floor in floors):
+        lines += ["", SMALL_SAMPLE_NOTE]
     return "\n".join(lines) + "\n"
 
 

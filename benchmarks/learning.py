@@ -30,8 +30,9 @@ evaluating every 5 races on the 10 held-out tracks (seeds 10000..10009) and keep
   what the real episodes returned from them;
 * with ``--final``: the run's row of ``learning_final.csv`` (its final and best policies on the 20 fresh tracks
   10100..10119) and, in ``learning_final.md``, the IQM and mean over seeds with stratified-bootstrap intervals
-  (rliable), the parts of the bar each variant fails, and each variant minus the SB3 PPO peer (``ppo_peer.csv``);
-  ``--final-report`` rewrites ``learning_final.md`` alone.
+  (rliable, descriptive), the parts of the bar each variant fails, and the LSTM minus the GRU and each variant
+  minus the SB3 PPO peer (``ppo_peer.csv``), judged by the exact permutation test and Welch's t interval
+  (benchmarks/stats.py); ``--final-report`` rewrites ``learning_final.md`` alone.
 
 The bar, per variant over 3 seeds: final-policy mean return >= 600 with every seed >= 350, mean progress >= 0.65,
 mean |steer| <= 0.3, and each run's last three evaluations within 150 of its best (docs/learning.md).
@@ -317,17 +318,15 @@ def evaluate_checkpoint(
     10000..10009; another block of tracks measures a best.pt without the bias of having been picked there."""
     if tracks < 1:
         raise ValueError(f"tracks must be >= 1, got {tracks}")
-    import torch
-
+    from evaluate import evaluate_checkpoint as drive
     from race import read_checkpoint  # one reader of checkpoints: clear one-line errors naming the file
-    from utils import make_vec_env
 
     script, checkpoint = read_checkpoint(path)
     variant = checkpoint["variant"]
     if policy not in script.EVAL_POLICIES:
         raise ValueError(f"policy must be one of {', '.join(script.EVAL_POLICIES)}, got {policy!r}")
     args = script.args_from_checkpoint(checkpoint, path, num_agents=1)
-    agent = script.agent_from_checkpoint(path, 0)
+    seeds = None
     if train_tracks > 0:
         if args.stage != "single" or args.num_races != 1:
             raise ValueError(f"{path}: --train-tracks needs a single-stage run of one race at a time")
@@ -335,17 +334,9 @@ def evaluate_checkpoint(
         seeds = [script.race_seed(args.seed, e) for e in range(max(0, races - train_tracks), races)]
         tracks_name = f"training races {max(0, races - train_tracks)}..{races - 1}"
     else:
-        seeds, tracks_name = (
-            list(range(first_track, first_track + tracks)),
-            f"{first_track}..{first_track + tracks - 1}",
-        )
-    envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
-    torch.manual_seed(first_track)  # sampled policies: the same command gives the same numbers
-    try:
-        returns, progress, abs_steer = script.evaluate([agent], args, envs, policy, seeds)
-    finally:
-        envs.close()
-    returns, progress, abs_steer = returns[:, 0], progress[:, 0], abs_steer[:, 0]
+        tracks_name = f"{first_track}..{first_track + tracks - 1}"
+    readings = drive(path, first_track, tracks, (policy,), seeds=seeds)[policy]
+    returns, progress, abs_steer = (np.asarray(readings[key]) for key in ("return", "progress", "abs_steer"))
     result = {
         "checkpoint": path,
         "variant": variant,
@@ -653,27 +644,26 @@ def fresh_reference(results_dir: str = RESULTS) -> str:
     )
 
 
-def variant_difference(path: str = os.path.join(RESULTS, "learning_final.csv"), reps: int = 2000) -> str:
+def variant_difference(path: str = os.path.join(RESULTS, "learning_final.csv")) -> str:
     """Markdown for learning_final.md: the paper's solo claim, the LSTM's mean final return minus the GRU's over
     their seeds (the variants' defaults only), with the final policy driving its mean action and sampled: the
-    difference of the means of independent runs with its stratified-bootstrap 95% interval, and what that
-    interval says (stats.judge). "" until both variants have a row."""
-    from stats import judge, mean_difference
+    difference of the means of independent runs, its test (the exact permutation test's one-sided p over every
+    split of the runs, Welch's t 95% interval: stats.two_group_claim) and the verdict (stats.judge). "" until both
+    variants have a row."""
+    from stats import describe, two_group_claim
 
     with open(path, newline="") as f:
         rows = [r for r in csv.DictReader(f) if r["exp_name"] == experiment_name(r["variant"])]
     if not {"lstm", "gru"} <= {r["variant"] for r in rows}:
         return ""
-    lines = ["", "| final policy: LSTM - GRU | difference of means [95% CI] | the LSTM beats the GRU |"]
-    lines.append("|---|---|---|")
+    lines = ["", "| final policy: LSTM - GRU | difference of means | test (one-sided p of the claim) "
+                 "| the LSTM beats the GRU |"]  # fmt: skip
+    lines.append("|---|---|---|---|")
     for policy, label in (("mean-action", "mean action"), ("stochastic", "sampled")):
         key = FINAL_POLICY_COLUMNS[policy][0]
         lstm, gru = (np.array([float(r[key]) for r in rows if r["variant"] == v]) for v in ("lstm", "gru"))
-        diff = mean_difference(lstm[:, None], gru[:, None], reps=reps)
-        lines.append(
-            f"| {label} | {diff['diff']:+.1f} [{diff['ci'][0]:+.1f}, {diff['ci'][1]:+.1f}] "
-            f"| {judge(diff['ci'], min(lstm.size, gru.size))} |"
-        )
+        claim = two_group_claim(lstm, gru)
+        lines.append(f"| {label} | {claim['estimate']:+.1f} | {describe(claim)} | {claim['verdict']} |")
     return "\n".join(lines) + "\n"
 
 
@@ -683,10 +673,11 @@ def peer_summary(
 ) -> str:
     """Markdown for learning_final.md: SB3 PPO (benchmarks/ppo_peer.py, its deterministic policy) over its seeds,
     each with the CPU time it had, and each variant's final policy driving its mean action minus PPO on the same
-    fresh tracks: the difference of the means of independent runs with its stratified-bootstrap 95% interval, and
-    what that interval says (stats.judge: no verdict while a side has fewer than stats.MIN_RUNS runs). The
+    fresh tracks: the difference of the means of independent runs, its test (the exact permutation test's one-sided
+    p, Welch's t 95% interval: stats.two_group_claim) and the verdict (stats.judge: none while a side has fewer than
+    stats.MIN_RUNS runs). PPO's own mean has a stratified-bootstrap interval (rliable): a description. The
     variants' defaults only (an ablation is not the method); "" while ppo_peer.csv has no row."""
-    from stats import MIN_RUNS, interval_estimates, judge, mean_difference
+    from stats import MIN_RUNS, describe, interval_estimates, two_group_claim
 
     if not os.path.exists(peer_path):
         return ""
@@ -709,16 +700,14 @@ def peer_summary(
         f"SB3 PPO at the same CPU time (benchmarks/ppo_peer.py), {ppo.size} seed{'s' * (ppo.size > 1)}, its "
         f"deterministic policy: {mean} (seed {seeds}).",
         "",
-        "| variant (mean action) - PPO | difference of means [95% CI] | the variant beats PPO |",
-        "|---|---|---|",
+        "| variant (mean action) - PPO | difference of means | test (one-sided p of the claim) "
+        "| the variant beats PPO |",
+        "|---|---|---|---|",
     ]
     for variant in sorted({r["variant"] for r in rows}):
         mine = np.array([float(r[FINAL_POLICY_COLUMNS["mean-action"][0]]) for r in rows if r["variant"] == variant])
-        diff = mean_difference(mine[:, None], ppo[:, None], reps=reps)
-        lines.append(
-            f"| {variant} - ppo | {diff['diff']:+.1f} [{diff['ci'][0]:+.1f}, {diff['ci'][1]:+.1f}] "
-            f"| {judge(diff['ci'], min(mine.size, ppo.size))} |"
-        )
+        claim = two_group_claim(mine, ppo)
+        lines.append(f"| {variant} - ppo | {claim['estimate']:+.1f} | {describe(claim)} | {claim['verdict']} |")
     return "\n".join(lines) + "\n"
 
 
@@ -731,7 +720,7 @@ def write_final_report(results_dir: str = RESULTS, reps: int = 2000, peer_path: 
     peer_path = peer_path or os.path.join(results_dir, "ppo_peer.csv")
     text = (
         final_summary(final_path, reps, policy="mean-action") + "\n" + final_summary(final_path, reps)
-        + variant_difference(final_path, reps) + fresh_reference(results_dir)
+        + variant_difference(final_path) + fresh_reference(results_dir)
         + peer_summary(final_path, peer_path, reps)
     )  # fmt: skip
     with open(os.path.join(results_dir, "learning_final.md"), "w") as f:
@@ -999,22 +988,24 @@ def policy_rule_rows(
     return rows
 
 
-def policy_rule(rows: list[dict], seeds: int = RULE_SEEDS, reps: int = 2000) -> dict:
+def policy_rule(rows: list[dict], seeds: int = RULE_SEEDS) -> dict:
     """The decision from `rows` (policy_rule_rows): the mean over runs of (mean-action return - sampled return),
-    each variant weighted alike, with a stratified-bootstrap 95% interval (rliable; a variant is a stratum: its
-    first `seeds` seeds are resampled among themselves). ``policy`` is "mean-action" if the interval lies above 0,
-    "stochastic" if it does not, and None while a variant has fewer than `seeds` measured runs."""
-    from stats import interval_estimates
+    each variant weighted alike, judged as the claim "the mean action returns more" (stats.paired_claim on the
+    differences of shape (seeds, variants): the exact sign-flip test over all 2^6 sign assignments and the t 95%
+    interval with each variant a stratum, its own variance). ``policy`` is "mean-action" if the claim is supported
+    (one-sided p < 0.05 and the interval above 0), "stochastic" if it is not (weak, or not supported), and None
+    while a variant has fewer than `seeds` measured runs."""
+    from stats import paired_claim
 
     by_variant = {v: sorted((r for r in rows if r["variant"] == v), key=lambda r: int(r["seed"])) for v in VARIANTS}
     counts = {v: len(mine) for v, mine in by_variant.items()}
     if min(counts.values()) < seeds:
         return {"policy": None, "counts": counts}
     diffs = np.array([[float(r["difference"]) for r in by_variant[v][:seeds]] for v in VARIANTS]).T  # (seeds, 2)
-    est = interval_estimates({"difference": diffs}, reps=reps)["difference"]
+    claim = paired_claim(diffs)
     return {
-        "policy": "mean-action" if est["mean_ci"][0] > 0 else "stochastic", "counts": counts,
-        "mean": est["mean"], "ci": est["mean_ci"],
+        "policy": "mean-action" if claim["verdict"] == "supported" else "stochastic", "counts": counts,
+        "mean": claim["estimate"], "ci": claim["ci"], "p": claim["p"], "n": claim["n"], "verdict": claim["verdict"],
     }  # fmt: skip
 
 
@@ -1034,7 +1025,8 @@ def policy_rule_table(rows: list[dict], decision: dict) -> str:
         low, high = decision["ci"]
         verdict = (
             f"Mean of (mean action - sampled) over {RULE_SEEDS} seeds per variant: {decision['mean']:+.1f} "
-            f"[{low:+.1f}, {high:+.1f}] (stratified bootstrap, 95%). Evaluation policy: **{decision['policy']}**."
+            f"[{low:+.1f}, {high:+.1f}] (t 95%, variants as strata; exact sign-flip p = {decision['p']:.3f} "
+            f"one-sided, n = {decision['n']}): {decision['verdict']}. Evaluation policy: **{decision['policy']}**."
         )
     head = f"Final policies on the screening tracks {tracks}, both policies."
     return f"{head}\n\n" + "\n".join(lines) + f"\n\n{verdict}\n"
@@ -1217,7 +1209,9 @@ def main():
             script, _ = read_checkpoint(args.export[0])
         except ValueError as e:
             parser.error(str(e))
-        size = script.export_policy(args.export[0], args.export[1])
+        from utils.checkpoint import export_policy
+
+        size = export_policy(script, args.export[0], args.export[1])
         print(f"wrote {args.export[1]} ({size / 1e6:.1f} MB)")
         return
     if args.calibrate:
@@ -1297,9 +1291,12 @@ def main():
         script, script_args, overrides = run_args(
             args.variant, args.seed, args.hours, args.resume, args.updates, args.runs_dir, **ablation
         )
+        from utils.checkpoint import UsageError
+        from utils.run import validate_args
+
         try:  # an ablated value the script refuses ends here, before any work, naming the flag
-            script.validate_args(script_args)
-        except script.UsageError as e:
+            validate_args(script_args, script.LOG_SIGMA_RANGE)
+        except UsageError as e:
             parser.error(str(e))
         script.main(script_args, overrides)
     report(args.runs_dir)

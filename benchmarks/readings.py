@@ -32,25 +32,11 @@ COLUMNS = ("tag", "variant", "seed", "updates", "policy", *DRIVING, *TRAINING, *
 
 
 def driving(path: str, first_track: int, tracks: int) -> dict[str, dict[str, float]]:
-    """Per policy, the mean of every DRIVING reading over the tracks."""
-    import torch
+    """Per policy, the mean of every DRIVING reading over the tracks (evaluate.py's evaluate_checkpoint)."""
+    from evaluate import evaluate_checkpoint
 
-    from race import read_checkpoint
-    from utils import make_vec_env
-
-    script, checkpoint = read_checkpoint(path)
-    args = script.args_from_checkpoint(checkpoint, path, num_agents=1)
-    agent = script.agent_from_checkpoint(path, 0)
-    envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
-    out = {}
-    try:
-        for policy in POLICIES:
-            torch.manual_seed(first_track)  # as learning.evaluate_checkpoint: the same command, the same numbers
-            readings = script.drive_races([agent], args, envs, policy, range(first_track, first_track + tracks))
-            out[policy] = {key: round(float(readings[key][:, 0].mean()), 4) for key in DRIVING}
-    finally:
-        envs.close()
-    return out
+    results = evaluate_checkpoint(path, first_track, tracks, POLICIES)
+    return {policy: {key: round(float(np.mean(r[key])), 4) for key in DRIVING} for policy, r in results.items()}
 
 
 def training(run_dir: str, updates: int) -> dict[str, float]:

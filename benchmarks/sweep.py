@@ -149,7 +149,8 @@ def check(sweep: Sweep) -> None:
 
 
 def fields(sweep: Sweep) -> dict:
-    return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(sweep).items() if k in SWEEP_FIELDS}
+    plain = dataclasses.asdict(sweep)
+    return {k: list(plain[k]) if isinstance(plain[k], tuple) else plain[k] for k in SWEEP_FIELDS}
 
 
 def saved_fields(sweep: Sweep) -> dict | None:
@@ -194,32 +195,16 @@ def status_text(sweep: Sweep) -> str:
 def run_sweep(sweep: Sweep):
     """One Tune experiment per sweep; an existing one is restored (finished trials are skipped)."""
     import ray
-    from ray import tune
 
     save_fields(sweep)
     os.environ.setdefault("RAY_worker_niceness", "0")  # (as experiment.py: Ray's nice 15 would starve the trials)
     runtime = experiment.runtime_env(experiment.Spec(address=sweep.address))
     ray.init(address=sweep.address, num_cpus=sweep.num_cpus, runtime_env=runtime, include_dashboard=False,
              log_to_driver=False)  # fmt: skip
-    trainable = tune.with_resources(experiment.dreamer_trial, {"cpu": sweep.torch_threads})
     path = os.path.join(os.path.abspath(sweep.storage), sweep.name, "tune", f"sweep_{sweep.name}")
-    if tune.Tuner.can_restore(path):
-        tuner = tune.Tuner.restore(path, trainable, resume_unfinished=True, resume_errored=True)
-    else:
-        tuner = tune.Tuner(
-            trainable,
-            param_space={"trial": tune.grid_search(trial_configs(sweep))},
-            tune_config=tune.TuneConfig(trial_name_creator=trial_name, trial_dirname_creator=trial_name),
-            run_config=tune.RunConfig(
-                name=f"sweep_{sweep.name}", storage_path=os.path.dirname(path), verbose=1,
-                failure_config=tune.FailureConfig(max_failures=sweep.max_failures),
-            ),
-        )  # fmt: skip
-    results = tuner.fit()
-    errors = [r.error for r in results if r.error]
-    if errors:
-        raise RuntimeError(f"sweep {sweep.name}: {len(errors)} trial(s) failed: {errors[0]}")
-    return results
+    resources = {"cpu": sweep.torch_threads}
+    return experiment.fit_trials(experiment.dreamer_trial, resources, path, trial_configs(sweep), trial_name,
+                                 sweep.max_failures)  # fmt: skip
 
 
 def main(sweep: Sweep) -> None:

@@ -17,6 +17,8 @@ import os
 import numpy as np
 import pytest
 import torch
+import utils.checkpoint as ckpt
+import utils.run as run_tools
 import tyro
 from conftest import SCRIPTS, TINY, assert_same
 from torch import nn
@@ -173,7 +175,7 @@ def test_compile_gives_the_losses_of_eager(script, tmp_path):
         torch.manual_seed(0)
         agent = script.Agent(tiny_args(script, compile=compile_))
         metrics[compile_] = agent.update(random_batch())  # world-model step, then behaviour on the stepped model
-        agent.save(str(tmp_path / f"{compile_}.pt"))
+        torch.save(agent.state_dict(), str(tmp_path / f"{compile_}.pt"))
     assert metrics[True].keys() == metrics[False].keys()
     for key, value in metrics[False].items():
         assert metrics[True][key] == pytest.approx(value, rel=1e-4, abs=1e-5), key
@@ -659,10 +661,10 @@ def test_replay_save_load_round_trip(script, tmp_path):
     replay = script.Replay(capacity=50, image_size=8, chunk_size=16)
     for e in range(1, 6):
         replay.add_episode(*make_episode(13, e))
-    replay.save(str(tmp_path / "replay"))
+    ckpt.save_replay(replay, str(tmp_path / "replay"))
     assert len(glob.glob(str(tmp_path / "replay" / "chunk_*.npz"))) == 4
     loaded = script.Replay(capacity=50, image_size=8)
-    loaded.load(str(tmp_path / "replay"))
+    ckpt.load_replay(loaded, str(tmp_path / "replay"))
     for key in ("obs", "action", "reward", "is_first", "terminated"):
         np.testing.assert_array_equal(getattr(loaded, key), getattr(replay, key))
     assert (loaded.next_index, loaded.size, loaded.total_steps) == (replay.next_index, replay.size, replay.total_steps)
@@ -671,8 +673,8 @@ def test_replay_save_load_round_trip(script, tmp_path):
         np.testing.assert_array_equal(a[key], b[key])
     # later saves to the same directory rewrite only the changed chunks
     replay.add_episode(*make_episode(3, 9))
-    replay.save(str(tmp_path / "replay"))
-    loaded.load(str(tmp_path / "replay"))
+    ckpt.save_replay(replay, str(tmp_path / "replay"))
+    ckpt.load_replay(loaded, str(tmp_path / "replay"))
     np.testing.assert_array_equal(loaded.obs, replay.obs)
 
 
@@ -687,8 +689,8 @@ def test_acting_only_export_acts_exactly_like_its_checkpoint(script, tmp_path):
     agent = script.Agent(args)
     agent.update(random_batch())  # weights and BatchNorm statistics away from their initial values
     full_path, export_path = str(tmp_path / "latest.pt"), str(tmp_path / "policy.pt")
-    script.save_checkpoint(full_path, args, [agent], {"episode": 1, "global_step": 10})
-    size = script.export_policy(full_path, export_path)
+    ckpt.save_checkpoint(full_path, script.VARIANT, args, [agent], {"episode": 1, "global_step": 10})
+    size = ckpt.export_policy(script, full_path, export_path)
     assert size == os.path.getsize(export_path) < os.path.getsize(full_path) / 3
     export = torch.load(export_path, weights_only=True)
     assert set(export["agents"][0]) == {"world_model", "actor", "num_updates"}
@@ -708,7 +710,7 @@ def test_acting_only_export_acts_exactly_like_its_checkpoint(script, tmp_path):
         np.testing.assert_array_equal(actions[0], actions[1])
     with pytest.raises(RuntimeError, match="cannot learn"):
         policy.update(random_batch())
-    with pytest.raises(script.CheckpointError, match="acting-only export"):
+    with pytest.raises(ckpt.CheckpointError, match="acting-only export"):
         script.load_checkpoint(export_path, training=True)
 
 
@@ -718,7 +720,8 @@ def test_checkpoint_round_trip_with_weights_only(script, tmp_path):
     agents[0].update(random_batch())
     path = str(tmp_path / "ckpt" / "latest.pt")
     np.random.seed(3)
-    script.save_checkpoint(path, args, agents, {"episode": 7, "global_step": 123, "best_eval_return": -math.inf})
+    counters = {"episode": 7, "global_step": 123, "best_eval_return": -math.inf}
+    ckpt.save_checkpoint(path, script.VARIANT, args, agents, counters)
     expected_draw = np.random.rand()
     checkpoint = torch.load(path, weights_only=True)  # tensors and plain Python types only
     assert checkpoint["variant"] == script.VARIANT and checkpoint["counters"]["episode"] == 7
@@ -730,7 +733,7 @@ def test_checkpoint_round_trip_with_weights_only(script, tmp_path):
     assert restored.num_updates == 1
     assert restored.model_optimizer.state_dict()["state"][0]["step"] == 1
     np.random.seed(99)
-    script.set_rng_state(checkpoint["rng"])
+    ckpt.set_rng_state(checkpoint["rng"])
     assert np.random.rand() == expected_draw
 
 
@@ -738,7 +741,7 @@ def test_keep_freed_memory(script):
     import platform
     import sys
 
-    result = script.keep_freed_memory()
+    result = run_tools.keep_freed_memory()
     assert result == (sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc")
     assert script.Args().malloc_fix is True
 
@@ -814,7 +817,7 @@ def test_resume_continues_from_saved_counters(single_run):
     script, run_dir = single_run
     before = torch.load(os.path.join(run_dir, "checkpoints", "latest.pt"), weights_only=True)
     replay = script.Replay(E2E["replay_capacity"], TINY["image_size"])
-    replay.load(os.path.join(run_dir, "checkpoints", "replay_car_0"))
+    ckpt.load_replay(replay, os.path.join(run_dir, "checkpoints", "replay_car_0"))
     script.main(script.Args(resume=run_dir, total_episodes=3), {"total_episodes"})  # extends the run (saved: 2)
     after = torch.load(os.path.join(run_dir, "checkpoints", "latest.pt"), weights_only=True)
     assert after["counters"]["episode"] == 3
@@ -822,7 +825,7 @@ def test_resume_continues_from_saved_counters(single_run):
     assert after["agents"][0]["num_updates"] == before["agents"][0]["num_updates"] + 2  # no new prefill
     assert after["args"]["cnn_depth"] == TINY["cnn_depth"]  # the saved configuration, not the defaults
     resumed_replay = script.Replay(E2E["replay_capacity"], TINY["image_size"])
-    resumed_replay.load(os.path.join(run_dir, "checkpoints", "replay_car_0"))
+    ckpt.load_replay(resumed_replay, os.path.join(run_dir, "checkpoints", "replay_car_0"))
     assert resumed_replay.episodes == replay.episodes + 1  # the loaded replay grew by the new race
     scalars, _ = read_events(run_dir)
     assert [step for step, _ in scalars["charts/episode"]][-1] == after["counters"]["global_step"]
@@ -846,13 +849,13 @@ def test_ghost_stage_records_and_races_a_ghost(single_run, tmp_path):
     assert checkpoint["args"]["cnn_depth"] == TINY["cnn_depth"]
     # the agent keeps its memory: the replay saved beside best.pt, then its own races, all in its own directory
     single = script.Replay(E2E["replay_capacity"], TINY["image_size"])
-    single.load(os.path.join(run_dir, "checkpoints", "replay_car_0"))
+    ckpt.load_replay(single, os.path.join(run_dir, "checkpoints", "replay_car_0"))
     own = script.Replay(E2E["replay_capacity"], TINY["image_size"])
-    own.load(os.path.join(ghost_dir, "checkpoints", "replay_car_0"), checkpoint["extra"]["replays"][0])
+    ckpt.load_replay(own, os.path.join(ghost_dir, "checkpoints", "replay_car_0"), checkpoint["extra"]["replays"][0])
     races = checkpoint["counters"]["episode"]
     assert single.episodes >= 1 and own.episodes == single.episodes + races
     assert np.array_equal(own.obs[: single.size], single.obs[: single.size])  # its first steps are the single run's
-    with pytest.raises(script.UsageError, match=r"^--replay-capacity 3000: the replay beside --checkpoint .* "
+    with pytest.raises(ckpt.UsageError, match=r"^--replay-capacity 3000: the replay beside --checkpoint .* "
                        r"holds 2000; give --replay-capacity 2000, or --fresh-replay"):  # fmt: skip
         script.main(dataclasses.replace(args, replay_capacity=3000, runs_dir=str(tmp_path / "other")))
     assert not (tmp_path / "other").exists()  # refused before anything was written
@@ -880,8 +883,8 @@ def test_race_stage_two_learning_agents(tmp_path, script):
 def test_time_limit_stops_with_a_checkpoint(tmp_path, script, monkeypatch):
     """--time-limit-hours 1 with the clock jumping two hours after the run started (Run.started was read from the
     real clock): it stops before its first race, with a checkpoint."""
-    real = script.time.time
-    monkeypatch.setattr(script.time, "time", lambda: real() + 7200.0)
+    real = run_tools.time.time
+    monkeypatch.setattr(run_tools.time, "time", lambda: real() + 7200.0)
     run_dir = script.main(script.Args(stage="single", runs_dir=str(tmp_path), time_limit_hours=1.0, **E2E))
     latest = torch.load(os.path.join(run_dir, "checkpoints", "latest.pt"), weights_only=True)
     assert latest["counters"]["episode"] == 0 < E2E["total_episodes"]
@@ -948,36 +951,11 @@ def test_drive_races_reads_gas_brakes_speed_and_how_each_race_ended(script):
 
 
 def test_dead_zone_of_the_next_race_is_set_before_its_reset(script):
-    """The env applies a dead zone at its next reset. One race at a time resets after end_race: it gets the value of
-    the races finished so far. K > 1 races have already auto-reset the finished race's slot inside the step, so
-    end_race sets the value one race ahead, for the race that starts when the next one ends."""
-
-    class Recorder:
-        def __init__(self):
-            self.calls = []
-
-        def env_method(self, name, *args):
-            self.calls.append((name, *args))
-
-        def record(self, *args, **kwargs):
-            pass
-
-        def dump(self, *args):
-            pass
-
+    """The env applies a dead zone at its next reset. One race at a time resets after the race's turn: it gets the
+    value of the races finished so far. K > 1 races have already auto-reset the finished race's slot inside the
+    step, so the value is one race ahead, for the race that starts when the next one ends."""
     for races, ahead in ((1, 0), (3, 1)):
-        args = tiny_args(script, num_agents=1, num_races=races, dead_zone_start=-1.0, dead_zone_end=-0.5,
-                         dead_zone_episodes=4, prefill_episodes=100, eval_every=0, video_every=0,
-                         replay_save_every=0, checkpoint_every=0)  # fmt: skip
-        recorder = Recorder()
-        counters = {"episode": 1, "global_step": 0, "best_eval_return": -math.inf}
-        run = script.Run(args, "unused", torch.device("cpu"), agents=[], replays=[], logger=recorder, envs=recorder,
-                         counters=counters, wins=[[]])  # fmt: skip
-        car = script.CarEpisode(np.zeros((64, 64, 3), np.uint8))
-        car.final_info = {"progress": 0.5}
-        script.end_race(run, [car], None, 100.0)
-        assert run.counters["episode"] == 2
-        assert recorder.calls == [("set_dead_zone", script.dead_zone_at(2 + ahead, args))]
-        assert script.dead_zone_at(2 + ahead, args) == -1.0 + 0.5 * (2 + ahead) / 4
+        args = tiny_args(script, num_races=races, dead_zone_start=-1.0, dead_zone_end=-0.5, dead_zone_episodes=4)
+        assert script.next_dead_zone(args, 2) == script.dead_zone_at(2 + ahead, args) == -1.0 + 0.5 * (2 + ahead) / 4
     # the schedule is a warm-up for learning from scratch: agents that start trained race at its end from race 0
     assert script.dead_zone_at(0, tiny_args(script, checkpoint="best.pt", dead_zone_start=-1.0)) == -0.5

@@ -82,8 +82,8 @@ def test_a_fixed_head_sigma_makes_the_reward_and_critic_losses_squared_errors(sc
 def test_the_mixed_norm_is_batchnorm_in_the_convolutions_and_layernorm_elsewhere(script):
     agent = script.Agent(tiny_args(script, norm="mixed"))
     wm = agent.world_model
-    kinds = lambda module: {type(m) for m in module.modules() if isinstance(m, (nn.BatchNorm1d, nn.BatchNorm2d,
-                                                                                 nn.LayerNorm, nn.GroupNorm))}  # noqa: E731
+    norms = (nn.BatchNorm1d, nn.BatchNorm2d, nn.LayerNorm, nn.GroupNorm)
+    kinds = lambda module: {type(m) for m in module.modules() if isinstance(m, norms)}  # noqa: E731
     assert kinds(wm.encoder) == kinds(wm.decoder) == {nn.BatchNorm2d}
     for module in (wm.recurrent_input, wm.representation, wm.transition, wm.reward, wm.cont, agent.actor):
         assert kinds(module) == {nn.LayerNorm}
@@ -126,7 +126,7 @@ def test_the_action_penalty_reweighs_the_extreme_action_term_of_the_bonus(script
     agent.world_model.reward = _Column(0, pair=False)
     agent.world_model.cont = _Constant(100.0)
     agent.targets["critic"] = _Column(1, pair=True)
-    post = {"z": torch.randn(1, 2, TINY["latent_size"]), "h": torch.randn(1, 2, TINY["deter_size"])}  # (BatchNorm: 2 rows)
+    post = {"z": torch.randn(1, 2, TINY["latent_size"]), "h": torch.randn(1, 2, TINY["deter_size"])}  # 2: BatchNorm
     _, _, metrics = agent.behaviour_losses(post, torch.zeros(1, 1))
     term = 2 * -math.log(1 - math.tanh(0.5) ** 2 + 1e-6)
     beta = 0.25 if penalty is None else penalty

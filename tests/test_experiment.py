@@ -19,6 +19,7 @@ from conftest import TINY
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
 import experiment  # noqa: E402
 import race  # noqa: E402
+import stats  # noqa: E402
 
 TINY_FLAGS = {
     **TINY, "batch_size": 2, "imagination_horizon": 3, "max_steps": 30, "train_steps_per_episode": 1,
@@ -236,8 +237,6 @@ def test_the_summary_matches_hand_computed_numbers():
     # with every GRU rate would give 4/9); a bootstrap of 3 pairs can draw 0, 1, 2 or 3 wins: [0, 1]
     three = experiment.summarize({}, {"lstm": [0.55, 0.35, 0.60], "gru": [0.45, 0.65, 0.40]}, reps=2000)
     assert three.splitlines()[-1].endswith(": 0.67 [0.00, 1.00]")
-    import stats
-
     with pytest.raises(ValueError, match="two non-empty arrays of one length, got 1 and 2"):
         stats.paired_probability_of_improvement([0.5], [0.5, 0.4])  # rates of different pairs cannot be paired
 
@@ -347,48 +346,75 @@ def tournament(pair, races, lstm, gru, low=0.5, progress=(0.5, 0.5)):
 
 
 def test_the_claims_table_answers_each_claim_from_hand_made_results():
-    """Clear-cut numbers, so each verdict is known by hand: the solo gap is large and consistent (supported),
-    head to head the GRU wins every final tournament (contradicted), both agents lose progress when head-to-head
-    training begins (supported for each), the LSTM's win rate rises in one pair and falls in another (not
-    supported), and the ghost helps by exactly 50 in every run (supported, interval 50)."""
-    single = {"lstm": [600.0, 700.0, 800.0], "gru": [100.0, 200.0, 300.0]}
-    ghost = [{"return_after_ghost": 350.0 + k, "return_after_control": 300.0 + k} for k in range(4)]
-    head = [tournament("11,11", 50, 20, 70, 0.13, (0.5, 0.6)), tournament("11,11", 150, 30, 60, 0.22),
-            tournament("12,12", 50, 40, 50, 0.31), tournament("12,12", 150, 20, 70, 0.13),
-            tournament("11,11", 0, 90, 10, 0.8, (0.8, 0.7)), tournament("12,12", 0, 90, 10, 0.8, (0.6, 0.6)),
-            tournament("13,13", 0, 100, 0, 0.95),  # a pair whose training has not begun: not a result yet
-            tournament("14,14", 0, 0, 100, 0.0, (0.9, 0.9)), tournament("14,14", 50, 100, 0, 0.95, (0.1, 0.1))]
+    """Numbers whose verdicts are known by hand, each judged by its exact test and t interval: the solo gap is
+    large and consistent over 4 and 3 seeds (supported), head to head over 5 seed pairs the GRU wins every final
+    tournament (contradicted), both agents lose progress when head-to-head training begins (supported for each),
+    the LSTM's win rate changes little and either way after it (weak), and the ghost helps by exactly 50 in each of
+    6 runs (supported, interval 50). Over 2 seed pairs the same kind of numbers are at best weak."""
+    single = {"lstm": [600.0, 700.0, 800.0, 900.0], "gru": [100.0, 200.0, 300.0]}
+    ghost = [{"return_after_ghost": 350.0 + k, "return_after_control": 300.0 + k} for k in range(6)]
+    head = [tournament("16,16", 0, 100, 0, 0.95),  # a pair whose training has not begun: not a result yet
+            tournament("17,17", 0, 0, 100, 0.0, (0.9, 0.9)), tournament("17,17", 50, 100, 0, 0.95, (0.1, 0.1))]
     #         (a pair stopped at 50 of 150 races: not a result yet either)
-    table = experiment.claims_table(single, ghost, head, race_episodes=150, reps=300).splitlines()
+    for pair, progress0, at50, (lstm, gru) in [("11,11", 0.8, 20, (30, 60)), ("12,12", 0.7, 25, (20, 70)),
+                                               ("13,13", 0.9, 15, (25, 65)), ("14,14", 0.6, 45, (35, 55)),
+                                               ("15,15", 0.8, 25, (30, 60))]:  # fmt: skip
+        head += [tournament(pair, 0, 90, 10, 0.8, (progress0, 0.6)), tournament(pair, 50, at50, 30, 0.1),
+                 tournament(pair, 150, lstm, gru, 0.2)]  # fmt: skip
+    table = experiment.claims_table(single, ghost, head, race_episodes=150).splitlines()
+    assert table[0].split(" | ")[2:] == ["estimate", "test (one-sided p of the claim)", "verdict |"]
     solo, versus, lstm_perturbed, gru_perturbed, recovery, ghost_row = (line.split(" | ") for line in table[2:8])
-    # progress from race 0 to race 50: LSTM 0.3 and 0.1 (mean 0.2), GRU 0.1 and 0.1 -> both drop
-    assert lstm_perturbed[2].startswith("0.20 [") and lstm_perturbed[3].startswith("supported")
-    low, high = (float(v) for v in lstm_perturbed[2].split("[")[1].rstrip("]").split(","))
-    assert 0.1 <= low <= high <= 0.3 and "(races 0 to 50), mean over 2 seed pairs" in lstm_perturbed[1]
-    assert gru_perturbed[2] == "0.10 [0.10, 0.10]" and gru_perturbed[3].startswith("supported")
-    assert "the GRU's mean progress" in gru_perturbed[1]
-    assert solo[2].startswith("500.0 [") and solo[3].startswith("supported")
-    low, high = (float(v) for v in solo[2].split("[")[1].rstrip("]").split(","))
-    assert 300.0 <= low < 500.0 < high <= 700.0  # within the extremes of the resampled gaps
-    # last tournaments: 0.30 - 0.60 and 0.20 - 0.70 -> mean -0.40, every resample negative
-    assert versus[2].startswith("-0.40 [") and versus[3].startswith("contradicted")
-    assert "above 0.5 in 0 of 2" in versus[1] and "mean over 2 seed pairs" in versus[1]
-    # the LSTM's rate from the first tournament after training began: +0.10 and -0.20 -> mean -0.05, the interval
-    # spans 0 (from the tournaments before training, at 0.90, it would be -0.65)
-    assert recovery[2].startswith("-0.05 [") and recovery[3].startswith("not supported")
-    assert ghost_row[2] == "50.0 [50.0, 50.0]" and ghost_row[3].startswith("supported")
-    assert "every run agrees, not a test at the 5% level" in table[-1]  # the paired rows are over 2 pairs
+    # solo: 750 - 200 = +550; the LSTM's four are the top four of seven in 1 of the C(7, 4) = 35 splits. Welch:
+    # se^2 = (50000 / 3) / 4 + (20000 / 2) / 3 = 7500, df = 7500^2 / (4166.7^2 / 3 + 3333.3^2 / 2) = 4.96, so t is
+    # between t_5 = 2.571 and t_4 = 2.776: the interval 550 +- (222.6 .. 240.4)
+    assert solo[2] == "550.0" and solo[3].startswith("permutation p=0.029, Welch t 95% [+3")
+    low, high = (float(v) for v in solo[3].split("[")[1].split("]")[0].split(","))
+    assert 309.6 < low < 327.4 and low + high == pytest.approx(1100.0, abs=0.11) and solo[3].endswith("n=4+3")
+    assert solo[4] == "supported |"
+    # last tournaments: -0.30, -0.50, -0.40, -0.20, -0.30, mean -0.34, sd sqrt(0.052 / 4) = 0.1140, t_4 = 2.7764:
+    # -0.34 +- 0.1416; all five negative: the opposite's p = 1/32
+    assert versus[2] == "-0.34" and versus[3] == "sign-flip p=1.000, t 95% [-0.48, -0.20], n=5"
+    assert versus[4].startswith("contradicted") and "above 0.5 in 0 of 5" in versus[1]
+    # progress from race 0 to race 50: LSTM 0.3, 0.2, 0.4, 0.1, 0.3 (the same spread: 0.26 +- 0.1416), GRU 0.1 each
+    assert lstm_perturbed[2] == "0.26" and lstm_perturbed[3] == "sign-flip p=0.031, t 95% [+0.12, +0.40], n=5"
+    assert lstm_perturbed[4] == "supported |" and "(races 0 to 50), mean over 5 seed pairs" in lstm_perturbed[1]
+    assert gru_perturbed[2] == "0.10" and gru_perturbed[3] == "sign-flip p=0.031, t 95% [+0.10, +0.10], n=5"
+    assert gru_perturbed[4] == "supported |" and "the GRU's mean progress" in gru_perturbed[1]
+    # the LSTM's rate from the first tournament after training began: +0.10, -0.05, +0.10, -0.10, +0.05, mean 0.02;
+    # in units of 0.05 |d| = 2, 1, 2, 2, 1 sum to 8 and the observed sum is 2: an assignment reaches it when its
+    # negated part sums to 3 or less: {}, 5 singletons, {1, 1}, 6 of {2, 1}: 13/32 = 0.406. sd
+    # sqrt(0.033 / 4) = 0.0908: 0.02 +- 0.1128 (from the tournaments before training, at 0.90, it would be -0.62)
+    assert recovery[2] == "0.02" and recovery[3] == "sign-flip p=0.406, t 95% [-0.09, +0.13], n=5"
+    assert recovery[4] == "weak (positive, but the exact test's p = 0.406 is not below 0.05) |"
+    assert ghost_row[2] == "50.0" and ghost_row[3] == "sign-flip p=0.016, t 95% [+50.0, +50.0], n=6"
+    assert ghost_row[4] == "supported |" and len(table) == 8  # no floor note: every row can reach 0.05
+    # the same kind of numbers over 2 pairs: last tournaments 0.30 - 0.60 and 0.20 - 0.70, progress drops of 0.3 and
+    # 0.1 (LSTM) and 0.1 (GRU): 1/4 is the sign-flip test's floor, so nothing is supported or contradicted
+    two = [tournament("11,11", 0, 90, 10, 0.8, (0.8, 0.7)), tournament("11,11", 50, 20, 70, 0.13, (0.5, 0.6)),
+           tournament("11,11", 150, 30, 60, 0.22), tournament("12,12", 0, 90, 10, 0.8, (0.6, 0.6)),
+           tournament("12,12", 50, 40, 50, 0.31), tournament("12,12", 150, 20, 70, 0.13)]  # fmt: skip
+    table = experiment.claims_table({}, [], two, race_episodes=150).splitlines()
+    versus, lstm_perturbed, gru_perturbed, recovery = (line.split(" | ") for line in table[2:6])
+    assert versus[4] == "not supported (the estimate is negative; the opposite's p = 0.250) |"
+    # LSTM drops 0.3 and 0.1: 0.2 +- t_1 * 0.1 = 0.2 +- 12.706 * 0.1414 / sqrt(2)
+    assert lstm_perturbed[3] == "sign-flip p=0.250, t 95% [-1.07, +1.47], n=2"
+    assert lstm_perturbed[4].startswith("weak") and gru_perturbed[4].startswith("weak")
+    assert recovery[2] == "-0.05" and recovery[4].startswith("not supported")
+    assert table[-1] == stats.SMALL_SAMPLE_NOTE and "1/8 for 3 pairs" in table[-1]
 
 
 def test_a_claim_on_one_run_is_not_judged_and_one_agent_gaining_is_not_both_perturbed():
     head = [tournament("11,11", 0, 50, 50, progress=(0.4, 0.9)),
             tournament("11,11", 50, 60, 40, progress=(0.6, 0.5))]
-    table = experiment.claims_table({"lstm": [600.0], "gru": [100.0]}, [], head, race_episodes=50, reps=100)
+    table = experiment.claims_table({"lstm": [600.0], "gru": [100.0]}, [], head, race_episodes=50)
     solo, versus, lstm_perturbed, gru_perturbed, recovery = (line.split(" | ") for line in table.splitlines()[2:7])
-    for row in (solo, versus, lstm_perturbed, gru_perturbed, recovery):  # one pair, one seed: an interval of no width
-        assert row[3].startswith("too few runs to judge (n = 1)")
-    assert lstm_perturbed[2] == "-0.20 [-0.20, -0.20]" and gru_perturbed[2] == "0.40 [0.40, 0.40]"
-    assert "every run agrees" not in table
+    for row in (solo, versus, lstm_perturbed, gru_perturbed, recovery):  # one pair, one seed: no spread, no interval
+        assert row[4].startswith("too few runs to judge (n = 1)") and ", no interval, n=1" in row[3]
+    assert lstm_perturbed[2] == "-0.20" and gru_perturbed[2] == "0.40"
+    # one difference: its two signs are the whole null; -0.20 is the lower (p 1), 0.40 the higher (p 1/2)
+    assert lstm_perturbed[3].startswith("sign-flip p=1.000") and gru_perturbed[3].startswith("sign-flip p=0.500")
+    assert solo[3] == "permutation p=0.500, no interval, n=1+1"
+    assert stats.SMALL_SAMPLE_NOTE not in table  # no row of 2 runs or more
 
 
 def results_json(directory, lstm_wins, gru_wins, races=10, progress=(0.5, 0.5)):
@@ -585,7 +611,8 @@ def test_a_second_policy_races_each_tournament_again_once_with_its_own_checkpoin
     assert [(r["seed_pair"], r["races_trained"], r["lstm_wins"], r["gru_wins"]) for r in rows] == [
         ("3,3", "0", "0", "2"), ("3,3", "2", "0", "2"), ("3,3", "4", "0", "2")]  # fmt: skip
     assert "raced again with the stochastic policy" in text
-    assert "with the mean-action policy - with the stochastic policy is 0.50 [0.50, 0.50] over 1 seed pairs" in text
+    assert ("with the mean-action policy - with the stochastic policy is +0.50 (sign-flip p=1.000 two-sided, no "
+            "interval, n=1) over 1 seed pairs (+0.50): too few pairs to judge (n = 1)") in text  # fmt: skip
     assert "| the LSTM-Dreamer beats the GRU-Dreamer head to head |" in text
     assert experiment.race_progress(plain, 3) == "race_lstm_gru_seed3 (4 of 4 races; tournaments after 0, 2, 4 races)"
     calls.clear()
@@ -824,7 +851,12 @@ def test_an_experiment_without_controls_keeps_the_measured_table_and_compares_it
         assert f.read() == table  # kept as measured
     ghost_row = next(line for line in summary.splitlines() if line.startswith("| racing a ghost"))
     assert "4 (variant, seed) pairs" in ghost_row  # the kept table's four rows
-    assert ghost_row.split(" | ")[2].startswith("93.0 [")  # (5.4 - 18.0 + 218.7 + 166.0) / 4, the kept rows
+    # (5.4 - 18.0 + 218.7 + 166.0) / 4 = 93.0, the kept rows; |d| sum to 408.1, the observed sum is 372.1: an
+    # assignment reaches it when its negated part sums to 18.0 or less ({}, {5.4}, {18.0}): p = 3/16. sd 117.1,
+    # t_3 = 3.1824: 93.0 +- 186.3
+    estimate, test, judged = ghost_row.split(" | ")[2:5]
+    assert estimate == "93.0" and test.startswith("sign-flip p=0.188, t 95% [-93.") and test.endswith("n=4")
+    assert judged.startswith("weak (positive, but the exact test's p = 0.188")
     assert ("Its ghost agents made again, return on the fresh tracks before -> after the ghost stage (the table's in "
             "brackets): lstm seed 11 315.10 (315.10) -> 817.90 (817.90); gru seed 11 576.10 (576.10) -> 634.75 "
             "(635.00). Largest difference: 0.25.") in summary

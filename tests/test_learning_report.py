@@ -15,6 +15,8 @@ from torch.utils.tensorboard import SummaryWriter
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
 import learning  # noqa: E402
 from conftest import TINY_RUN  # noqa: E402
+import utils.checkpoint as ckpt  # noqa: E402
+import utils.run as run_tools  # noqa: E402
 
 BASELINES = {
     "random": {"eval_return": -76.6, "eval_progress": 0.03},
@@ -179,21 +181,24 @@ def test_the_ppo_peer_is_compared_with_each_variants_mean_action_over_seeds(tmp_
     text = learning.write_final_report(str(results), reps=500)
     with open(results / "learning_final.md") as f:
         assert f.read() == text
-    # PPO: mean 600; lstm 700 - 600 = +100, its bootstrap means lie in [600, 800] - [550, 650]; gru 500 - 600 = -100
-    # with an interval of PPO's resampling alone: [500 - 650, 500 - 550]
+    # PPO: mean 600. lstm 600, 700, 800 - PPO 550, 650 = +100: of the C(5, 3) = 10 splits of the five returns,
+    # the LSTM's three sum to 2100 or more in 2 (600 + 700 + 800, 650 + 700 + 800): p = 0.2, weak. Welch: se^2 =
+    # 10000 / 3 + 5000 / 2 = 5833.3, df = 5833.3^2 / ((10000 / 3)^2 / 2 + 2500^2 / 1) = 2.88, t = 3.257:
+    # +100 +- 248.8. gru 500, 500, 500 - PPO = -100: the GRU's split is the lowest of 10 (the opposite's p = 0.1),
+    # Welch's variance PPO's alone, df 1, t = 12.706: -100 +- 12.706 * 50
     assert "2 seeds, its deterministic policy: mean 600.0 [" in text
     assert "(seed 11: 550.0 at 3.10 CPU-h, 12: 650.0 at 3.10 CPU-h)" in text
     rows = {line.split("|")[1].strip(): line.split("|") for line in text.splitlines() if " - ppo |" in line}
     assert set(rows) == {"lstm - ppo", "gru - ppo"}
-    for name, diff, lowest, highest in [("lstm - ppo", 100.0, -50.0, 250.0), ("gru - ppo", -100.0, -150.0, -50.0)]:
-        point, interval = rows[name][2].split("[")
-        low, high = (float(x) for x in interval.rstrip("] ").split(","))
-        assert float(point) == diff and lowest <= low < diff < high <= highest
-    assert rows["gru - ppo"][3].strip() == "contradicted (the opposite holds)"
-    assert rows["lstm - ppo"][3].strip() == "not supported (the interval includes 0)"
+    for name, diff, p, low, high in [("lstm - ppo", 100.0, 0.2, -148.8, 348.8),
+                                     ("gru - ppo", -100.0, 1.0, -100.0 - 635.3, -100.0 + 635.3)]:  # fmt: skip
+        assert float(rows[name][2]) == diff
+        assert rows[name][3].strip() == f"permutation p={p:.3f}, Welch t 95% [{low:+.1f}, {high:+.1f}], n=3+2"
+    assert rows["lstm - ppo"][4].strip() == "weak (positive, but the exact test's p = 0.200 is not below 0.05)"
+    assert rows["gru - ppo"][4].strip() == "not supported (the estimate is negative; the opposite's p = 0.100)"
     assert text.index("driving its mean action") < text.index("sampled, as trained") < text.index("SB3 PPO")
     # the LSTM against the GRU (700 - 500 with the mean action) stands between the variants' tables and PPO
-    assert text.index("sampled, as trained") < text.index("| mean action | +200.0 [") < text.index("SB3 PPO")
+    assert text.index("sampled, as trained") < text.index("| mean action | +200.0 |") < text.index("SB3 PPO")
 
 
 def test_the_lstm_is_compared_with_the_gru_for_each_policy_over_seeds(tmp_path):
@@ -214,23 +219,25 @@ def test_the_lstm_is_compared_with_the_gru_for_each_policy_over_seeds(tmp_path):
         )  # fmt: skip
         if i == 2:  # the LSTM alone: nothing to compare
             assert learning.variant_difference(path) == ""
-    text = learning.variant_difference(path, reps=500)
+    text = learning.variant_difference(path)
     table = {line.split("|")[1].strip(): line.split("|") for line in text.splitlines() if line.startswith("| ")}
     assert set(table) == {"final policy: LSTM - GRU", "mean action", "sampled"}
-    # mean action: 700 - 500 = +200, bootstrap means of the LSTM in [600, 800] and the GRU's all 500: [100, 300];
-    # sampled: 20 - 50 = -30, each side's bootstrap means within its scores: [10 - 60, 30 - 40] = [-50, -10]
-    for name, diff, lowest, highest, verdict in [
-        ("mean action", 200.0, 100.0, 300.0, "supported"), ("sampled", -30.0, -50.0, -10.0, "contradicted"),
+    # mean action: 700 - 500 = +200, the LSTM's 600, 700, 800 the top 3 of 6 in the only one of the C(6, 3) = 20
+    # splits: p = 1/20 = 0.05, not below 0.05 (3 runs a side can never be); Welch: the GRU has no spread, so
+    # +200 +- t_2 * 100 / sqrt(3) = +200 +- 248.4. Sampled: 20 - 50 = -30, every LSTM run below every GRU run (the
+    # opposite's p = 0.05 again); Welch: variances 100 and 100, df 4, -30 +- 2.7764 * sqrt(200 / 3) = -30 +- 22.7
+    for name, diff, p, low, high, verdict in [
+        ("mean action", 200.0, 0.05, -48.4, 448.4, "weak (positive, but the exact test's p = 0.050 is not below"),
+        ("sampled", -30.0, 1.0, -52.7, -7.3, "not supported (the estimate is negative; the opposite's p = 0.050)"),
     ]:  # fmt: skip
-        point, interval = table[name][2].split("[")
-        low, high = (float(x) for x in interval.rstrip("] ").split(","))
-        assert float(point) == diff and lowest <= low < diff < high <= highest
-        assert table[name][3].strip().startswith(verdict)
-    one = str(tmp_path / "one_gru_seed.csv")  # one GRU seed: its bootstrap has no width, no verdict
+        assert float(table[name][2]) == diff
+        assert table[name][3].strip() == f"permutation p={p:.3f}, Welch t 95% [{low:+.1f}, {high:+.1f}], n=3+3"
+        assert table[name][4].strip().startswith(verdict)
+    one = str(tmp_path / "one_gru_seed.csv")  # one GRU seed: no spread to measure, no verdict
     for exp_name, variant, seed, mean_action, sampled in rows[:4]:
         learning.write_final_row({"exp_name": exp_name, "variant": variant, "seed": seed,
                                   "mean_action_return": mean_action, "final_return": sampled, **base}, one)  # fmt: skip
-    assert learning.variant_difference(one, reps=500).count("too few runs to judge (n = 1)") == 2
+    assert learning.variant_difference(one).count("too few runs to judge (n = 1)") == 2
 
 
 def test_the_bar_is_met_only_when_every_part_is(tmp_path):
@@ -353,8 +360,8 @@ def test_an_ablation_reaches_the_script_and_a_refused_value_names_its_flag(tmp_p
     assert args.exp_name == "learning_lstm_dzstart-0.5" and args.dead_zone_start == args.dead_zone_end == -0.5
     assert {script.dead_zone_at(e, args) for e in (0, 10, 1000)} == {-0.5}
     script, args, _ = learning.run_args("lstm", 1, 1.0, False, decoder_min_log_sigma=3.0)
-    with pytest.raises(script.UsageError, match=r"^--decoder-min-log-sigma must lie in \[-5, 2\], got 3.0$"):
-        script.validate_args(args)
+    with pytest.raises(ckpt.UsageError, match=r"^--decoder-min-log-sigma must lie in \[-5, 2\], got 3.0$"):
+        run_tools.validate_args(args, script.LOG_SIGMA_RANGE)
 
 
 @pytest.mark.parametrize("variant", ["lstm", "gru"])
@@ -612,22 +619,33 @@ def test_the_policy_rule_decides_on_three_seeds_per_variant_with_variants_as_str
                  "difference": d, "tracks": "10200..10219"} for v, ds in (("lstm", lstm), ("gru", gru))
                 for i, d in enumerate(ds)]  # fmt: skip
 
-    waiting = learning.policy_rule(rows([10.0, 20.0, 30.0], [5.0, 6.0]), reps=200)
+    waiting = learning.policy_rule(rows([10.0, 20.0, 30.0], [5.0, 6.0]))
     assert waiting == {"policy": None, "counts": {"lstm": 3, "gru": 2}}
     assert "waits for 3 final policies per variant (lstm 3 of 3, gru 2 of 3)" in learning.policy_rule_table([], waiting)
-    # Variants are strata: every resample keeps 3 LSTM and 3 GRU runs, so its mean lies in [(1 + 101) / 2,
-    # (3 + 103) / 2]; pooling the six runs would spread the interval over [1, 103].
-    split = learning.policy_rule(rows([1.0, 2.0, 3.0], [101.0, 102.0, 103.0]), reps=500)
-    assert split["mean"] == pytest.approx(52.0) and 51.0 <= split["ci"][0] <= split["ci"][1] <= 53.0
-    assert split["policy"] == "mean-action"
-    # only the first 3 seeds of each variant count: mean (100 - 300) / 2 = -100 at every resample
-    loss = learning.policy_rule(rows([100.0, 100.0, 100.0, 5000.0], [-300.0, -300.0, -300.0]), reps=200)
+    # Variants are strata: the mean of the variants' means 52, each variant's variance 1, so the mean's variance is
+    # (1/3 + 1/3) / 4 = 1/6 with (2/3)^2 / (2 (1/3)^2 / 2) = 4 degrees of freedom: 52 +- 2.7764 / sqrt(6) =
+    # [50.87, 53.13]; pooling the six runs would spread the interval over [-5.5, 109.5]. All six positive: the
+    # sign-flip p is 1/64, so the claim is supported.
+    split = learning.policy_rule(rows([1.0, 2.0, 3.0], [101.0, 102.0, 103.0]))
+    assert split["mean"] == pytest.approx(52.0) and split["ci"] == pytest.approx((50.867, 53.133), abs=1e-3)
+    assert split["p"] == 1 / 64 and split["verdict"] == "supported" and split["policy"] == "mean-action"
+    # only the first 3 seeds of each variant count: mean (100 - 300) / 2 = -100, no spread within a variant
+    loss = learning.policy_rule(rows([100.0, 100.0, 100.0, 5000.0], [-300.0, -300.0, -300.0]))
     assert loss["mean"] == pytest.approx(-100.0) and loss["policy"] == "stochastic"  # seed 14 is not in the rule
-    # an interval that reaches below 0 keeps the sampled policy, though the mean difference is positive
-    mixed = learning.policy_rule(rows([-100.0, 0.0, 400.0], [-100.0, 0.0, 400.0]), reps=2000)
-    assert mixed["mean"] == pytest.approx(100.0) and mixed["ci"][0] < 0 and mixed["policy"] == "stochastic"
+    # a positive mean whose interval reaches below 0 keeps the sampled policy: each variant -100, 0, 400 (variance
+    # 70000), 100 +- 2.7764 * sqrt(2 * 70000 / 3 / 4) = 100 +- 299.9; the sign-flip p is 16/64 (0 flips to itself)
+    mixed = learning.policy_rule(rows([-100.0, 0.0, 400.0], [-100.0, 0.0, 400.0]))
+    assert mixed["mean"] == pytest.approx(100.0) and mixed["ci"] == pytest.approx((-199.9, 399.9), abs=0.05)
+    assert mixed["p"] == 16 / 64 and mixed["verdict"].startswith("weak") and mixed["policy"] == "stochastic"
+    # the rule's own numbers (policy_rule.csv): +25.4, -143.9, +72.2 and +223.4, +54.3, +185.6, mean +69.5; an
+    # assignment beats the observed sum 417.0 only with -143.9 made positive and a set of positives summing to at
+    # most 143.9 made negative ({}, 25.4, 54.3, 72.2, 25.4 + 54.3, 25.4 + 72.2, 54.3 + 72.2), or as observed: 8/64
+    real = learning.policy_rule(rows([223.4, 54.3, 185.6], [25.4, -143.9, 72.2]))
+    assert real["mean"] == pytest.approx(69.5, abs=0.05) and real["p"] == 8 / 64
+    assert real["ci"][0] < 0 and real["policy"] == "stochastic"  # a percentile bootstrap said [+5.3, +132.2]
     table = learning.policy_rule_table(rows([1.0, 2.0, 3.0], [101.0, 102.0, 103.0]), split)
-    assert "+52.0 [+5" in table and "Evaluation policy: **mean-action**" in table
+    assert "+52.0 [+50.9, +53.1] (t 95%, variants as strata; exact sign-flip p = 0.016 one-sided, n = 6)" in table
+    assert "supported. Evaluation policy: **mean-action**" in table
 
 
 def test_realised_and_horizon_returns_match_their_sums_written_out():
@@ -668,6 +686,6 @@ def test_calibrate_measures_the_real_episode_the_agent_drives(tmp_path):
     reference = learning.evaluate_checkpoint(latest, 10_100, 1, "stochastic")
     assert whole["horizon_starts"] == 1
     assert whole["real_task_return"] == pytest.approx(reference["eval_return"], abs=0.01)
-    script.export_policy(latest, str(tmp_path / "policy.pt"))
+    ckpt.export_policy(script, latest, str(tmp_path / "policy.pt"))
     with pytest.raises(ValueError, match=r"policy\.pt: an acting-only export has no critic"):
         learning.calibrate_checkpoint(str(tmp_path / "policy.pt"))

@@ -8,6 +8,7 @@ import types
 
 import pytest
 import torch
+import utils.checkpoint as ckpt
 from conftest import TINY_RUN
 
 import race
@@ -100,7 +101,7 @@ def test_race_of_saved_agents_of_both_variants(tiny_checkpoints, tmp_path):
 def test_an_export_outside_a_run_is_named_by_its_folder(tiny_checkpoints, tmp_path):
     shipped = tmp_path / "pretrained"
     shipped.mkdir()
-    importlib.import_module("dreamer_lstm").export_policy(tiny_checkpoints["lstm"], str(shipped / "lstm_tiny.pt"))
+    ckpt.export_policy(importlib.import_module("dreamer_lstm"), tiny_checkpoints["lstm"], str(shipped / "lstm_tiny.pt"))
     rows = race.main([str(shipped / "lstm_tiny.pt"), "--opponent", "pursuit:70", "--races", "2", "--max-steps", "30",
                       "--no-video", "--out", str(tmp_path / "races")])  # fmt: skip
     assert [r["racer"] for r in rows] == ["lstm:pretrained/lstm_tiny.pt:0", "pursuit@70"]
@@ -128,11 +129,11 @@ def test_tiny_train_run_logs_per_agent_win_rates(tiny_checkpoints, tmp_path):
         assert checkpoint["counters"]["episode"] == 2 and script.VARIANT == variant
         # its replay is saved beside it (named by the checkpoint) and a later sitting continues from both
         manifest = checkpoint["extra"]["replays"][0]
-        assert script.replay_dir_of(path, 0) == str(run_dir / "checkpoints" / f"racer_{i}_replay_car_0")
+        assert ckpt.replay_dir_of(path, 0) == str(run_dir / "checkpoints" / f"racer_{i}_replay_car_0")
         replay = script.Replay(manifest["capacity"], 64)
-        replay.load(script.replay_dir_of(path, 0), manifest)
+        ckpt.load_replay(replay, ckpt.replay_dir_of(path, 0), manifest)
         first = script.Replay(500, 64)
-        first.load(os.path.join(os.path.dirname(tiny_checkpoints[variant]), "replay_car_0"))
+        ckpt.load_replay(first, os.path.join(os.path.dirname(tiny_checkpoints[variant]), "replay_car_0"))
         assert replay.episodes == first.episodes + 2 and checkpoint["agents"][0]["num_updates"] == 1 + 2
     again = tmp_path / "again"
     race.main(
@@ -225,23 +226,25 @@ def test_racers_are_saved_as_a_pair_a_kill_while_saving_leaves_the_previous_pair
     race; a save that completes leaves no pending file and both racers at the new race."""
     written = []
 
-    class Module:
-        class Replay:
-            @staticmethod
-            def prune(directory, manifest):
-                written.append(("prune", os.path.basename(directory)))
+    def save_replay(replay, directory):
+        written.append(("replay", os.path.basename(directory)))
+        return {"files": []}
 
-        @staticmethod
-        def save_checkpoint(path, args, agents, counters, extra):
-            torch.save({"counters": counters, "extra": extra}, path)
-            written.append(("checkpoint", os.path.basename(path)))
+    def save_checkpoint(path, variant, args, agents, counters, extra):
+        torch.save({"counters": counters, "extra": extra}, path)
+        written.append(("checkpoint", os.path.basename(path)))
+
+    def prune_replay(directory, manifest):
+        written.append(("prune", os.path.basename(directory)))
+
+    for name, stand_in in (("save_replay", save_replay), ("save_checkpoint", save_checkpoint),
+                           ("prune_replay", prune_replay)):  # fmt: skip
+        monkeypatch.setattr(race.saved, name, stand_in)
 
     class Replay:
-        def save(self, directory):
-            written.append(("replay", os.path.basename(directory)))
-            return {"files": []}
+        pass
 
-    racer = types.SimpleNamespace(module=Module, args=None, agent=None, counters={"race_episodes": 50})
+    racer = types.SimpleNamespace(variant="lstm", args=None, agent=None, counters={"race_episodes": 50})
     learning = {0: (racer, Replay()), 1: (racer, Replay())}
     race.save_racers(learning, str(tmp_path), races=1, env_steps=10)
     saved = [torch.load(tmp_path / f"racer_{i}.pt")["counters"]["race_episodes"] for i in (0, 1)]

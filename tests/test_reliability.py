@@ -23,6 +23,8 @@ import sys
 import numpy as np
 import pytest
 import torch
+import utils.checkpoint as ckpt
+import utils.run as run_tools
 from conftest import SCRIPTS, TINY, assert_same
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -65,14 +67,14 @@ def random_batch(seed=0, batch=3, length=8, size=64):
 
 def assert_same_replays(a, b) -> None:
     """Two replay buffers hold the same episodes, step for step."""
-    assert a.manifest() == b.manifest()
+    assert ckpt.saver_of(a).manifest() == ckpt.saver_of(b).manifest()
     for key in ("obs", "action", "reward", "is_first", "terminated"):
         np.testing.assert_array_equal(getattr(a, key), getattr(b, key), err_msg=key)
 
 
 def exit_message(script, argv) -> str:
     with pytest.raises(SystemExit) as exit_info:
-        script.cli(argv)
+        run_tools.cli(script, argv)
     text = str(exit_info.value.code)
     assert text.startswith(f"{script.__name__}.py: error: ") and "\n" not in text, text
     return text
@@ -119,11 +121,11 @@ def test_impossible_arguments_end_with_one_line_before_any_work(script, tmp_path
 
 
 def test_validate_args_raises_value_error_naming_the_flag(script, tmp_path):
-    script.validate_args(script.Args())  # the defaults are valid
+    run_tools.validate_args(script.Args(), script.LOG_SIGMA_RANGE)  # the defaults are valid
     with pytest.raises(ValueError, match=r"^--batch-size must be >= 1, got 0$"):
-        script.validate_args(script.Args(batch_size=0))
+        run_tools.validate_args(script.Args(batch_size=0), script.LOG_SIGMA_RANGE)
     with pytest.raises(ValueError, match=r"^--decoder-min-log-sigma must lie in \[-5, 2\], got 3.0$"):
-        script.validate_args(script.Args(decoder_min_log_sigma=3.0))
+        run_tools.validate_args(script.Args(decoder_min_log_sigma=3.0), script.LOG_SIGMA_RANGE)
     with pytest.raises(ValueError, match="--tau"):  # main checks first, before it writes anything
         script.main(script.Args(tau=2.0, runs_dir=str(tmp_path / "runs")))
     assert not (tmp_path / "runs").exists()
@@ -163,7 +165,7 @@ def test_a_checkpoint_save_killed_halfway_leaves_the_previous_one(script, tmp_pa
 
     monkeypatch.setattr(os, "fsync", fsync)
     monkeypatch.setattr(os, "replace", replace)
-    script.save_checkpoint(str(path), args, agents, counters)
+    ckpt.save_checkpoint(str(path), script.VARIANT, args, agents, counters)
     assert events == [("fsync", f"{path}.tmp"), ("replace", f"{path}.tmp", str(path)), ("fsync", str(path.parent))]
     before = path.read_bytes()
 
@@ -178,7 +180,7 @@ def test_a_checkpoint_save_killed_halfway_leaves_the_previous_one(script, tmp_pa
     monkeypatch.setattr(torch, "save", half_then_killed)
     agents[0].update(random_batch())  # something new to save
     with pytest.raises(Killed):
-        script.save_checkpoint(str(path), args, agents, {**counters, "episode": 2})
+        ckpt.save_checkpoint(str(path), script.VARIANT, args, agents, {**counters, "episode": 2})
     monkeypatch.undo()
     assert path.read_bytes() == before  # the old checkpoint, whole
     assert script.load_checkpoint(str(path))["counters"]["episode"] == 1
@@ -199,7 +201,7 @@ def test_a_replay_save_killed_halfway_keeps_the_saved_replay(script, tmp_path, m
     replay = script.Replay(capacity=50, image_size=8, chunk_size=16)
     for e in range(3):
         replay.add_episode(*make_episode(13, e))
-    first = replay.save(directory)
+    first = ckpt.save_replay(replay, directory)
     saved = {key: getattr(replay, key).copy() for key in ("obs", "action", "reward", "is_first", "terminated")}
     replay.add_episode(*make_episode(20, 7))  # wraps around: rewrites chunks that the first save holds
 
@@ -214,21 +216,21 @@ def test_a_replay_save_killed_halfway_keeps_the_saved_replay(script, tmp_path, m
 
     monkeypatch.setattr(np, "savez_compressed", killed_on_second_file)
     with pytest.raises(Killed):
-        replay.save(directory)
+        ckpt.save_replay(replay, directory)
     monkeypatch.undo()
     for manifest in (None, first):  # meta.npz, and the manifest a checkpoint would hold: both the first save
         loaded = script.Replay(capacity=50, image_size=8)
-        loaded.load(directory, manifest)
-        assert loaded.manifest() == first
+        ckpt.load_replay(loaded, directory, manifest)
+        assert ckpt.saver_of(loaded).manifest() == first
         for key, value in saved.items():
             np.testing.assert_array_equal(getattr(loaded, key), value)
-    second = replay.save(directory)  # a complete save; the first stays loadable until pruned
+    second = ckpt.save_replay(replay, directory)  # a complete save; the first stays loadable until pruned
     loaded = script.Replay(capacity=50, image_size=8)
-    loaded.load(directory, first)
+    ckpt.load_replay(loaded, directory, first)
     assert loaded.episodes == 3
-    script.Replay.prune(directory, second)
+    ckpt.prune_replay(directory, second)
     assert sorted(os.listdir(directory)) == sorted(second["files"] + ["meta.npz"])
-    loaded.load(directory)
+    ckpt.load_replay(loaded, directory)
     np.testing.assert_array_equal(loaded.obs, replay.obs)
     assert loaded.episodes == 4
 
@@ -237,12 +239,13 @@ def test_unreadable_checkpoints_get_one_line_errors_naming_the_file(script, tmp_
     other = importlib.import_module(next(s for s in SCRIPTS if s != script.__name__))
     counters = {"episode": 1, "global_step": 30, "best_eval_return": 0.0}
     good = tmp_path / "good.pt"
-    script.save_checkpoint(str(good), script.Args(**TINY), [script.Agent(script.Args(**TINY))], counters)
+    ckpt.save_checkpoint(str(good), script.VARIANT, script.Args(**TINY), [script.Agent(script.Args(**TINY))], counters)
     files = {"truncated": good.read_bytes()[: good.stat().st_size // 2], "text": b"not a checkpoint\n", "empty": b""}
     for name, content in files.items():
         (tmp_path / f"{name}.pt").write_bytes(content)
     torch.save({"weights": torch.zeros(3)}, tmp_path / "foreign.pt")
-    other.save_checkpoint(str(tmp_path / "other.pt"), other.Args(**TINY), [other.Agent(other.Args(**TINY))], counters)
+    other_args = other.Args(**TINY)
+    ckpt.save_checkpoint(str(tmp_path / "other.pt"), other.VARIANT, other_args, [other.Agent(other_args)], counters)
     (tmp_path / "run" / "checkpoints").mkdir(parents=True)
     (tmp_path / "run" / "checkpoints" / "latest.pt").write_bytes(files["truncated"])
     expected = {
@@ -299,7 +302,7 @@ def test_a_run_killed_mid_race_resumes_exactly(script, tmp_path, monkeypatch, ca
         replays = []
         for run in (whole, killed):
             replay = script.Replay(RUN["replay_capacity"], RUN["image_size"])
-            replay.load(f"{run}/checkpoints/replay_car_{j}")
+            ckpt.load_replay(replay, f"{run}/checkpoints/replay_car_{j}")
             replays.append(replay)
             named = script.load_checkpoint(f"{run}/checkpoints/latest.pt")["extra"]["replays"][j]["files"]
             files = sorted(os.listdir(f"{run}/checkpoints/replay_car_{j}"))  # pruned: only what latest.pt names
@@ -388,15 +391,15 @@ def test_a_replay_that_cannot_fit_in_memory_is_refused(script, tmp_path, capsys)
     assert not runs.exists()
 
 
-def test_available_memory_reads_meminfo_or_falls_back(script, monkeypatch):
-    available, source = script.available_memory()
+def test_available_memory_reads_meminfo_or_falls_back(monkeypatch):
+    available, source = run_tools.available_memory()
     assert available > 0 and ("MemAvailable" in source or "cgroup" in source)
 
     def no_proc(path, *args, **kwargs):
         raise OSError(f"{path}: not here")
 
-    monkeypatch.setattr(script, "open", no_proc, raising=False)  # no /proc/meminfo, no cgroup files
-    available, source = script.available_memory()
+    monkeypatch.setattr(run_tools, "open", no_proc, raising=False)  # no /proc/meminfo, no cgroup files
+    available, source = run_tools.available_memory()
     assert available > 0 and "sysconf" in source
 
 
@@ -441,7 +444,7 @@ def test_race_checkpoint_that_builds_no_agent_is_one_line(tmp_path):
     lstm = importlib.import_module("dreamer_lstm")
     path = str(tmp_path / "mismatch.pt")
     agent = lstm.Agent(lstm.Args(**TINY))
-    lstm.save_checkpoint(path, lstm.Args(**{**TINY, "cnn_depth": 8}), [agent], {"episode": 0})  # sizes do not fit
+    ckpt.save_checkpoint(path, "lstm", lstm.Args(**{**TINY, "cnn_depth": 8}), [agent], {"episode": 0})  # no fit
     with pytest.raises(SystemExit) as exit_info:
         race.main([path, "--opponent", "pursuit"])
     text = str(exit_info.value.code)
@@ -505,16 +508,17 @@ def kill_on_call(owner, name):
     setattr(owner, name, wrapper)
 
 if where == "step":  # the n-th env step of race 2 (a prefill race here)
-    real_end_race = script.end_race
-    def end_race(run, *args):
-        real_end_race(run, *args)
+    real_after_training = script.after_training
+    def after_training(run, *args):
+        real_after_training(run, *args)
         if run.counters["episode"] == 1:
             kill_on_call(script, "step_with_repeat")
-    script.end_race = end_race
+    script.after_training = after_training
 elif where == "update":
     kill_on_call(script.Agent, "update")
 else:  # "write": the temporary file is complete, the rename has not happened
-    real_write = script._atomic_write
+    import utils.checkpoint
+    real_write = utils.checkpoint.atomic_write
     def write_then_die(path, write):
         calls[0] += 1
         if calls[0] != n:
@@ -525,8 +529,9 @@ else:  # "write": the temporary file is complete, the rename has not happened
             print(f"killed while writing {os.path.basename(path)}", file=sys.stderr, flush=True)
             os.kill(os.getpid(), signal.SIGKILL)
         return real_write(path, write_and_die)
-    script._atomic_write = write_then_die
-script.cli(argv)
+    utils.checkpoint.atomic_write = write_then_die
+import utils.run
+utils.run.cli(script, argv)
 """
 KILL_RUN = dict(
     TINY, max_steps=30, train_steps_per_episode=3, prefill_episodes=2, replay_capacity=500, eval_every=2,
@@ -586,7 +591,7 @@ def test_a_run_killed_with_sigkill_resumes_with_nothing_but_resume(uninterrupted
     replays = []
     for run in (uninterrupted, run_dir):
         replays.append(script.Replay(KILL_RUN["replay_capacity"], KILL_RUN["image_size"]))
-        replays[-1].load(os.path.join(run, "checkpoints", "replay_car_0"))
+        ckpt.load_replay(replays[-1], os.path.join(run, "checkpoints", "replay_car_0"))
     assert_same_replays(*replays)  # the same episodes, step for step
 
 

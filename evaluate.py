@@ -1,0 +1,115 @@
+"""Evaluate a saved agent on a block of tracks, or export it acting-only (in the manner of rl-zoo's enjoy.py).
+
+    python evaluate.py runs/<run>/checkpoints/latest.pt                          # tracks 10000..10009, both policies
+    python evaluate.py pretrained/lstm_cpu.pt --first-track 10100 --tracks 20 --policies mean-action
+    python evaluate.py runs/<run>/checkpoints/best.pt --export pretrained/lstm_cpu.pt   # acting-only, for git
+
+The agent (any variant: the checkpoint names its script; agent ``--agent`` of a multi-agent checkpoint) drives alone,
+with the env settings it was trained with at the end of its dead-zone schedule, one race per track. Per policy it
+prints the mean over the tracks of what the script's ``drive_races`` reads: return, progress (fraction of tiles),
+|steer| (near 1: bang-bang steering), gas, brake share, speed, laps finished within the time limit, eliminations.
+``--json`` also writes every track's values. A sampled policy's random stream starts from the first track's seed,
+so the same command gives the same numbers.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from typing import Literal
+
+import numpy as np
+import tyro
+
+POLICIES = ("stochastic", "mean-action", "deterministic")
+
+
+@dataclasses.dataclass
+class Args:
+    checkpoint: tyro.conf.Positional[str]
+    """a training checkpoint (latest.pt, best.pt, race.py's racer_<i>.pt) or an acting-only export"""
+    first_track: int = 10_000
+    """seed of the first track (10000..10009: the runs' own evaluation tracks; 10200..: screening; 10300..: report)"""
+    tracks: int = 10
+    """number of tracks, one race each"""
+    policies: tuple[Literal["stochastic", "mean-action", "deterministic"], ...] = ("stochastic", "mean-action")
+    """stochastic = sampled latent and action (as trained); mean-action = sampled latent, the actor's mean;
+    deterministic = the posterior's mean latent and the actor's mean"""
+    agent: int = 0
+    """which agent of a multi-agent checkpoint"""
+    json: str | None = None
+    """also write every track's readings to this file"""
+    export: str | None = None
+    """instead of evaluating, write the agent as an acting-only export here (no critic, optimisers or replay)"""
+
+
+def evaluate_checkpoint(path: str, first_track: int = 10_000, tracks: int = 10, policies=("stochastic",),
+                        index: int = 0, seeds=None) -> dict[str, dict[str, list[float]]]:  # fmt: skip
+    """Per policy, every reading of `drive_races` per track: {policy: {reading: [value per track]}}. The tracks are
+    first_track .. first_track + tracks - 1, or `seeds` when given (the random stream still starts at first_track)."""
+    import torch
+
+    from race import read_checkpoint  # one reader of checkpoints: clear one-line errors naming the file
+    from utils import make_vec_env
+
+    if tracks < 1:
+        raise ValueError(f"tracks must be >= 1, got {tracks}")
+    script, checkpoint = read_checkpoint(path)
+    args = script.args_from_checkpoint(checkpoint, path, num_agents=1)
+    agent = script.agent_from_checkpoint(path, index)
+    envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
+    out = {}
+    try:
+        for policy in policies:
+            torch.manual_seed(first_track)  # a sampled policy: the same command gives the same numbers
+            seeds = range(first_track, first_track + tracks) if seeds is None else seeds
+            readings = script.drive_races([agent], args, envs, policy, seeds)
+            out[policy] = {key: [float(v) for v in value[:, 0]] for key, value in readings.items()}
+    finally:
+        envs.close()
+    return out
+
+
+def table(results: dict[str, dict[str, list[float]]]) -> str:
+    """Markdown: one row per policy, the mean over tracks of every reading."""
+    keys = list(next(iter(results.values())))
+    lines = ["| policy | " + " | ".join(keys) + " |", "|---|" + "---|" * len(keys)]
+    for policy, readings in results.items():
+        lines.append(f"| {policy} | " + " | ".join(f"{np.mean(readings[k]):.2f}" for k in keys) + " |")
+    return "\n".join(lines)
+
+
+def main(args: Args) -> None:
+    from race import read_checkpoint
+    from utils.checkpoint import export_policy
+
+    if args.export:
+        script, _ = read_checkpoint(args.checkpoint)
+        size = export_policy(script, args.checkpoint, args.export, args.agent)
+        print(f"wrote {args.export} ({size / 1e6:.1f} MB)")
+        return
+    results = evaluate_checkpoint(args.checkpoint, args.first_track, args.tracks, args.policies, args.agent)
+    last = args.first_track + args.tracks - 1
+    print(f"{args.checkpoint}, agent {args.agent}, tracks {args.first_track}..{last} (means over tracks):")
+    print(table(results))
+    if args.json:
+        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
+        with open(args.json, "w") as f:
+            json.dump({"checkpoint": args.checkpoint, "tracks": [args.first_track, args.tracks], **results}, f,
+                      indent=1)  # fmt: skip
+
+
+def cli(argv: list[str] | None = None) -> None:
+    """The command line: a bad file or value ends with one line naming it, no traceback."""
+    from race import CheckpointError
+
+    args = tyro.cli(Args, args=argv)
+    try:
+        main(args)
+    except (CheckpointError, ValueError) as e:
+        raise SystemExit(f"evaluate.py: error: {' '.join(str(e).split())}") from None
+
+
+if __name__ == "__main__":
+    cli()

@@ -1,0 +1,53 @@
+"""evaluate.py: a saved agent on a block of tracks with every policy asked for, and its acting-only export."""
+
+import json
+import os
+
+import pytest
+import torch
+from conftest import TINY_RUN
+
+import evaluate
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """A tiny single-car run whose own evaluation (track 10000, one race) used the deterministic policy."""
+    import dreamer_lstm
+
+    root = tmp_path_factory.mktemp("evaluate")
+    args = dreamer_lstm.Args(stage="single", runs_dir=str(root), eval_policy="deterministic", **TINY_RUN)
+    return dreamer_lstm.main(args)
+
+
+def test_the_deterministic_policy_scores_what_the_runs_own_evaluation_logged(tiny_run):
+    import csv
+
+    with open(os.path.join(tiny_run, "progress.csv")) as f:
+        logged = [float(r["car_0/eval/episodic_return"]) for r in csv.DictReader(f) if r["car_0/eval/episodic_return"]]
+    path = os.path.join(tiny_run, "checkpoints", "latest.pt")
+    results = evaluate.evaluate_checkpoint(path, 10_000, 1, ("deterministic",))
+    assert results["deterministic"]["return"] == [pytest.approx(logged[-1], abs=1e-3)]
+
+
+def test_an_export_drives_exactly_like_its_checkpoint_and_the_json_has_every_track(tiny_run, tmp_path, capsys):
+    path, export = os.path.join(tiny_run, "checkpoints", "latest.pt"), str(tmp_path / "policy.pt")
+    evaluate.cli([path, "--export", export])
+    assert torch.load(export, weights_only=True)["kind"] == "policy"
+    out = str(tmp_path / "readings.json")
+    evaluate.cli([export, "--tracks", "2", "--json", out])
+    printed = capsys.readouterr().out
+    assert "| stochastic |" in printed and "| mean-action |" in printed
+    with open(out) as f:
+        from_export = json.load(f)
+    from_checkpoint = evaluate.evaluate_checkpoint(path, 10_000, 2, ("stochastic", "mean-action"))
+    for policy in ("stochastic", "mean-action"):
+        assert from_export[policy] == from_checkpoint[policy]  # the same random stream, the same cars
+        assert len(from_export[policy]["return"]) == 2 and set(from_export[policy]) >= {"gas", "speed", "eliminated"}
+
+
+def test_a_missing_file_or_no_tracks_is_one_line(tiny_run):
+    with pytest.raises(SystemExit, match=r"^evaluate.py: error: no/such.pt: no such checkpoint file$"):
+        evaluate.cli(["no/such.pt"])
+    with pytest.raises(SystemExit, match="tracks must be >= 1"):
+        evaluate.cli([os.path.join(tiny_run, "checkpoints", "latest.pt"), "--tracks", "0"])

@@ -1,0 +1,129 @@
+"""benchmarks/stats.py: the exact tests, the t intervals, the verdict over few runs and the pairs a paired t test
+needs, against values derived by hand (or by a brute force written apart from the implementation)."""
+
+import itertools
+import math
+import os
+import sys
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
+import stats  # noqa: E402
+
+# benchmarks/results/ghost_vs_control.csv: return after the ghost stage - after its control, per (variant, seed)
+GHOST = [5.4, -18.0, 247.9, 218.8, 166.0, -10.1]
+T_975 = {2: 4.302653, 4: 2.776445, 5: 2.570582}  # Student t quantiles (tables) by degrees of freedom
+
+
+def test_the_t_interval_of_the_ghost_differences_is_mean_plus_minus_t5_standard_errors():
+    mean = sum(GHOST) / 6  # 610.0 / 6
+    sd = math.sqrt(sum((d - mean) ** 2 for d in GHOST) / 5)  # 122.74
+    half = T_975[5] * sd / math.sqrt(6)  # 2.5706 * 50.11 = 128.80
+    estimate, (low, high) = stats.t_interval(GHOST)
+    assert estimate == pytest.approx(101.67, abs=0.005) and sd == pytest.approx(122.74, abs=0.005)
+    assert (low, high) == pytest.approx((mean - half, mean + half), abs=1e-4)
+    assert (low, high) == pytest.approx((-27.14, 230.47), abs=0.01)
+    paired, interval = stats.paired_t_interval(np.array(GHOST) + 300.0, [300.0] * 6)  # through the differences
+    assert paired == pytest.approx(estimate) and interval == pytest.approx((low, high))
+    assert stats.t_interval([50.0] * 4) == (50.0, (50.0, 50.0))  # no spread: the interval is the point
+    assert all(math.isnan(v) for v in stats.t_interval([5.0])[1])  # one run: no interval
+
+
+def test_the_welch_and_the_stratified_t_intervals_match_their_formulas():
+    # x 1, 2, 3 (variance 1), y 10, 10, 10 (variance 0): -8 +- t_2 * sqrt(1/3); the degrees of freedom are x's alone
+    diff, (low, high) = stats.two_sample_t_interval([1.0, 2.0, 3.0], [10.0, 10.0, 10.0])
+    assert diff == -8.0 and (low, high) == pytest.approx((-8 - T_975[2] / math.sqrt(3), -8 + T_975[2] / math.sqrt(3)))
+    # two strata (columns) of variance 1 each, 3 runs: the mean of the means 52, variance (1/3 + 1/3) / 4 = 1/6,
+    # Welch-Satterthwaite (2/3)^2 / (2 * (1/3)^2 / 2) = 4 degrees of freedom; pooled, the six would spread over 1..103
+    mean, (low, high) = stats.t_interval(np.array([[1.0, 101.0], [2.0, 102.0], [3.0, 103.0]]))
+    assert mean == 52.0 and (low, high) == pytest.approx((52 - T_975[4] / math.sqrt(6), 52 + T_975[4] / math.sqrt(6)))
+    assert (low, high) == pytest.approx((50.87, 53.13), abs=0.005)
+
+
+def test_the_sign_flip_test_counts_every_sign_assignment():
+    # 3 of 3 positive: only the observed assignment reaches the observed mean, 1 of 8
+    assert stats.sign_flip_test([1.0, 2.0, 3.0]) == 1 / 8
+    assert stats.sign_flip_test([1.0, 2.0, 3.0], "two-sided") == 2 / 8  # all plus or all minus
+    assert stats.sign_flip_test([1.0, 2.0, 3.0], "less") == 1.0
+    # The ghost: |d| sums to 666.2, the observed sum is 610.0; an assignment with negative set N sums to
+    # 666.2 - 2 sum(N) >= 610.0 iff sum(N) <= 28.1: N = {}, {5.4}, {10.1}, {18.0}, {5.4, 10.1}, {5.4, 18.0},
+    # {10.1, 18.0} (the observed one): 7 of 64 one-sided, 14 of 64 two-sided (the distribution is symmetric)
+    assert stats.sign_flip_test(GHOST) == 7 / 64 == 0.109375
+    assert stats.sign_flip_test(GHOST, "two-sided") == 14 / 64 == 0.21875
+    # the same counts by brute force over sign tuples, on the rounded-to-cents sums (no tolerance needed)
+    cents = [round(abs(d) * 10) for d in GHOST]
+    sums = [sum(s * c for s, c in zip(signs, cents)) for signs in itertools.product((1, -1), repeat=6)]
+    observed = sum(round(d * 10) for d in GHOST)
+    assert sum(t >= observed for t in sums) == 7 and sum(abs(t) >= observed for t in sums) == 14
+    assert stats.sign_flip_test([0.0, 0.0, 1.0]) == 4 / 8  # a zero difference flips to itself: a tie each time
+    with pytest.raises(ValueError, match="alternative"):
+        stats.sign_flip_test([1.0], "bigger")
+
+
+def test_the_permutation_test_counts_every_split():
+    # 1, 2, 3 against 4, 5, 6: of the C(6, 3) = 20 splits only the observed one has x's mean 3 below y's
+    assert stats.permutation_test([1.0, 2.0, 3.0], [4.0, 5.0, 6.0], "less") == 1 / 20
+    assert stats.permutation_test([1.0, 2.0, 3.0], [4.0, 5.0, 6.0], "two-sided") == 2 / 20
+    assert stats.permutation_test([1.0, 2.0, 3.0], [4.0, 5.0, 6.0]) == 1.0
+    # 0, 10 against 5: splits {0, 10 | 5} -> 0, {0, 5 | 10} -> -7.5, {5, 10 | 0} -> +7.5
+    assert stats.permutation_test([0.0, 10.0], [5.0]) == 2 / 3
+    assert stats.permutation_test([0.0, 10.0], [5.0], "two-sided") == 1.0
+    x, y = [3.0, 9.0, 4.0, 8.0], [1.0, 7.0, 2.0]  # against a brute force over index subsets
+    pooled, observed = x + y, np.mean(x) - np.mean(y)
+    diffs = [np.mean([pooled[i] for i in s]) - np.mean([pooled[i] for i in range(7) if i not in s])
+             for s in itertools.combinations(range(7), 4)]  # fmt: skip
+    assert len(diffs) == 35
+    assert stats.permutation_test(x, y) == pytest.approx(sum(d >= observed - 1e-12 for d in diffs) / 35)
+
+
+def test_a_claim_is_supported_only_by_the_exact_test_and_the_t_interval_together():
+    # 1..6: p = 1/64 and the t interval 3.5 +- 2.5706 * 1.8708 / sqrt(6) = [1.54, 5.46] above 0
+    assert stats.paired_claim([1.0, 2.0, 3.0, 4.0, 5.0, 6.0])["verdict"] == "supported"
+    assert stats.paired_claim([-1.0, -2.0, -3.0, -4.0, -5.0, -6.0])["verdict"].startswith("contradicted")
+    # every difference positive (p = 1/64), but one far out: mean 17.5, sd 40.4, the interval [-24.9, 59.9]
+    spread = stats.paired_claim([1.0, 1.0, 1.0, 1.0, 1.0, 100.0])
+    assert spread["p"] == 1 / 64 and spread["verdict"].startswith("weak (positive and p = 0.016, but the t interval")
+    # 3 of 3 agree, the interval above 0, yet 1/8 is the test's floor: weak
+    three = stats.paired_claim([1.0, 1.1, 1.2])
+    assert three["ci"][0] > 0 and three["min_p"] == 1 / 8 and three["verdict"].startswith("weak")
+    assert stats.paired_claim([-1.0, 1.0])["verdict"] == "not supported (the estimate is not positive)"
+    assert stats.paired_claim([-1.0, -2.0, 0.5])["verdict"].startswith("not supported (the estimate is negative")
+    assert stats.paired_claim([5.0])["verdict"] == "too few runs to judge (n = 1)"
+    # two groups of 3: the permutation test's floor is 1/20 = 0.05, not below 0.05, however far apart they are
+    apart = stats.two_group_claim([600.0, 700.0, 800.0], [100.0, 200.0, 300.0])
+    assert apart["p"] == 1 / 20 and apart["ci"][0] > 0 and apart["verdict"].startswith("weak")
+    assert stats.two_group_claim([600.0, 700.0, 800.0, 900.0], [100.0, 200.0, 300.0])["verdict"] == "supported"
+    with pytest.raises(ValueError, match="exact test and a t interval"):
+        stats.judge((1.0, 2.0), 6)  # a bootstrap interval alone judges no claim over 6 units or fewer
+    assert stats.judge((1.0, 2.0), 7) == "supported"  # over more, it still may (the rule before)
+
+
+def test_the_ghost_claim_is_weak_where_a_percentile_bootstrap_said_supported():
+    diffs = np.array(GHOST)
+    boot = stats.interval_estimates({"d": diffs[:, None]}, reps=2000)["d"]["mean_ci"]
+    assert boot[0] > 0 and stats.verdict(boot) == "supported"  # the bootstrap's interval is too narrow over 6
+    claim = stats.paired_claim(diffs)
+    assert claim["estimate"] == pytest.approx(101.67, abs=0.005) and claim["p"] == 7 / 64
+    assert claim["verdict"] == "weak (positive, but the exact test's p = 0.109 is not below 0.05)"
+    assert stats.describe(claim) == "sign-flip p=0.109, t 95% [-27.1, +230.5], n=6"
+
+
+def test_the_pairs_a_paired_t_test_needs():
+    # SD of the LSTM-minus-GRU win rates after 150 races in benchmarks/results/head_to_head.csv: 0.63 - 0.36,
+    # 0.18 - 0.82, 0.52 - 0.43 = 0.27, -0.64, 0.09; mean -0.0933, sum of squares 0.4645 over 2: SD 0.482
+    sd = float(np.std([0.27, -0.64, 0.09], ddof=1))
+    assert sd == pytest.approx(0.4819, abs=1e-4)
+    # normal approximation with Guenther's correction, n = (z_.975 + z_.8)^2 (sd / effect)^2 + z_.975^2 / 2:
+    # effect 0.5: 7.849 * 0.929 + 1.92 = 9.2 -> 10; effect 0.3: 7.849 * 2.580 + 1.92 = 22.2 -> 23
+    assert stats.pairs_needed(sd, 0.5) == 10 and stats.pairs_needed(sd, 0.3) == 23
+    assert stats.pairs_needed(sd, -0.5) == 10  # a difference either way
+    assert stats.pairs_needed(sd, 0.5, alternative="greater") == 8  # one-sided asks fewer
+    # the power at 10 pairs, by simulation of the paired t test (two-sided, 5%): about 0.83; at 9 about 0.78
+    rng = np.random.default_rng(0)
+    for n, lowest, highest in ((10, 0.81, 0.85), (9, 0.76, 0.80)):
+        d = rng.normal(0.5, sd, size=(40_000, n))
+        t = d.mean(axis=1) / (d.std(axis=1, ddof=1) / math.sqrt(n))
+        crit = {10: 2.262157, 9: 2.306004}[n]  # t_.975 with 9 and 8 degrees of freedom
+        assert lowest < np.mean(np.abs(t) > crit) < highest
