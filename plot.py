@@ -1,7 +1,14 @@
 """Paper-style figures from the TensorBoard logs of several runs and seeds.
 
-    python plot.py runs/ --out figures/ [--sigma 2]
+    python plot.py runs/ --out figures/ --sigma 2
     python plot.py runs/experiment/trials --out figures/ --head-to-head benchmarks/results/head_to_head*.csv
+    python plot.py --help    # every option and its default
+
+Options: LOGDIR (positional), ``--out`` (default ``figures``), ``--sigma`` (default 2.0), ``--head-to-head CSV
+[CSV ...]`` (several CSVs after one flag, so a shell glob works). Bad input (no such LOGDIR, no event files under
+it, a missing or malformed CSV, a negative or non-finite ``--sigma``, an ``--out`` that is a file) ends with one
+line naming it (status 2 for an option, 1 for logs or a CSV that cannot be read); a value that does not parse at
+all (``--sigma abc``) gets tyro's own message, naming the option.
 
 Every run directory under ``runs/`` holding a TensorBoard event file is one seed of one
 group. A run's group is ``(variant, stage)``, read from the ``config.json`` the dreamer
@@ -22,7 +29,8 @@ it runs longer than the others). Figures (one PNG each):
   ghost, a car that follows it is paid the follower's half of each tile the ghost reached first
 * ``ghost_eval_return.png``    - the same two: the evaluation on the held-out tracks, each car alone, comparable
 * ``single_agent_eval_{return,progress}.png`` - stage ``single``: the evaluation on the held-out tracks
-  (``--eval-policy``: the mean action by default, sampled in runs begun before; when logged)
+  (the dreamer scripts' ``--eval-policy``: the mean action by default, sampled in runs begun before; when
+  logged)
 * ``losses.png``               - actor, critic, reconstruction, KL (dyn) for every group against steps
 * ``losses_race.png``          - the same for ``race.py --train`` runs, against races
 * ``head_to_head.png``         - with ``--head-to-head CSV [CSV ...]``: the tournaments of
@@ -37,7 +45,6 @@ the tournaments' figure is the measured win rate.)
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import glob
 import json
@@ -45,12 +52,14 @@ import math
 import os
 import re
 import sys
+from typing import Annotated
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+import tyro  # noqa: E402
 from scipy.ndimage import gaussian_filter1d  # noqa: E402
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator  # noqa: E402
 
@@ -72,6 +81,19 @@ FIGURES = {
     "single_agent_eval_progress.png": ("single", "eval/progress", "evaluation progress (held-out tracks)"),
 }
 LOSSES = ("losses/actor", "losses/critic", "losses/reconstruction", "losses/kl_dyn")
+
+
+@dataclasses.dataclass
+class Args:
+    logdir: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="LOGDIR")]
+    """directory holding run directories, searched recursively for TensorBoard event files (e.g. runs/)"""
+    out: str = "figures"
+    """directory the PNGs go to (made if missing)"""
+    sigma: float = 2.0
+    """Gaussian smoothing of each curve, in logged points (0: none)"""
+    head_to_head: Annotated[tuple[str, ...] | None, tyro.conf.arg(metavar="CSV [CSV ...]")] = None
+    """also the tournaments' figure from each of benchmarks/experiment.py's head_to_head CSVs (one or more, after
+    one flag), named after its CSV"""
 
 
 RACER_PREFIX = re.compile(r"^racer_\d+_([A-Za-z0-9]+)/")  # race.py --train: racer_<i>_<variant>/...
@@ -340,29 +362,33 @@ def make_figures(logdir: str, out: str, sigma: float = 2.0, head_to_head: str | 
     return figures
 
 
-def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("logdir", help="directory holding run directories (e.g. runs/)")
-    parser.add_argument("--out", default="figures", help="where the PNGs go")
-    parser.add_argument("--sigma", type=float, default=2.0, help="Gaussian smoothing, in logged points (0: none)")
-    parser.add_argument(
-        "--head-to-head",
-        metavar="CSV",
-        nargs="+",
-        help="also the tournaments' figure from each of benchmarks/experiment.py's head_to_head CSVs",
-    )
-    args = parser.parse_args(argv)
+def usage_error(message: str) -> None:
+    """Exit as argparse does on bad input: status 2, the message on stderr's last line."""
+    print(f"plot.py: error: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
+def parse_args(argv=None) -> Args:
+    """Args of a command line, checked: any impossible value exits with status 2 and one line naming it."""
+    args = tyro.cli(Args, args=argv, description=__doc__)
     if not os.path.isdir(args.logdir):
-        parser.error(f"logdir {args.logdir!r} is not a directory")
+        usage_error(f"logdir {args.logdir!r} is not a directory")
     if not math.isfinite(args.sigma) or args.sigma < 0:
-        parser.error(f"--sigma must be a finite number >= 0, got {args.sigma}")
+        usage_error(f"--sigma must be a finite number >= 0, got {args.sigma}")
+    if args.head_to_head == ():
+        usage_error("--head-to-head needs at least one CSV")
     for path in args.head_to_head or ():
         if not os.path.isfile(path):
-            parser.error(f"--head-to-head {path!r} is not a file")
+            usage_error(f"--head-to-head {path!r} is not a file")
     if os.path.exists(args.out) and not os.path.isdir(args.out):
-        parser.error(f"--out {args.out!r} exists and is not a directory")
+        usage_error(f"--out {args.out!r} exists and is not a directory")
+    return args
+
+
+def main(argv=None):
+    args = parse_args(argv)
     try:
-        figures = make_figures(args.logdir, args.out, args.sigma, args.head_to_head)
+        figures = make_figures(args.logdir, args.out, args.sigma, list(args.head_to_head or ()))
     except ValueError as e:
         sys.exit(f"plot.py: {e}")
     for name in figures:

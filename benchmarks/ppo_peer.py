@@ -1,23 +1,42 @@
-"""The peer a user would pick instead: Stable-Baselines3 PPO on the single-car race, at equal CPU time.
+"""The peers a user would pick instead: Stable-Baselines3 PPO, or sb3-contrib's RecurrentPPO (an LSTM policy), on
+the single-car race, at equal CPU time.
 
-    python benchmarks/ppo_peer.py --seed 11 --cpu-hours 3.1                  # train (resumable), then evaluate
+    python benchmarks/ppo_peer.py --seed 11 --cpu-hours 3.1                  # train PPO (resumable), then evaluate
     python benchmarks/ppo_peer.py --seed 11 --cpu-hours 3.1 --evaluate-only  # only the evaluation of the saved model
+    python benchmarks/ppo_peer.py --algo recurrent-ppo --seed 11 --cpu-hours 3.1           # the same with the LSTM
+    python benchmarks/ppo_peer.py --algo recurrent-ppo --seed 11 --curve                    # evaluate its snapshots
+    python benchmarks/ppo_peer.py --seed 11 --evaluate-only --first-track 10300 --tracks 30 \\
+        --results benchmarks/results/ppo_peer_final30.csv                  # the final protocol's 30 tracks
 
-PPO trains on ``dlc/SingleCarRacing-v0`` with rl-baselines3-zoo's CarRacing-v3 hyperparameters, untuned: frame
-skip 2 (rewards summed), 64x64 grayscale, 2 stacked frames, 8 envs, rewards normalised (VecNormalize), a CNN policy
-with gSDE, 512 steps per env per rollout, batch 128, 10 epochs, learning rate 1e-4 decaying linearly over
-``--budget-steps``, GELU, log-std init -2. The env has the Dreamer runs' settings (``dreamer_lstm.Args``'
-defaults at their final dead zone, -0.5). It gets the budget of one Dreamer run of the learning benchmark on one
-torch thread, counted as this process's CPU time (``--cpu-hours`` over all sittings), so that other processes on
-the same cores neither shorten nor lengthen it; and it is evaluated on the Dreamer runs' 20 fresh tracks
-10100..10119 with its deterministic policy. Its row goes to ``benchmarks/results/ppo_peer.csv``, and
-``learning_final.md`` beside it is rewritten with PPO over its seeds and each Dreamer variant minus PPO.
+PPO (``--algo ppo``) trains on ``dlc/SingleCarRacing-v0`` with rl-baselines3-zoo's CarRacing-v3 hyperparameters
+(hyperparams/ppo.yml), untuned: frame skip 2 (rewards summed), 64x64 grayscale, 2 stacked frames, 8 envs, rewards
+normalised (VecNormalize), a CNN policy with gSDE, 512 steps per env per rollout, batch 128, 10 epochs, learning
+rate 1e-4 decaying linearly over ``--budget-steps``, GELU, log-std init -2. RecurrentPPO (``--algo recurrent-ppo``)
+has the zoo's CarRacing-v0 entry of hyperparams/ppo_lstm.yml, untuned: the same wrappers and 8 envs, rewards not
+normalised (the entry's ``normalize`` is commented out), ``CnnLstmPolicy`` (an LSTM of 128 for the actor, a linear
+layer for the critic), gSDE, 512 steps, batch 128, 20 epochs, gae_lambda 0.9, clip range 0.4, a constant learning
+rate 3e-5, GELU (inert: that policy has no hidden layer), log-std init -2. The env has the Dreamer runs' settings
+(``dreamer_lstm.Args``' defaults at their final dead zone, -0.5). Each gets the budget of one Dreamer run of the
+learning benchmark on one torch thread, counted as this process's CPU time (``--cpu-hours`` over all sittings), so
+that other processes on the same cores neither shorten nor lengthen it. While it trains, the model and its
+VecNormalize statistics are kept as ``model_<N>.zip`` and ``vecnormalize_<N>.pkl`` when the env steps first pass
+N = 50k, 100k, 250k, 500k, 1M (sample efficiency); ``--curve`` evaluates every snapshot on the same tracks and
+writes ``benchmarks/results/<variant>_peer_curve.csv``.
+
+A model is evaluated with its deterministic policy (an LSTM's state carried from step to step and reset at each
+race's start) on tracks ``--first-track`` .. + ``--tracks`` - 1: by default the Dreamer runs' 20 fresh tracks
+10100..10119; the final protocol's are the 30 tracks 10300..10329. The row goes to
+``benchmarks/results/ppo_peer.csv`` (``recurrent_ppo_peer.csv``), one per seed whatever the tracks (give another
+``--results`` for another set); for PPO on the default tracks (learning_final.csv's), ``learning_final.md`` beside it
+is rewritten with PPO over its seeds and each Dreamer variant minus PPO.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import glob
+import json
 import os
 import sys
 import time
@@ -29,18 +48,40 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 RESULTS = os.path.join(ROOT, "benchmarks", "results")
 RUNS = os.path.join(ROOT, "runs", "ppo_peer")
-FRESH_TRACKS = (10_100, 20)
+FRESH_TRACKS = (10_100, 20)  # the default evaluation: the Dreamer runs' fresh tracks (first, count)
+FINAL_TRACKS = (10_300, 30)  # the final protocol's tracks
+SNAPSHOT_STEPS = (50_000, 100_000, 250_000, 500_000, 1_000_000)  # env steps (frame skip included)
 COLUMNS = (
     "variant", "seed", "updates", "env_steps", "cpu_hours", "final_return", "final_progress", "final_mean_abs_steer"
 )
+CURVE_COLUMNS = ("variant", "seed", "env_steps", "return", "progress", "mean_abs_steer")
 # rl-baselines3-zoo, hyperparams/ppo.yml, CarRacing-v3
 ZOO = dict(
-    n_envs=8, frame_skip=2, image_size=64, frame_stack=2, batch_size=128, n_steps=512, gamma=0.99, gae_lambda=0.95,
-    n_epochs=10, ent_coef=0.0, sde_sample_freq=4, max_grad_norm=0.5, vf_coef=0.5, learning_rate=1e-4, use_sde=True,
-    clip_range=0.2,
+    n_envs=8, frame_skip=2, image_size=64, frame_stack=2, normalize=True, n_timesteps=4_000_000, policy="CnnPolicy",
+    batch_size=128, n_steps=512, gamma=0.99, gae_lambda=0.95, n_epochs=10, ent_coef=0.0, sde_sample_freq=4,
+    max_grad_norm=0.5, vf_coef=0.5, learning_rate=1e-4, lr_schedule="linear", use_sde=True, clip_range=0.2,
+    policy_kwargs=dict(log_std_init=-2, ortho_init=False, activation_fn="GELU", net_arch=dict(pi=[256], vf=[256])),
 )  # fmt: skip
+# rl-baselines3-zoo, hyperparams/ppo_lstm.yml, CarRacing-v0 (a constant learning rate; "# normalize: True" is
+# commented out). Later versions of the file renamed it CarRacing-v2 and gave it PPO's values instead: no frame skip,
+# rewards normalised, 4e6 steps, gae_lambda 0.95, 10 epochs, lin_1e-4, clip range 0.2.
+ZOO_LSTM = dict(
+    n_envs=8, frame_skip=2, image_size=64, frame_stack=2, normalize=False, n_timesteps=2_000_000,
+    policy="CnnLstmPolicy", batch_size=128, n_steps=512, gamma=0.99, gae_lambda=0.9, n_epochs=20, ent_coef=0.0,
+    sde_sample_freq=4, max_grad_norm=0.5, vf_coef=0.5, learning_rate=3e-5, lr_schedule="constant", use_sde=True,
+    clip_range=0.4,
+    policy_kwargs=dict(log_std_init=-2, ortho_init=False, enable_critic_lstm=False, activation_fn="GELU",
+                       lstm_hidden_size=128),
+)  # fmt: skip
+ALGOS = {  # --algo: (variant: the rows' name, the run directory's prefix, the csv's; hyperparameters)
+    "ppo": ("ppo", ZOO),
+    "recurrent-ppo": ("recurrent_ppo", ZOO_LSTM),
+}
+# the hyperparameters given to the algorithm's constructor as they are
+ALGO_KEYS = ("batch_size", "n_steps", "gamma", "gae_lambda", "n_epochs", "ent_coef", "sde_sample_freq",
+             "max_grad_norm", "vf_coef", "use_sde", "clip_range")  # fmt: skip
 
-# SB3's PPO counts an epoch over a rollout as one update; each is this many minibatch gradient steps
+# SB3's PPO (and RecurrentPPO) count an epoch over a rollout as one update; each is this many minibatch gradient steps
 PPO_MINIBATCHES = ZOO["n_steps"] * ZOO["n_envs"] // ZOO["batch_size"]
 
 
@@ -71,7 +112,7 @@ def env_kwargs() -> dict:
 
 
 def make_env(seed: int | None = None) -> gymnasium.Env:
-    """dlc/SingleCarRacing-v0 with the zoo's wrappers: frame skip, resize, grayscale."""
+    """dlc/SingleCarRacing-v0 with the zoo's wrappers: frame skip, resize, grayscale (the same for both algorithms)."""
     import envs
 
     env = gymnasium.make(envs.SINGLE_CAR_ID, **env_kwargs())
@@ -80,81 +121,126 @@ def make_env(seed: int | None = None) -> gymnasium.Env:
     return gymnasium.wrappers.GrayscaleObservation(env, keep_dim=True)
 
 
-def make_venv(seed: int):
+def make_venv(seed: int, n_envs: int | None = None):
     """The zoo's 8 envs, frame-stacked (before the reward normaliser, which is saved and loaded on its own)."""
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import VecFrameStack
 
-    return VecFrameStack(make_vec_env(make_env, n_envs=ZOO["n_envs"], seed=seed), ZOO["frame_stack"])
+    return VecFrameStack(make_vec_env(make_env, n_envs=n_envs or ZOO["n_envs"], seed=seed), ZOO["frame_stack"])
 
 
-def make_model(seed: int, venv, run_dir: str):
-    """A new PPO model with the zoo's hyperparameters on `venv` (reward-normalised)."""
+def algo_class(algo: str):
+    """SB3's PPO or sb3-contrib's RecurrentPPO."""
+    if algo == "recurrent-ppo":
+        from sb3_contrib import RecurrentPPO
+
+        return RecurrentPPO
     from stable_baselines3 import PPO
+
+    return PPO
+
+
+def make_model(seed: int, venv, run_dir: str, algo: str = "ppo"):
+    """A new model of `algo` with the zoo's hyperparameters on `venv` (the VecNormalize)."""
     from torch import nn
 
-    start_lr = ZOO["learning_rate"]
-    return PPO(
-        "CnnPolicy", venv, seed=seed, verbose=0, tensorboard_log=run_dir, device="cpu",
-        learning_rate=lambda progress: start_lr * progress,  # the zoo's lin_1e-4 (progress: 1 -> 0 over the budget)
-        **{k: ZOO[k] for k in ("batch_size", "n_steps", "gamma", "gae_lambda", "n_epochs", "ent_coef",
-                               "sde_sample_freq", "max_grad_norm", "vf_coef", "use_sde", "clip_range")},
-        policy_kwargs=dict(log_std_init=-2, ortho_init=False, activation_fn=nn.GELU, net_arch=dict(pi=[256], vf=[256])),
+    config = ALGOS[algo][1]
+    start_lr = config["learning_rate"]
+    # the zoo's lin_1e-4 (SB3's progress: 1 -> 0 over the budget), or a constant
+    learning_rate = (lambda progress: start_lr * progress) if config["lr_schedule"] == "linear" else start_lr
+    policy_kwargs = {**config["policy_kwargs"], "activation_fn": getattr(nn, config["policy_kwargs"]["activation_fn"])}
+    return algo_class(algo)(
+        config["policy"], venv, seed=seed, verbose=0, tensorboard_log=run_dir, device="cpu",
+        learning_rate=learning_rate, policy_kwargs=policy_kwargs, **{k: config[k] for k in ALGO_KEYS},
     )  # fmt: skip
 
 
-def train(seed: int, hours: float, budget_steps: int, run_dir: str, save_every: int = 4) -> dict:
-    """Train until the run has used `hours` of CPU time in all (time.process_time: every thread of this process, the
-    envs included; or until `budget_steps` PPO steps), saving model, normaliser and
-    record every `save_every` rollouts and at the end (atomic renames); a later sitting continues from them, with
-    the learning rate still decaying over the whole budget. Returns the record: env steps, updates (SB3's
-    ``_n_updates``, epochs over a rollout of PPO_MINIBATCHES gradient steps each) and CPU hours."""
-    import json
+def atomic_save(save, path: str) -> None:
+    """save(tmp), then rename it to `path` (a reader sees the old file or the new one, whole); tmp keeps the
+    extension (SB3 adds .zip to a name without one)."""
+    root, ext = os.path.splitext(path)
+    save(root + ".tmp" + ext)
+    os.replace(root + ".tmp" + ext, path)
 
-    from stable_baselines3 import PPO
+
+def write_json(data: dict, path: str) -> None:
+    with open(path, "w") as f:
+        json.dump(data, f)
+
+
+def snapshot_paths(run_dir: str) -> list[tuple[int, str]]:
+    """The run's snapshots (threshold, model_<threshold>.zip), by threshold."""
+    found = glob.glob(os.path.join(run_dir, "model_*.zip"))
+    snapshots = [(os.path.basename(p)[len("model_") : -len(".zip")], p) for p in found]
+    return sorted((int(n), p) for n, p in snapshots if n.isdigit())
+
+
+def train(
+    seed: int, hours: float, budget_steps: int, run_dir: str, save_every: int = 4, algo: str = "ppo",
+    snapshots: tuple[int, ...] = SNAPSHOT_STEPS,
+) -> dict:  # fmt: skip
+    """Train `algo` until the run has used `hours` of CPU time in all (time.process_time: every thread of this
+    process, the envs included; or until `budget_steps` PPO steps), saving model, normaliser and record every
+    `save_every` rollouts and at the end (atomic renames); a later sitting continues from them, with PPO's learning
+    rate still decaying over the whole budget. At the first rollout start (weights trained on every rollout before)
+    or the end of a sitting at which the env steps (PPO steps x frame skip) have passed a threshold of `snapshots`,
+    the model and normaliser are kept as model_<threshold>.zip and vecnormalize_<threshold>.pkl (the zip, written
+    last, carries the steps actually taken); a snapshot on disk is never rewritten, so each is written once over
+    every sitting. Returns the record: env steps, updates (SB3's ``_n_updates``, epochs over a rollout of
+    PPO_MINIBATCHES gradient steps each) and CPU hours."""
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.vec_env import VecNormalize
 
+    variant, config = ALGOS[algo]
     os.makedirs(run_dir, exist_ok=True)
     paths = {name: os.path.join(run_dir, name) for name in ("model.zip", "vecnormalize.pkl", "record.json")}
     record = {"env_steps": 0, "cpu_hours": 0.0, "updates": 0}
+    venv = make_venv(seed, config["n_envs"])
     if all(os.path.exists(path) for path in paths.values()):  # (the record is written last: a save is whole)
         with open(paths["record.json"]) as f:
             record = json.load(f)
         if "hours" in record:  # a record of the first version, which named the same CPU hours "hours"
             record["cpu_hours"] = record.pop("hours")
-        norm = VecNormalize.load(paths["vecnormalize.pkl"], make_venv(seed))
-        model = PPO.load(paths["model.zip"], env=norm, device="cpu", tensorboard_log=run_dir)
+        norm = VecNormalize.load(paths["vecnormalize.pkl"], venv)
+        model = algo_class(algo).load(paths["model.zip"], env=norm, device="cpu", tensorboard_log=run_dir)
         print(
             f"continuing from {paths['model.zip']} at {record['env_steps']} env steps, {record['cpu_hours']:.2f} CPU-h"
         )
     else:
-        norm = VecNormalize(make_venv(seed), norm_obs=False, norm_reward=True, gamma=ZOO["gamma"])
-        model = make_model(seed, norm, run_dir)
+        norm = VecNormalize(venv, norm_obs=False, norm_reward=config["normalize"], gamma=config["gamma"])
+        model = make_model(seed, norm, run_dir, algo)
     hours_before, started = record["cpu_hours"], time.process_time()
     hours = hours - hours_before  # the budget is the whole run's, over every sitting
 
     def save() -> None:
         record.update(
-            env_steps=int(model.num_timesteps) * ZOO["frame_skip"], updates=int(model._n_updates),
+            env_steps=int(model.num_timesteps) * config["frame_skip"], updates=int(model._n_updates),
             cpu_hours=round(hours_before + (time.process_time() - started) / 3600, 4),
         )  # fmt: skip
-        model.save(paths["model.zip"] + ".tmp.zip")
-        os.replace(paths["model.zip"] + ".tmp.zip", paths["model.zip"])
-        norm.save(paths["vecnormalize.pkl"] + ".tmp")
-        os.replace(paths["vecnormalize.pkl"] + ".tmp", paths["vecnormalize.pkl"])
-        with open(paths["record.json"] + ".tmp", "w") as f:
-            json.dump(record, f)
-        os.replace(paths["record.json"] + ".tmp", paths["record.json"])
-        steps = record["updates"] * PPO_MINIBATCHES
+        atomic_save(model.save, paths["model.zip"])
+        atomic_save(norm.save, paths["vecnormalize.pkl"])
+        atomic_save(lambda tmp: write_json(record, tmp), paths["record.json"])
+        steps = record["updates"] * config["n_steps"] * config["n_envs"] // config["batch_size"]
         print(f"{record['env_steps']} env steps, {record['updates']} epochs ({steps} gradient steps), "
               f"{record['cpu_hours']:.2f} CPU-h")  # fmt: skip
 
+    def snapshot() -> None:
+        env_steps = int(model.num_timesteps) * config["frame_skip"]
+        for threshold in sorted(snapshots):
+            path = os.path.join(run_dir, f"model_{threshold}.zip")
+            if threshold <= env_steps and not os.path.exists(path):
+                atomic_save(norm.save, os.path.join(run_dir, f"vecnormalize_{threshold}.pkl"))
+                atomic_save(model.save, path)
+                print(f"snapshot {path} at {env_steps} env steps")
+
     class Budget(BaseCallback):
-        """Stop at the sitting's CPU-time budget; save every `save_every` rollouts."""
+        """Stop at the sitting's CPU-time budget; keep snapshots; save every `save_every` rollouts."""
 
         def _on_step(self) -> bool:
             return time.process_time() - started < 3600 * hours
+
+        def _on_rollout_start(self) -> None:
+            snapshot()
 
         def _on_rollout_end(self) -> None:
             self.rollouts = getattr(self, "rollouts", 0) + 1
@@ -163,16 +249,18 @@ def train(seed: int, hours: float, budget_steps: int, run_dir: str, save_every: 
 
     remaining = budget_steps - int(model.num_timesteps)
     if remaining > 0 and hours > 0:
-        # learning rate 1e-4 * (1 - steps / budget) across sittings (SB3's progress_remaining)
-        model.learn(remaining, callback=Budget(), reset_num_timesteps=False, tb_log_name="ppo")
+        # PPO's learning rate 1e-4 * (1 - steps / budget) across sittings (SB3's progress_remaining)
+        model.learn(remaining, callback=Budget(), reset_num_timesteps=False, tb_log_name=variant)
+    snapshot()
     save()
     return record
 
 
 def evaluate(model, first_track: int, tracks: int) -> dict:
     """The deterministic policy (PPO's own choice for evaluation; gSDE's noise is exploration) alone on tracks
-    first_track .. first_track + tracks - 1, the frame stack starting from zeros as VecFrameStack's does: mean return
-    (the raw env reward), progress and |steer| of its decisions."""
+    first_track .. first_track + tracks - 1, the frame stack starting from zeros as VecFrameStack's does and a
+    recurrent policy's state carried from step to step, from zeros with episode_start True at each race's first
+    step (PPO ignores both): mean return (the raw env reward), progress and |steer| of its decisions."""
     from collections import deque
 
     returns, progress, steer = [], [], []
@@ -180,9 +268,12 @@ def evaluate(model, first_track: int, tracks: int) -> dict:
         env = make_env()
         obs, _ = env.reset(seed=seed)
         frames = deque([np.zeros_like(obs)] * (ZOO["frame_stack"] - 1) + [obs], maxlen=ZOO["frame_stack"])
-        total, done, info, steers = 0.0, False, {}, []
+        total, done, info, steers, state, start = 0.0, False, {}, [], None, True
         while not done:
-            action, _ = model.predict(np.concatenate(frames, axis=-1)[None], deterministic=True)
+            action, state = model.predict(
+                np.concatenate(frames, axis=-1)[None], state=state, episode_start=np.array([start]), deterministic=True
+            )
+            start = False
             obs, reward, terminated, truncated, info = env.step(action[0])
             frames.append(obs)
             total += reward
@@ -195,61 +286,107 @@ def evaluate(model, first_track: int, tracks: int) -> dict:
     return {"return": float(np.mean(returns)), "progress": float(np.mean(progress)), "abs_steer": float(np.mean(steer))}
 
 
-def write_row(row: dict, path: str = os.path.join(RESULTS, "ppo_peer.csv")) -> None:
-    """Add `row`, replacing an earlier row of the same seed."""
-    rows = []
+def write_rows(rows: list[dict], path: str, columns: tuple[str, ...]) -> None:
+    """Add `rows`, replacing the earlier rows of their seeds; sorted by seed (and env steps)."""
+    seeds, kept = {int(row["seed"]) for row in rows}, []
     if os.path.exists(path):
         with open(path, newline="") as f:
-            rows = [r for r in csv.DictReader(f) if int(r["seed"]) != row["seed"]]
+            kept = [r for r in csv.DictReader(f) if int(r["seed"]) not in seeds]
     with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=COLUMNS)
+        writer = csv.DictWriter(f, fieldnames=columns)
         writer.writeheader()
-        writer.writerows(sorted([*rows, row], key=lambda r: int(r["seed"])))
+        writer.writerows(sorted([*kept, *rows], key=lambda r: (int(r["seed"]), int(r.get("env_steps") or 0))))
 
 
-def main(argv=None) -> dict:
+def write_row(row: dict, path: str = os.path.join(RESULTS, "ppo_peer.csv")) -> None:
+    """Add `row`, replacing an earlier row of the same seed."""
+    write_rows([row], path, COLUMNS)
+
+
+def curve(algo: str, seed: int, run_dir: str, first_track: int, tracks: int, path: str) -> list[dict]:
+    """Evaluate every snapshot of the run (model_<threshold>.zip) on the same tracks and write one row per snapshot
+    to `path` (replacing the seed's earlier rows); env_steps is the steps the snapshot had taken."""
+    variant, config = ALGOS[algo]
+    rows = []
+    for _, snapshot in snapshot_paths(run_dir):
+        model = algo_class(algo).load(snapshot, device="cpu")
+        result = evaluate(model, first_track, tracks)
+        rows.append({
+            "variant": variant, "seed": seed, "env_steps": int(model.num_timesteps) * config["frame_skip"],
+            "return": round(result["return"], 2), "progress": round(result["progress"], 4),
+            "mean_abs_steer": round(result["abs_steer"], 4),
+        })  # fmt: skip
+        print(rows[-1])
+    if not rows:
+        raise SystemExit(f"no snapshots (model_<steps>.zip) in {run_dir}")
+    write_rows(rows, path, CURVE_COLUMNS)
+    return rows
+
+
+def main(argv=None) -> dict | list[dict]:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--algo", choices=tuple(ALGOS), default="ppo")
     parser.add_argument("--seed", type=int, default=11)
     parser.add_argument(
         "--cpu-hours", type=float, default=3.1,
         help="CPU-time budget of the whole run (all sittings): one Dreamer run of the learning benchmark",
     )  # fmt: skip
-    parser.add_argument("--budget-steps", type=int, default=4_000_000, help="PPO steps the learning rate decays over")
+    parser.add_argument(
+        "--budget-steps", type=int, default=None,
+        help="PPO steps the run takes at most and PPO's learning rate decays over (default: the zoo's n_timesteps)",
+    )  # fmt: skip
     parser.add_argument("--torch-threads", type=int, default=1)
-    parser.add_argument("--tracks", type=int, default=FRESH_TRACKS[1], help="evaluation tracks from 10100")
-    parser.add_argument("--evaluate-only", action="store_true", help="only evaluate the saved model")
+    parser.add_argument("--first-track", type=int, default=FRESH_TRACKS[0], help="first evaluation track")
+    parser.add_argument("--tracks", type=int, default=FRESH_TRACKS[1], help="evaluation tracks from --first-track")
+    parser.add_argument(
+        "--snapshot-steps", type=int, nargs="+", default=list(SNAPSHOT_STEPS),
+        help="env steps at which the model is kept as model_<steps>.zip",
+    )  # fmt: skip
+    mode = parser.add_mutually_exclusive_group()
+    mode.add_argument("--evaluate-only", action="store_true", help="only evaluate the saved model")
+    mode.add_argument("--curve", action="store_true", help="only evaluate every snapshot: <variant>_peer_curve.csv")
     parser.add_argument("--runs-dir", default=RUNS)
-    parser.add_argument("--results", default=os.path.join(RESULTS, "ppo_peer.csv"))
+    parser.add_argument(
+        "--results", default=None, help="the row's csv (default benchmarks/results/<variant>_peer.csv); the curve's "
+        "csv is <variant>_peer_curve.csv beside it",
+    )  # fmt: skip
     args = parser.parse_args(argv)
-    if args.cpu_hours <= 0 or args.budget_steps < 1 or args.tracks < 1 or args.torch_threads < 1:
+    variant, config = ALGOS[args.algo]
+    budget_steps = config["n_timesteps"] if args.budget_steps is None else args.budget_steps
+    if args.cpu_hours <= 0 or budget_steps < 1 or args.tracks < 1 or args.torch_threads < 1:
         parser.error("--cpu-hours must be > 0 and --budget-steps, --tracks, --torch-threads >= 1")
+    if min(args.snapshot_steps) < 1:
+        parser.error("--snapshot-steps must be >= 1")
     import torch
-    from stable_baselines3 import PPO
 
     torch.set_num_threads(args.torch_threads)
-    run_dir = os.path.join(args.runs_dir, f"ppo__{args.seed}")
+    results = args.results or os.path.join(RESULTS, f"{variant}_peer.csv")
+    run_dir = os.path.join(args.runs_dir, f"{variant}__{args.seed}")
+    if args.curve:
+        curve_path = os.path.join(os.path.dirname(os.path.abspath(results)), f"{variant}_peer_curve.csv")
+        return curve(args.algo, args.seed, run_dir, args.first_track, args.tracks, curve_path)
     if args.evaluate_only:
-        import json
-
         with open(os.path.join(run_dir, "record.json")) as f:
             record = json.load(f)
     else:
-        record = train(args.seed, args.cpu_hours, args.budget_steps, run_dir)
-    model = PPO.load(os.path.join(run_dir, "model.zip"), device="cpu")
-    result = evaluate(model, FRESH_TRACKS[0], args.tracks)
+        snapshots = tuple(args.snapshot_steps)
+        record = train(args.seed, args.cpu_hours, budget_steps, run_dir, algo=args.algo, snapshots=snapshots)
+    model = algo_class(args.algo).load(os.path.join(run_dir, "model.zip"), device="cpu")
+    result = evaluate(model, args.first_track, args.tracks)
     row = {
-        "variant": "ppo", "seed": args.seed, "updates": record["updates"], "env_steps": record["env_steps"],
+        "variant": variant, "seed": args.seed, "updates": record["updates"], "env_steps": record["env_steps"],
         "cpu_hours": record["cpu_hours"], "final_return": round(result["return"], 2),
         "final_progress": round(result["progress"], 4), "final_mean_abs_steer": round(result["abs_steer"], 4),
     }  # fmt: skip
-    write_row(row, args.results)
+    write_row(row, results)
     print(row)
-    results_dir = os.path.dirname(os.path.abspath(args.results))
-    if os.path.exists(os.path.join(results_dir, "learning_final.csv")):  # the Dreamer runs' final protocol is in
-        sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-        import learning
+    results_dir = os.path.dirname(os.path.abspath(results))
+    on_its_tracks = (args.first_track, args.tracks) == FRESH_TRACKS  # the tracks of learning_final.csv
+    if args.algo == "ppo" and on_its_tracks and os.path.exists(os.path.join(results_dir, "learning_final.csv")):
+        sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # (the Dreamer runs' final protocol is in)
+        import learning_report
 
-        print(learning.write_final_report(results_dir, peer_path=args.results))  # with PPO and the differences
+        print(learning_report.write_final_report(results_dir, peer_path=results))  # with PPO and the differences
     return row
 
 

@@ -5,10 +5,10 @@ For one saved single-car agent, on a block of tracks (the screening tracks 10200
 * driving, for each policy (sampled as trained, and the mean action): return, progress, |steer| (near 1: bang-bang),
   gas (mean of max(action[1], 0)), brake share (decisions at or below the dead zone's edge), speed, the share of
   laps finished within the time limit and of races ended by an elimination (``drive_races`` of the agent's script);
-* the model on those real episodes (sampled policy; ``learning.calibrate_checkpoint``): the imagined H-step task
+* the model on those real episodes (sampled policy; ``calibration.calibrate_checkpoint``): the imagined H-step task
   return against the real one from the same states, and on the frames where a car was eliminated the reward head's
   mean (the real reward there is the -100 penalty);
-* training, as logged over the run's last ``learning.SCREEN_WINDOW`` updates: the actor's sigma, the entropy
+* training, as logged over the run's last ``screening.SCREEN_WINDOW`` updates: the actor's sigma, the entropy
   (-log pi), the entropy weight alpha (--entropy-target) and the imagined lambda-return; and the run's CPU-hours.
 """
 
@@ -18,8 +18,9 @@ import json
 import os
 
 import numpy as np
-
-import learning
+from calibration import calibrate_checkpoint
+from learning_report import progress_rows
+from screening import SCREEN_WINDOW, checkpoint_at
 
 POLICIES = ("stochastic", "mean-action")
 DRIVING = ("return", "progress", "abs_steer", "gas", "brake_share", "speed", "lap_finished", "eliminated")
@@ -42,7 +43,7 @@ def driving(path: str, first_track: int, tracks: int) -> dict[str, dict[str, flo
 def training(run_dir: str, updates: int) -> dict[str, float]:
     """Means of the TRAINING columns over the updates (updates - SCREEN_WINDOW, updates], and the run's CPU-hours
     when it had made `updates` updates (NaN where the run did not log them)."""
-    window = [row for u, row in learning.progress_rows(run_dir) if updates - learning.SCREEN_WINDOW < u <= updates]
+    window = [row for u, row in progress_rows(run_dir) if updates - SCREEN_WINDOW < u <= updates]
     out = {}
     for column, tag in TRAINING.items():
         values = [float(row[tag]) for row in window if row.get(tag)]
@@ -54,7 +55,7 @@ def training(run_dir: str, updates: int) -> dict[str, float]:
 
 def measure(path: str, run_dir: str, updates: int, first_track: int, tracks: int) -> dict:
     """Every reading of the policy at `path` (kept by `run_dir` at `updates` updates): {policy: row fields}."""
-    model = learning.calibrate_checkpoint(path, first_track, tracks)
+    model = calibrate_checkpoint(path, first_track, tracks)
     model = {key: model[key] for key in MODEL}
     trained = training(run_dir, updates)
     return {policy: {**values, **trained, **model} for policy, values in driving(path, first_track, tracks).items()}
@@ -78,7 +79,7 @@ def report(sweep) -> str:
         if run is None or done < sweep.updates:
             waiting.append(f"{name} ({done} of {sweep.updates} updates)")
             continue
-        path = learning.checkpoint_at(run, sweep.updates)
+        path = checkpoint_at(run, sweep.updates)
         key = f"{os.path.relpath(path, sweep.storage)}@{sweep.first_track}+{sweep.tracks}"
         if key not in cache:
             cache[key] = measure(path, run, sweep.updates, sweep.first_track, sweep.tracks)

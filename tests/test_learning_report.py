@@ -1,5 +1,6 @@
-"""benchmarks/learning.py's bookkeeping: curves from event files over resumed sittings, the saved CSVs
-that stand in for runs not on this machine, the bar, the final protocol's table and its rliable summary."""
+"""benchmarks/learning.py and its reports (learning_report.py): curves from event files over resumed sittings, the
+saved CSVs that stand in for runs not on this machine, the bar, the final protocol's table and its rliable summary,
+and the command line."""
 
 import csv
 import dataclasses
@@ -10,11 +11,12 @@ import sys
 
 import numpy as np
 import pytest
+import tyro
 from torch.utils.tensorboard import SummaryWriter
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
 import learning  # noqa: E402
-from conftest import TINY_RUN  # noqa: E402
+import learning_report  # noqa: E402
 import utils.checkpoint as ckpt  # noqa: E402
 import utils.run as run_tools  # noqa: E402
 
@@ -97,8 +99,8 @@ def test_first_at_bar_needs_return_and_progress_at_the_same_evaluation():
         {"env_steps": 2, "eval_return": bar - 50, "eval_progress": progress + 0.1},  # progress only
         {"env_steps": 3, "eval_return": bar, "eval_progress": progress},  # both, at the edges
     ]
-    assert learning.first_at_bar(rows)["env_steps"] == 3
-    assert learning.first_at_bar(rows[:2]) is None
+    assert learning_report.first_at_bar(rows)["env_steps"] == 3
+    assert learning_report.first_at_bar(rows[:2]) is None
 
 
 def test_final_table_rows_replace_their_run_and_the_summary_matches_hand_computed_numbers(tmp_path):
@@ -124,7 +126,7 @@ def test_final_table_rows_replace_their_run_and_the_summary_matches_hand_compute
     learning.write_final_row(ablation, path)  # an ablation's row stands beside the baseline's, never replaces it
     with open(path, newline="") as f:
         assert len(list(csv.DictReader(f))) == 8
-    table = learning.final_summary(path, reps=500).splitlines()
+    table = learning_report.final_summary(path, reps=500).splitlines()
     # lstm: 100, 200, 300 -> mean 200, IQM of 3 trims nothing (200); gru: 1, 2, 3, 10 -> mean 4, IQM mean(2, 3) = 2.5
     lstm = next(line for line in table if line.startswith("| learning_lstm |")).split("|")
     gru = next(line for line in table if line.startswith("| learning_gru |")).split("|")
@@ -139,7 +141,7 @@ def test_final_table_rows_replace_their_run_and_the_summary_matches_hand_compute
     low, high = (float(x) for x in gru[4].split("[")[1].rstrip("] ").split(","))
     assert 1.0 <= low < 4.0 < high <= 10.0  # a bootstrap interval of the mean lies within the scores
     # driving its mean action (the rule's evaluation policy): that policy's columns, 0.0 and progress 0 in every row
-    mean_action = learning.final_summary(path, reps=500, policy="mean-action").splitlines()
+    mean_action = learning_report.final_summary(path, reps=500, policy="mean-action").splitlines()
     assert mean_action[0] == "The final policy driving its mean action:"
     assert table[0].startswith("The final policy sampled")
     lstm = next(line for line in mean_action if line.startswith("| learning_lstm |")).split("|")
@@ -167,18 +169,18 @@ def test_the_ppo_peer_is_compared_with_each_variants_mean_action_over_seeds(tmp_
         )  # fmt: skip
     peer = str(results / "ppo_peer.csv")
     final = str(results / "learning_final.csv")
-    assert learning.peer_summary(final, peer) == ""  # no file yet: nothing
+    assert learning_report.peer_summary(final, peer) == ""  # no file yet: nothing
     with open(peer, "w", newline="") as f:
         f.write("variant,seed,cpu_hours,final_return\n")
-    assert learning.peer_summary(final, peer) == ""  # the header alone: nothing
+    assert learning_report.peer_summary(final, peer) == ""  # the header alone: nothing
     with open(peer, "a", newline="") as f:
         f.write("ppo,11,3.1,550.0\n")
-    one = learning.peer_summary(final, peer, reps=500)  # one PPO seed: no interval of its own, no verdict
+    one = learning_report.peer_summary(final, peer, reps=500)  # one PPO seed: no interval of its own, no verdict
     assert "550.0 (one seed: no interval)" in one and "(seed 11: 550.0 at 3.10 CPU-h)" in one
     assert one.count("too few runs to judge (n = 1)") == 2 and "supported" not in one
     with open(peer, "a", newline="") as f:
         f.write("ppo,12,3.1,650.0\n")
-    text = learning.write_final_report(str(results), reps=500)
+    text = learning_report.write_final_report(str(results), reps=500)
     with open(results / "learning_final.md") as f:
         assert f.read() == text
     # PPO: mean 600. lstm 600, 700, 800 - PPO 550, 650 = +100: of the C(5, 3) = 10 splits of the five returns,
@@ -218,8 +220,8 @@ def test_the_lstm_is_compared_with_the_gru_for_each_policy_over_seeds(tmp_path):
              "final_return": sampled, **base}, path,
         )  # fmt: skip
         if i == 2:  # the LSTM alone: nothing to compare
-            assert learning.variant_difference(path) == ""
-    text = learning.variant_difference(path)
+            assert learning_report.variant_difference(path) == ""
+    text = learning_report.variant_difference(path)
     table = {line.split("|")[1].strip(): line.split("|") for line in text.splitlines() if line.startswith("| ")}
     assert set(table) == {"final policy: LSTM - GRU", "mean action", "sampled"}
     # mean action: 700 - 500 = +200, the LSTM's 600, 700, 800 the top 3 of 6 in the only one of the C(6, 3) = 20
@@ -237,7 +239,7 @@ def test_the_lstm_is_compared_with_the_gru_for_each_policy_over_seeds(tmp_path):
     for exp_name, variant, seed, mean_action, sampled in rows[:4]:
         learning.write_final_row({"exp_name": exp_name, "variant": variant, "seed": seed,
                                   "mean_action_return": mean_action, "final_return": sampled, **base}, one)  # fmt: skip
-    assert learning.variant_difference(one).count("too few runs to judge (n = 1)") == 2
+    assert learning_report.variant_difference(one).count("too few runs to judge (n = 1)") == 2
 
 
 def test_the_bar_is_met_only_when_every_part_is(tmp_path):
@@ -245,16 +247,16 @@ def test_the_bar_is_met_only_when_every_part_is(tmp_path):
         return {"final_return": ret, "final_progress": progress, "final_mean_abs_steer": sampled_steer,
                 "mean_action_abs_steer": steer, "best_eval_return": best, "last3_eval_return": last3}  # fmt: skip
 
-    assert all(learning.bar_verdict([row(600.0), row(650.0), row(550.0)]).values())  # mean 600, min 550
-    assert not learning.bar_verdict([row(900.0), row(900.0), row(349.0)])["every seed"]  # mean 716, one seed < 350
-    assert not learning.bar_verdict([row(600.0), row(599.0)])["return"]
-    assert not learning.bar_verdict([row(700.0, progress=0.6), row(700.0, progress=0.69)])["progress"]  # 0.645
-    assert not learning.bar_verdict([row(700.0, steer=0.31, sampled_steer=0.2)])["steer"]  # the mean action's
-    assert not learning.bar_verdict([row(700.0), row(700.0, best=800.0, last3=649.0)])["holds"]  # 151 below best
+    assert all(learning_report.bar_verdict([row(600.0), row(650.0), row(550.0)]).values())  # mean 600, min 550
+    assert not learning_report.bar_verdict([row(900.0), row(900.0), row(349.0)])["every seed"]  # mean 716, a seed < 350
+    assert not learning_report.bar_verdict([row(600.0), row(599.0)])["return"]
+    assert not learning_report.bar_verdict([row(700.0, progress=0.6), row(700.0, progress=0.69)])["progress"]  # 0.645
+    assert not learning_report.bar_verdict([row(700.0, steer=0.31, sampled_steer=0.2)])["steer"]  # the mean action's
+    assert not learning_report.bar_verdict([row(700.0), row(700.0, best=800.0, last3=649.0)])["holds"]  # 151 below best
 
 
 def test_diagnostics_average_each_bucket_of_updates(tmp_path):
-    tags = dict(learning.DIAGNOSTICS)
+    tags = dict(learning_report.DIAGNOSTICS)
     columns = ["charts/episode", "car_0/perf/updates", *tags.values()]
     logged = [  # (episode, updates, training return, actor sigma, eval return)
         (1, "", -80.0, "", ""), (2, "", -60.0, "", ""),  # prefill races: bucket 0
@@ -268,12 +270,12 @@ def test_diagnostics_average_each_bucket_of_updates(tmp_path):
         for episode, updates, ret, sigma, evaluation in logged:
             writer.writerow({"charts/episode": episode, "car_0/perf/updates": updates, tags["training return"]: ret,
                              tags["actor sigma"]: sigma, tags["eval return"]: evaluation})  # fmt: skip
-    rows = learning.diagnostics(str(tmp_path), bucket=500)
+    rows = learning_report.diagnostics(str(tmp_path), bucket=500)
     assert [(r["updates"], r["races"]) for r in rows] == [("0-499", 4), ("500-999", 3), ("1500-1999", 1)]
     assert [r["training return"] for r in rows] == pytest.approx([(-80 - 60 + 10 + 30) / 4, 200.0, 400.0])
     assert [r["actor sigma"] for r in rows] == pytest.approx([0.8, 0.55, 0.4])
     assert rows[0]["eval return"] == 50.0 and rows[1]["eval return"] == 250.0 and np.isnan(rows[2]["eval return"])
-    table = learning.diagnostics_table(rows).splitlines()
+    table = learning_report.diagnostics_table(rows).splitlines()
     assert table[0].startswith("| updates | races | training return |") and len(table) == 2 + 3
     assert table[2].startswith("| 0-499 | 4 | -25.00 |") and table[4].endswith("|  |  |  |")
 
@@ -293,13 +295,13 @@ def test_report_keeps_saved_curves_and_never_shrinks_one(dirs):
     ablation = learning.experiment_name("lstm", entropy_coef=0.03)  # an entropy-scale ablation is its own curve
     write_sitting(os.path.join(runs, f"multi_car_racing__{ablation}__3__1700000000"), [(900, 10.0, 0.1, 200)], 1e6)
 
-    learning.report(runs, results)
-    curves = learning.load_curves(runs, results)
+    learning_report.report(runs, results)
+    curves = learning_report.load_curves(runs, results)
     assert sorted(curves) == [
         "learning_gru_seed2", "learning_gru_seed3", "learning_lstm_alpha0.03_seed3", "learning_lstm_seed1"
     ]
     assert curves["learning_gru_seed2"][-1]["env_steps"] == 4000  # the restarted run is behind: CSV kept
-    assert learning.read_curve(os.path.join(results, "learning_gru_seed3.csv"))[-1]["updates"] == 100
+    assert learning_report.read_curve(os.path.join(results, "learning_gru_seed3.csv"))[-1]["updates"] == 100
     with open(os.path.join(results, "learning.md")) as f:
         table = f.read().splitlines()
     assert "| lstm_seed1 | 4000 | 2000 | 1.20 | 620.0 | 0.71 | 620.0 (0.71) | 4000 steps, 1.20 h |" in table
@@ -317,7 +319,7 @@ def test_an_ablation_is_drawn_beside_the_default_run_of_its_variant_and_seed(dir
     runs, results = dirs
     for name, seed in (("learning_gru", 4), ("learning_gru_retnorm", 4), ("learning_gru", 5), ("learning_lstm", 4)):
         write_sitting(os.path.join(runs, f"multi_car_racing__{name}__{seed}__1700000000"), [(500, 1.0, 0.1, 0)], 1e6)
-    learning.report(runs, results)
+    learning_report.report(runs, results)
     with open(os.path.join(results, "screening", "ablations.md")) as f:
         runs_there = [row.split(" | ")[0].removeprefix("| ") for row in f.read().splitlines()[2:]]
     assert runs_there[:2] == ["gru_seed4", "gru_retnorm_seed4"]  # not gru seed 5, not lstm seed 4
@@ -366,7 +368,7 @@ def test_an_ablation_reaches_the_script_and_a_refused_value_names_its_flag(tmp_p
 
 @pytest.mark.parametrize("variant", ["lstm", "gru"])
 def test_evaluate_checkpoint_reproduces_the_runs_own_evaluation(tmp_path, variant):
-    """--evaluate on the run's held-out tracks gives exactly the return and progress the run logged for
+    """evaluate_checkpoint on the run's held-out tracks gives exactly the return and progress the run logged for
     the agent it saved as best.pt (deterministic actions, the run's env settings)."""
     script = importlib.import_module(f"dreamer_{variant}")
     tiny = dict(
@@ -408,15 +410,15 @@ def test_training_curves_read_the_runs_races_and_keep_them_as_csv(dirs):
         writer = csv.writer(f)
         writer.writerow(["charts/episode", "car_0/charts/episodic_return", "car_0/perf/updates"])
         writer.writerows([[1, -80.0, ""], [2, -70.0, 100], [3, 150.5, 200]])  # the prefill race has no updates
-    curves = learning.training_curves(runs, results)
+    curves = learning_report.training_curves(runs, results)
     assert curves == {"learning_lstm_seed11": [{"updates": 100, "return": -70.0}, {"updates": 200, "return": 150.5}]}
     os.remove(os.path.join(run_dir, "progress.csv"))  # the run is gone from this machine: its CSV stands in
-    assert learning.training_curves(runs, results) == curves
+    assert learning_report.training_curves(runs, results) == curves
     with open(os.path.join(run_dir, "progress.csv"), "w", newline="") as f:  # a restarted run, behind the CSV
         writer = csv.writer(f)
         writer.writerow(["charts/episode", "car_0/charts/episodic_return", "car_0/perf/updates"])
         writer.writerows([[1, -90.0, 100]])
-    assert learning.training_curves(runs, results) == curves  # the longer saved curve is kept, not overwritten
+    assert learning_report.training_curves(runs, results) == curves  # the longer saved curve is kept, not overwritten
 
 
 def test_final_row_refuses_a_run_short_of_its_updates(tmp_path, monkeypatch):
@@ -455,237 +457,62 @@ def test_final_row_counts_the_steps_and_hours_after_the_last_evaluation(tmp_path
 
 
 def test_references_on_other_tracks_are_measured_once_and_kept_apart(tmp_path):
-    base = learning.baselines(10_100, 1, results_dir=str(tmp_path), filename="baselines_fresh.json")
+    base = learning_report.baselines(10_100, 1, results_dir=str(tmp_path), filename="baselines_fresh.json")
     assert base["pursuit@70"]["eval_progress"] > 0.95 and base["pursuit@70"]["eval_return"] > 800
     assert base["random"]["eval_progress"] < 0.2 and base["random"]["eval_return"] < 0
     assert not (tmp_path / "baselines.json").exists()  # the held-out tracks' reference is another file
     with open(tmp_path / "baselines_fresh.json", "w") as f:  # read back, not recomputed
         json.dump({"random": {"eval_return": -1.0, "eval_progress": 0.01},
                    "pursuit@70": {"eval_return": 2.0, "eval_progress": 1.0}}, f)  # fmt: skip
-    line = learning.fresh_reference(str(tmp_path))
+    line = learning_report.fresh_reference(str(tmp_path))
     assert "20 tracks (10100..10119)" in line and "random actions -1.0 (progress 0.01)" in line
     assert "driver at 70 2.0 (1.00)" in line
 
 
-def fake_run(root, exp_name, seed, kept, progress):
-    """A run directory of `exp_name`: checkpoints named in `kept` ({file: updates}) and a progress.csv of
-    (updates, training return, actor sigma) rows."""
-    run = root / f"multi_car_racing__{exp_name}__{seed}__1700000000"
-    (run / "checkpoints").mkdir(parents=True)
-    for name in kept:
-        (run / "checkpoints" / name).write_bytes(b"")
-    tags = dict(learning.DIAGNOSTICS)
-    with open(run / "progress.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=["car_0/perf/updates", tags["training return"], tags["actor sigma"]])
-        writer.writeheader()
-        for updates, ret, sigma in progress:
-            writer.writerow({"car_0/perf/updates": updates, tags["training return"]: ret, tags["actor sigma"]: sigma})
-    return run
+
+# --- The command line ------------------------------------------------------------------------
+def test_the_command_line_names_the_run_by_its_ablated_flags():
+    args = tyro.cli(learning.Args, args=["--variant", "gru", "--return-norm", "--norm", "layer", "--screen", "3100"])
+    assert learning.experiment_name(args.variant, **learning.ablation(args)) == "learning_gru_normlayer_retnorm"
+    assert args.screen == 3100 and (args.first_track, args.tracks) == (10_100, 5)  # --calibrate's tracks
+    assert learning.ablation(tyro.cli(learning.Args, args=[])) == dict.fromkeys(learning.ABLATION_TAGS)  # the preset
 
 
-@pytest.fixture
-def screen_runs(tmp_path, monkeypatch):
-    """A default LSTM run (seed 11, in reference/) and its return-norm ablation (in runs/), with fake checkpoints
-    ({file: updates}) and an evaluation whose return tells which checkpoint and policy it measured."""
-    import race
-
-    kept = {"latest.pt": 8000, "eval_000045.pt": 2600, "eval_000050.pt": 3100}
-    ablated_kept = {"latest.pt": 3100, "eval_000045.pt": 2600}
-    progress = [(2500, 100.0, 0.9), (2600, 1000.0, 0.3), (2700, 200.0, 0.8), (3000, 300.0, ""), (3100, 400.0, 0.7),
-                (3200, 900.0, 0.1)]  # fmt: skip
-    reference = fake_run(tmp_path / "reference", "learning_lstm", 11, kept, progress)
-    ablated = fake_run(tmp_path / "runs", "learning_lstm_retnorm", 11, ablated_kept, [(3100, -50.0, 0.95)])
-    counts = {os.path.join(reference, "checkpoints", k): v for k, v in kept.items()}
-    counts |= {os.path.join(ablated, "checkpoints", k): v for k, v in ablated_kept.items()}
-    monkeypatch.setattr(race, "read_checkpoint", lambda path: (None, {"agents": [{"num_updates": counts[path]}]}))
-
-    def evaluate(path, first_track, tracks, policy):
-        value = counts[path] + (0.5 if "retnorm" in path else 0.0) + (0.25 if policy == "mean-action" else 0.0)
-        return {"eval_return": value, "eval_progress": 0.5, "mean_abs_steer": 0.2,
-                "tracks": f"{first_track}..{first_track + tracks - 1}"}  # fmt: skip
-
-    monkeypatch.setattr(learning, "evaluate_checkpoint", evaluate)
-    return tmp_path, reference, ablated
+@pytest.mark.parametrize("argv, message", [
+    (["--report", "--final"], "--report and --final are separate modes: give one at most"),
+    (["--screen", "3100", "--policy-rule", "--calibrate", "x.pt"],
+     "--screen and --policy-rule and --calibrate are separate modes"),
+    (["--horizon", "5"], "--horizon is the imagination horizon of --calibrate; give --calibrate CHECKPOINT"),
+    (["--reference-runs-dir", "runs"], "--reference-runs-dir is the default run's place for --screen"),
+    (["--hours", "0"], "--hours must be > 0, got 0.0"),
+    (["--updates", "0", "--final"], "--updates must be >= 1, got 0"),
+    (["--calibrate", "x.pt", "--tracks", "0"], "--tracks and --horizon must be >= 1, got 0 and None"),
+    (["--decoder-min-log-sigma", "3"], "--decoder-min-log-sigma must lie in [-5, 2], got 3.0"),  # the script's rule
+])  # fmt: skip
+def test_the_command_line_refuses_bad_input_in_one_line_before_any_work(argv, message, tmp_path):
+    with pytest.raises(SystemExit) as exit_info:
+        learning.cli([*argv, "--runs-dir", str(tmp_path / "runs")])
+    text = str(exit_info.value)
+    assert text.startswith("learning.py: error: ") and message in text and "\n" not in text
+    assert not os.path.exists(tmp_path / "runs")  # nothing was trained or written
 
 
-def test_a_screen_picks_the_policy_each_run_kept_at_the_same_update_count(screen_runs):
-    _, reference, ablated = screen_runs
-    assert learning.checkpoint_at(str(reference), 3100).endswith("eval_000050.pt")
-    assert learning.checkpoint_at(str(ablated), 3100).endswith("latest.pt")
-    with pytest.raises(ValueError, match=r"kept no policy at 3000 updates \(it kept: 2600, 3100, 8000\); it passed"):
-        learning.checkpoint_at(str(reference), 3000)
-    with pytest.raises(ValueError, match=r"\(it kept: 2600, 3100\); resume it with --updates"):
-        learning.checkpoint_at(str(ablated), 4000)
+def test_a_mode_without_its_run_or_checkpoint_names_it_in_one_line(tmp_path):
+    for argv, message in [
+        (["--diagnose", "--seed", "3"], f"no run of learning_lstm seed 3 in {tmp_path}"),
+        (["--final", "--variant", "gru"], f"no run of learning_gru seed 1 in {tmp_path}"),
+        (["--calibrate", str(tmp_path / "none.pt")], "none.pt: no such checkpoint file"),
+    ]:
+        with pytest.raises(SystemExit, match=r"^learning\.py: error: ") as exit_info:
+            learning.cli([*argv, "--runs-dir", str(tmp_path)])
+        assert message in str(exit_info.value) and "\n" not in str(exit_info.value)
 
 
-def test_screen_rows_compare_ablation_and_default_on_the_screening_tracks(screen_runs):
-    root, _, _ = screen_runs
-    rows = learning.screen_rows(
-        "lstm", 11, 3100, "learning_lstm_retnorm", str(root / "runs"), reference_runs_dir=str(root / "reference")
-    )
-    assert [(r["exp_name"], r["policy"], r["return"], r["checkpoint"]) for r in rows] == [
-        ("learning_lstm", "stochastic", 3100.0, "eval_000050.pt"),
-        ("learning_lstm", "mean-action", 3100.25, "eval_000050.pt"),
-        ("learning_lstm_retnorm", "stochastic", 3100.5, "latest.pt"),
-        ("learning_lstm_retnorm", "mean-action", 3100.75, "latest.pt"),
-    ]  # fmt: skip
-    assert {r["tracks"] for r in rows} == {"10200..10219"}  # not the final protocol's fresh tracks 10100..10119
-    default, ablation = rows[0], rows[2]
-    # the default's last 500 updates before 3100: rows logged at 2700, 3000 and 3100 (not 2500, 2600 or 3200)
-    assert default["training_return"] == pytest.approx(300.0)
-    assert default["actor_sigma"] == pytest.approx(0.75)  # the empty cell at 3000 stays out
-    assert np.isnan(default["kl_dyn"])  # never logged: NaN, not 0
-    assert (ablation["training_return"], ablation["actor_sigma"]) == (-50.0, 0.95)  # each run's own log
-    with pytest.raises(ValueError, match="give the ablated flag"):
-        learning.screen_rows("lstm", 11, 3100, "learning_lstm", str(root / "runs"), str(root / "reference"))
-    with pytest.raises(ValueError, match="no run of learning_lstm seed 12 in .*reference"):
-        learning.screen_rows("lstm", 12, 3100, "learning_lstm_retnorm", str(root / "runs"), str(root / "reference"))
-
-
-def test_screen_table_replaces_a_remeasured_row_and_keeps_the_others(screen_runs):
-    root, _, _ = screen_runs
-    path = str(root / "screens.csv")
-    runs = ("learning_lstm_retnorm", str(root / "runs"), str(root / "reference"))
-    rows, earlier = learning.screen_rows("lstm", 11, 3100, *runs), learning.screen_rows("lstm", 11, 2600, *runs)
-    learning.write_screen_rows(earlier + rows[2:], path)
-    rows[3] = {**rows[3], "return": -5.0}  # the ablation measured again at 3100, and the default for the first time
-    table = learning.write_screen_rows(rows, path).splitlines()
-    with open(path, newline="") as f:
-        saved = list(csv.DictReader(f))
-    assert [(r["exp_name"], int(r["updates"]), r["policy"], float(r["return"])) for r in saved] == [
-        ("learning_lstm", 2600, "mean-action", 2600.25), ("learning_lstm", 2600, "stochastic", 2600.0),
-        ("learning_lstm_retnorm", 2600, "mean-action", 2600.75), ("learning_lstm_retnorm", 2600, "stochastic", 2600.5),
-        ("learning_lstm", 3100, "mean-action", 3100.25), ("learning_lstm", 3100, "stochastic", 3100.0),
-        ("learning_lstm_retnorm", 3100, "mean-action", -5.0), ("learning_lstm_retnorm", 3100, "stochastic", 3100.5),
-    ]  # fmt: skip
-    assert list(saved[0]) == list(learning.SCREEN_COLUMNS) and len(table) == 2 + 8
-    assert not os.path.exists(path + ".tmp")
-
-
-@pytest.fixture
-def rule_runs(tmp_path, monkeypatch):
-    """learning_final.csv with final policies of the default method (and an ablation's), their runs, and an
-    evaluation that counts its calls and whose return tells the policy: seed + 100 sampled, seed + 100 + 10 * seed
-    with the mean action (lstm), seed + 100 - 7 (gru)."""
-    final = tmp_path / "learning_final.csv"
-    for variant, seed in [("lstm", 11), ("lstm", 12), ("gru", 11)]:
-        fake_run(tmp_path / "runs", f"learning_{variant}", seed, {"latest.pt": 8000}, [])
-        learning.write_final_row({"exp_name": f"learning_{variant}", "variant": variant, "seed": seed,
-                                  "updates": 8000}, str(final))  # fmt: skip
-    learning.write_final_row({"exp_name": "learning_lstm_retnorm", "variant": "lstm", "seed": 11, "updates": 8000},
-                             str(final))  # fmt: skip
-    calls = []
-
-    def evaluate(path, first_track, tracks, policy):
-        calls.append((path, first_track, tracks, policy))
-        seed = int(path.split("__")[-2])
-        bonus = (10.0 * seed if "lstm" in path else -7.0) if policy == "mean-action" else 0.0
-        return {"eval_return": seed + 100.0 + bonus, "updates": 8000}
-
-    monkeypatch.setattr(learning, "evaluate_checkpoint", evaluate)
-    return tmp_path, final, calls
-
-
-def test_the_policy_rule_measures_each_final_policy_once_on_the_screening_tracks(rule_runs):
-    root, final, calls = rule_runs
-    path = str(root / "policy_rule.csv")
-    rows = learning.policy_rule_rows(str(root / "runs"), str(final), path)
-    assert [(r["variant"], r["seed"], r["stochastic_return"], r["mean_action_return"], r["difference"])
-            for r in rows] == [("gru", 11, 111.0, 104.0, -7.0), ("lstm", 11, 111.0, 221.0, 110.0),
-                               ("lstm", 12, 112.0, 232.0, 120.0)]  # fmt: skip
-    assert len(calls) == 6 and {c[1:3] for c in calls} == {(10_200, 20)}  # not the fresh tracks 10100..10119
-    assert all(c[0].endswith(os.path.join("checkpoints", "latest.pt")) for c in calls)  # the final policy
-    assert not any("retnorm" in c[0] for c in calls)  # an ablation is not the method the rule decides for
-    calls.clear()
-    again = learning.policy_rule_rows(str(root / "runs"), str(final), path)
-    assert calls == [] and [float(r["difference"]) for r in again] == [-7.0, 110.0, 120.0]  # read back, not re-run
-    newer = root / "runs" / "multi_car_racing__learning_lstm__12__1800000000"  # another run of the same name
-    (newer / "checkpoints").mkdir(parents=True)
-    learning.policy_rule_rows(str(root / "runs"), str(final), path)
-    assert [c[0] for c in calls] == [str(newer / "checkpoints" / "latest.pt")] * 2  # it is measured, not reused
-    learning.write_final_row({"exp_name": "learning_gru", "variant": "gru", "seed": 11, "updates": 9000}, str(final))
-    with pytest.raises(ValueError, match="latest.pt has 8000 updates, its row in .* 9000"):
-        learning.policy_rule_rows(str(root / "runs"), str(final), path)  # a stale checkpoint is named, not measured
-    for seed in (11, 13):  # seed 11 back as it was; seed 13 has a row but no run
-        learning.write_final_row({"exp_name": "learning_gru", "variant": "gru", "seed": seed, "updates": 8000},
-                                 str(final))  # fmt: skip
-    with pytest.raises(ValueError, match="no run of learning_gru seed 13 in"):
-        learning.policy_rule_rows(str(root / "runs"), str(final), path)
-
-
-def test_the_policy_rule_decides_on_three_seeds_per_variant_with_variants_as_strata():
-    def rows(lstm, gru):
-        return [{"variant": v, "seed": 11 + i, "updates": 8000, "stochastic_return": 0.0, "mean_action_return": d,
-                 "difference": d, "tracks": "10200..10219"} for v, ds in (("lstm", lstm), ("gru", gru))
-                for i, d in enumerate(ds)]  # fmt: skip
-
-    waiting = learning.policy_rule(rows([10.0, 20.0, 30.0], [5.0, 6.0]))
-    assert waiting == {"policy": None, "counts": {"lstm": 3, "gru": 2}}
-    assert "waits for 3 final policies per variant (lstm 3 of 3, gru 2 of 3)" in learning.policy_rule_table([], waiting)
-    # Variants are strata: the mean of the variants' means 52, each variant's variance 1, so the mean's variance is
-    # (1/3 + 1/3) / 4 = 1/6 with (2/3)^2 / (2 (1/3)^2 / 2) = 4 degrees of freedom: 52 +- 2.7764 / sqrt(6) =
-    # [50.87, 53.13]; pooling the six runs would spread the interval over [-5.5, 109.5]. All six positive: the
-    # sign-flip p is 1/64, so the claim is supported.
-    split = learning.policy_rule(rows([1.0, 2.0, 3.0], [101.0, 102.0, 103.0]))
-    assert split["mean"] == pytest.approx(52.0) and split["ci"] == pytest.approx((50.867, 53.133), abs=1e-3)
-    assert split["p"] == 1 / 64 and split["verdict"] == "supported" and split["policy"] == "mean-action"
-    # only the first 3 seeds of each variant count: mean (100 - 300) / 2 = -100, no spread within a variant
-    loss = learning.policy_rule(rows([100.0, 100.0, 100.0, 5000.0], [-300.0, -300.0, -300.0]))
-    assert loss["mean"] == pytest.approx(-100.0) and loss["policy"] == "stochastic"  # seed 14 is not in the rule
-    # a positive mean whose interval reaches below 0 keeps the sampled policy: each variant -100, 0, 400 (variance
-    # 70000), 100 +- 2.7764 * sqrt(2 * 70000 / 3 / 4) = 100 +- 299.9; the sign-flip p is 16/64 (0 flips to itself)
-    mixed = learning.policy_rule(rows([-100.0, 0.0, 400.0], [-100.0, 0.0, 400.0]))
-    assert mixed["mean"] == pytest.approx(100.0) and mixed["ci"] == pytest.approx((-199.9, 399.9), abs=0.05)
-    assert mixed["p"] == 16 / 64 and mixed["verdict"].startswith("weak") and mixed["policy"] == "stochastic"
-    # the rule's own numbers (policy_rule.csv): +25.4, -143.9, +72.2 and +223.4, +54.3, +185.6, mean +69.5; an
-    # assignment beats the observed sum 417.0 only with -143.9 made positive and a set of positives summing to at
-    # most 143.9 made negative ({}, 25.4, 54.3, 72.2, 25.4 + 54.3, 25.4 + 72.2, 54.3 + 72.2), or as observed: 8/64
-    real = learning.policy_rule(rows([223.4, 54.3, 185.6], [25.4, -143.9, 72.2]))
-    assert real["mean"] == pytest.approx(69.5, abs=0.05) and real["p"] == 8 / 64
-    assert real["ci"][0] < 0 and real["policy"] == "stochastic"  # a percentile bootstrap said [+5.3, +132.2]
-    table = learning.policy_rule_table(rows([1.0, 2.0, 3.0], [101.0, 102.0, 103.0]), split)
-    assert "+52.0 [+50.9, +53.1] (t 95%, variants as strata; exact sign-flip p = 0.016 one-sided, n = 6)" in table
-    assert "supported. Evaluation policy: **mean-action**" in table
-
-
-def test_realised_and_horizon_returns_match_their_sums_written_out():
-    """G_t and J_t of --calibrate against the sums they stand for, term by term."""
-    rng = np.random.default_rng(0)
-    rewards, bonus, gamma, last = rng.normal(size=7), rng.normal(size=6), 0.9, 5.0
-    for ended in (False, True):  # truncated (bootstrapped with the last value) or terminated (nothing after)
-        terminated = np.array([False] * 6 + [ended])
-        expected = [
-            sum(gamma**k * (rewards[t + k + 1] + bonus[t + k]) for k in range(6 - t))
-            + (not ended) * gamma ** (6 - t) * last
-            for t in range(6)
-        ]  # fmt: skip
-        np.testing.assert_allclose(learning.realised_returns(rewards, terminated, bonus, last, gamma), expected)
-        horizon = learning.horizon_task_returns(rewards, terminated, gamma, 4)
-        for t in range(6):
-            if t + 4 <= 6 or ended:
-                assert horizon[t] == pytest.approx(sum(gamma**k * rewards[t + 1 + k] for k in range(min(4, 6 - t))))
-            else:  # truncated before t + H: the rewards there are unknown
-                assert np.isnan(horizon[t])
-
-
-def test_calibrate_measures_the_real_episode_the_agent_drives(tmp_path):
-    """With gamma 1 and a horizon as long as the episode, the real task return from the first frame is the race's
-    return, which the evaluation of the same agent with the same sampled actions measures independently; an
-    acting-only export, which has no critic, is refused naming the file."""
-    script = importlib.import_module("dreamer_gru")
-    run_dir = script.main(script.Args(stage="single", runs_dir=str(tmp_path), gamma=1.0, action_repeat=2, **TINY_RUN))
-    latest = os.path.join(run_dir, "checkpoints", "latest.pt")
-    row = learning.calibrate_checkpoint(latest, 10_100, 1)
-    assert row["horizon"] == TINY_RUN["imagination_horizon"] and row["starts"] == 15  # 30 env steps, repeat 2
-    assert row["horizon_starts"] == row["starts"] - row["horizon"] + 1  # truncated: the last starts lack H rewards
-    assert row["bootstrap_weight"] == 1.0  # truncated at gamma 1: every G_t carries all of V(s_T)
-    assert row["eliminations"] == 0 and row["elimination_reasons"] == "" and np.isnan(row["terminal_reward"])
-    assert row["reward_sigma"] >= 0.1  # (the heads' minimum sigma)
-    assert all(np.isfinite(row[k]) for k in ("value", "realised_return", "imagined_task_return", "real_task_return"))
-    whole = learning.calibrate_checkpoint(latest, 10_100, 1, horizon=row["starts"])
-    reference = learning.evaluate_checkpoint(latest, 10_100, 1, "stochastic")
-    assert whole["horizon_starts"] == 1
-    assert whole["real_task_return"] == pytest.approx(reference["eval_return"], abs=0.01)
-    ckpt.export_policy(script, latest, str(tmp_path / "policy.pt"))
-    with pytest.raises(ValueError, match=r"policy\.pt: an acting-only export has no critic"):
-        learning.calibrate_checkpoint(str(tmp_path / "policy.pt"))
+@pytest.mark.parametrize("argv", [
+    ["--evaluate", "x.pt"], ["--export", "x.pt", "out.pt"],  # user operations: python evaluate.py now
+    ["--variant", "transformer"], ["--norm", "group"], ["--screen", "many"],
+])  # fmt: skip
+def test_the_parser_refuses_removed_modes_and_bad_values(argv, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        learning.cli(argv)
+    assert exit_info.value.code == 2 and argv[0] in capsys.readouterr().err  # tyro's message names the flag

@@ -1,4 +1,5 @@
-"""benchmarks/ppo_peer.py: the zoo's wrappers, a resumable training run, the evaluation row."""
+"""benchmarks/ppo_peer.py: the zoo's wrappers, resumable training runs of PPO and RecurrentPPO, the evaluation row
+(an LSTM's state carried), the sample-efficiency snapshots and their curve, the evaluation tracks."""
 
 import csv
 import os
@@ -70,3 +71,131 @@ def test_the_budget_is_cpu_time_of_the_process(tmp_path, monkeypatch):
     monkeypatch.setattr(ppo_peer.time, "process_time", lambda: 1200.0 * next(readings))
     record = ppo_peer.train(3, hours=1.0, budget_steps=256, run_dir=str(tmp_path))  # (by the wall clock: 4 rollouts)
     assert record["env_steps"] < 2 * 64 and record["cpu_hours"] >= 1.0
+
+
+def tiny(monkeypatch, config, race_steps=None):
+    """2 envs, rollouts of 32 steps (64 PPO steps, 128 env steps), one epoch of one minibatch; races cut to
+    `race_steps` decisions (training and evaluation) when given."""
+    for key, value in (("n_envs", 2), ("n_steps", 32), ("batch_size", 32), ("n_epochs", 1)):
+        monkeypatch.setitem(config, key, value)
+    if race_steps:
+        make_env = ppo_peer.make_env
+        cut = lambda seed=None: gymnasium.wrappers.TimeLimit(make_env(), race_steps)  # noqa: E731
+        monkeypatch.setattr(ppo_peer, "make_env", cut)
+
+
+def test_recurrent_ppo_has_the_zoo_entry():
+    # rl-baselines3-zoo, hyperparams/ppo_lstm.yml, CarRacing-v0 (read at commit 038ab16), as written there: FrameSkip
+    # skip 2, ResizeObservation 64, GrayScaleObservation keep_dim, "# normalize: True" commented out, a constant
+    # learning rate
+    zoo = dict(
+        frame_skip=2, image_size=64, frame_stack=2, normalize=False, n_envs=8, n_timesteps=2e6, policy="CnnLstmPolicy",
+        batch_size=128, n_steps=512, gamma=0.99, gae_lambda=0.9, n_epochs=20, ent_coef=0.0, sde_sample_freq=4,
+        max_grad_norm=0.5, vf_coef=0.5, learning_rate=3e-5, lr_schedule="constant", use_sde=True, clip_range=0.4,
+        policy_kwargs=dict(log_std_init=-2, ortho_init=False, enable_critic_lstm=False, activation_fn="GELU",
+                           lstm_hidden_size=128),
+    )  # fmt: skip
+    assert ppo_peer.ZOO_LSTM == zoo
+    assert all(ppo_peer.ZOO_LSTM[k] == ppo_peer.ZOO[k] for k in ("frame_skip", "image_size", "frame_stack"))
+    from sb3_contrib import RecurrentPPO
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    norm = VecNormalize(ppo_peer.make_venv(0, 8), norm_obs=False, norm_reward=False)
+    model = ppo_peer.make_model(0, norm, None, "recurrent-ppo")  # what the constructor made of it
+    assert isinstance(model, RecurrentPPO) and model.n_envs == 8 and model.observation_space.shape == (2, 64, 64)
+    assert (model.n_steps, model.batch_size, model.n_epochs, model.gamma, model.gae_lambda) == (512, 128, 20, 0.99, 0.9)
+    assert (model.ent_coef, model.vf_coef, model.max_grad_norm, model.clip_range(1.0)) == (0.0, 0.5, 0.5, 0.4)
+    assert model.lr_schedule(1.0) == model.lr_schedule(0.0) == 3e-5
+    assert model.use_sde and model.sde_sample_freq == 4 and model.policy.ortho_init is False
+    assert model.policy.lstm_actor.hidden_size == 128 and model.policy.lstm_critic is None
+    assert model.policy.activation_fn.__name__ == "GELU" and float(model.policy.log_std.detach().mean()) == -2
+    norm.close()
+
+
+def test_a_recurrent_run_resumes_writes_its_row_and_its_curve(tmp_path, monkeypatch):
+    tiny(monkeypatch, ppo_peer.ZOO_LSTM, race_steps=40)
+    argv = ["--algo", "recurrent-ppo", "--seed", "3", "--cpu-hours", "1", "--tracks", "1", "--runs-dir", str(tmp_path),
+            "--results", str(tmp_path / "recurrent_ppo_peer.csv"), "--snapshot-steps", "100", "300"]  # fmt: skip
+    first = ppo_peer.main([*argv, "--budget-steps", "64"])
+    assert (first["variant"], first["env_steps"], first["updates"]) == ("recurrent_ppo", 2 * 64, 1)
+    second = ppo_peer.main([*argv, "--budget-steps", "256"])  # continues: rollouts start at 128, 256, 384 env steps
+    assert (second["env_steps"], second["updates"]) == (2 * 256, 4)
+    with open(tmp_path / "recurrent_ppo_peer.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 1 and tuple(rows[0]) == ppo_peer.COLUMNS and rows[0]["variant"] == "recurrent_ppo"
+    assert -200 < float(rows[0]["final_return"]) < 1000 and 0 <= float(rows[0]["final_mean_abs_steer"]) <= 1
+    files = sorted(name for name in os.listdir(tmp_path / "recurrent_ppo__3") if "." in name)  # (not tensorboard's)
+    assert files == [
+        "model.zip", "model_100.zip", "model_300.zip", "record.json", "vecnormalize.pkl", "vecnormalize_100.pkl",
+        "vecnormalize_300.pkl",
+    ]  # fmt: skip  (100: at the end of the first sitting, 128 steps; 300: at the rollout start at 384)
+    seen = []
+    monkeypatch.setattr(ppo_peer, "evaluate", lambda model, first, n: seen.append((model.num_timesteps, first, n))
+                        or {"return": 1.0, "progress": 0.5, "abs_steer": 0.25})  # fmt: skip
+    for _ in range(2):  # a second time replaces the seed's rows
+        ppo_peer.main(["--algo", "recurrent-ppo", "--seed", "3", "--curve", "--first-track", "10300", "--tracks", "30",
+                       "--runs-dir", str(tmp_path), "--results", str(tmp_path / "recurrent_ppo_peer.csv")])  # fmt: skip
+    assert seen[:2] == [(64, 10_300, 30), (192, 10_300, 30)]  # every snapshot on the same tracks
+    with open(tmp_path / "recurrent_ppo_peer_curve.csv") as f:
+        curve = list(csv.DictReader(f))
+    assert tuple(curve[0]) == ppo_peer.CURVE_COLUMNS and [(r["variant"], r["env_steps"]) for r in curve] == [
+        ("recurrent_ppo", "128"), ("recurrent_ppo", "384")
+    ]
+
+
+def test_the_evaluation_carries_the_lstm_state_and_resets_it_at_each_race(monkeypatch):
+    from sb3_contrib import RecurrentPPO
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    tiny(monkeypatch, ppo_peer.ZOO_LSTM, race_steps=6)
+    norm = VecNormalize(ppo_peer.make_venv(0, 1), norm_obs=False, norm_reward=False)
+    model = ppo_peer.make_model(0, norm, None, "recurrent-ppo")
+    calls, predict = [], RecurrentPPO.predict
+
+    def spy(self, observation, state=None, episode_start=None, deterministic=False):
+        action, new_state = predict(self, observation, state, episode_start, deterministic)
+        calls.append((state, episode_start.copy(), new_state, deterministic))
+        return action, new_state
+
+    monkeypatch.setattr(RecurrentPPO, "predict", spy)
+    ppo_peer.evaluate(model, 10_100, 2)
+    assert len(calls) == 2 * 6 and all(deterministic for *_, deterministic in calls)
+    for i, (state, start, _, _) in enumerate(calls):
+        assert start.tolist() == [i % 6 == 0]  # True on each race's first step only
+        assert state is None if i % 6 == 0 else state is calls[i - 1][2]  # from zeros, then the previous state
+    assert not np.allclose(calls[1][2][0], calls[0][2][0])  # the state moves: carrying it matters
+
+
+def test_snapshots_are_written_once_at_the_thresholds_over_sittings(tmp_path, monkeypatch):
+    tiny(monkeypatch, ppo_peer.ZOO)
+    writes, atomic_save = [], ppo_peer.atomic_save
+    monkeypatch.setattr(ppo_peer, "atomic_save", lambda save, path: writes.append(path) or atomic_save(save, path))
+    thresholds = (100, 128, 300, 10_000)
+    ppo_peer.train(3, hours=1.0, budget_steps=128, run_dir=str(tmp_path), snapshots=thresholds)  # 0 .. 256 env steps
+    ppo_peer.train(3, hours=1.0, budget_steps=256, run_dir=str(tmp_path), snapshots=thresholds)  # 256 .. 512
+    snapshots = [os.path.basename(p) for p in writes if "_" in os.path.basename(p)]
+    assert snapshots == ["vecnormalize_100.pkl", "model_100.zip", "vecnormalize_128.pkl", "model_128.zip",
+                         "vecnormalize_300.pkl", "model_300.zip"]  # fmt: skip  (10_000 is never passed)
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    steps = {n: PPO.load(path).num_timesteps * 2 for n, path in ppo_peer.snapshot_paths(str(tmp_path))}
+    assert steps == {100: 128, 128: 128, 300: 384}  # taken at the first rollout start past each threshold
+    assert VecNormalize.load(str(tmp_path / "vecnormalize_300.pkl"), ppo_peer.make_venv(0, 2)).norm_reward
+    assert not [name for name in os.listdir(tmp_path) if ".tmp" in name]
+
+
+def test_the_evaluation_tracks_are_parameters(tmp_path, monkeypatch):
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    run_dir = tmp_path / "ppo__3"
+    model = ppo_peer.make_model(0, VecNormalize(ppo_peer.make_venv(0, 1), norm_obs=False), None)
+    model.save(run_dir / "model.zip")
+    (run_dir / "record.json").write_text('{"env_steps": 0, "cpu_hours": 0.0, "updates": 0}')
+    seen = []
+    monkeypatch.setattr(ppo_peer, "evaluate", lambda model, first, n: seen.append((first, n))
+                        or {"return": 1.0, "progress": 0.5, "abs_steer": 0.25})  # fmt: skip
+    argv = ["--seed", "3", "--evaluate-only", "--runs-dir", str(tmp_path), "--results", str(tmp_path / "p.csv")]
+    ppo_peer.main(argv)
+    ppo_peer.main([*argv, "--first-track", "10300", "--tracks", "30"])
+    assert seen == [ppo_peer.FRESH_TRACKS, ppo_peer.FINAL_TRACKS] == [(10_100, 20), (10_300, 30)]

@@ -463,12 +463,16 @@ def test_plot_bad_input(tmp_path, capsys):
     assert str(exit_info.value.code).startswith(f"plot.py: {run / 'config.json'}: not a readable run config")
     bad = [
         (["--sigma", "nan"], "--sigma must be a finite number >= 0"),
+        (["--sigma", "-1"], "--sigma must be a finite number >= 0"),
+        (["--sigma", "abc"], "--sigma"),  # tyro's own message for a value that is no float names the option
         (["--out", str(run / "config.json")], "is not a directory"),
+        (["--head-to-head", str(tmp_path / "missing.csv")], "is not a file"),
+        (["--head-to-head"], "--head-to-head needs at least one CSV"),
     ]
     for argv, message in bad:
-        with pytest.raises(SystemExit):
+        with pytest.raises(SystemExit) as exit_info:
             plot.main([str(tmp_path / "runs"), *argv])
-        assert message in capsys.readouterr().err
+        assert exit_info.value.code == 2 and message in capsys.readouterr().err, argv
 
 
 # --- signals: pygame (moviepy's import, highway-env's viewer) must not swallow Ctrl-C or kill ----------------

@@ -1,0 +1,165 @@
+"""Are the agent's critic and imagination optimistic on real episodes? (``benchmarks/learning.py --calibrate``)
+
+A saved training checkpoint drives its sampled policy on a block of tracks; on every real frame, its critic's value
+and its world model's imagined return are set against what the real episode returned from there
+(``calibrate_checkpoint``); the row is kept in ``benchmarks/results/calibration.csv``.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+
+import numpy as np
+
+from learning import RESULTS
+
+
+CALIBRATION_COLUMNS = (
+    "checkpoint", "variant", "updates", "tracks", "horizon", "starts", "value", "realised_return", "bootstrap_weight",
+    "imagined_task_return", "real_task_return", "horizon_starts", "eliminations", "elimination_reasons",
+    "terminal_reward", "terminal_reward_predicted", "terminal_reward_sigma", "terminal_continue", "reward_sigma",
+)  # fmt: skip
+
+
+def realised_returns(rewards: np.ndarray, terminated: np.ndarray, bonus: np.ndarray, last_value: float,
+                     gamma: float) -> np.ndarray:  # fmt: skip
+    """What the critic estimates, realised on one real episode of T+1 frames (index t: frame t; rewards[t] and
+    terminated[t] came with frame t): G_t = r_{t+1} + bonus_t + gamma (1 - terminated_{t+1}) G_{t+1} for t < T, with
+    G_T = last_value (the critic's bootstrap where the episode was truncated; unused where it terminated). This is
+    the lambda-return recursion of the scripts with real rewards, terminations and (bonus = -alpha log pi) actions in
+    place of imagined ones. Returns G_0 .. G_{T-1}."""
+    returns, following = np.zeros(len(rewards) - 1), float(last_value)
+    for t in range(len(rewards) - 2, -1, -1):
+        following = rewards[t + 1] + bonus[t] + gamma * (1.0 - float(terminated[t + 1])) * following
+        returns[t] = following
+    return returns
+
+
+def horizon_task_returns(rewards: np.ndarray, terminated: np.ndarray, gamma: float, horizon: int) -> np.ndarray:
+    """J_t = sum_{k < H} gamma^k r_{t+k+1} of one real episode (the real counterpart of an H-step imagination from
+    frame t, task reward only); NaN where the episode was truncated before t + H (its rewards there are unknown).
+    A terminated episode has no reward after its last frame."""
+    last = len(rewards) - 1
+    returns = np.full(last, np.nan)
+    for t in range(last):
+        if t + horizon <= last or terminated[last]:
+            steps = rewards[t + 1 : t + 1 + horizon]
+            returns[t] = float(np.sum(steps * gamma ** np.arange(len(steps))))
+    return returns
+
+
+def calibrate_checkpoint(path: str, first_track: int = 10_100, tracks: int = 5, horizon: int | None = None) -> dict:
+    """Is the agent's value of real states, and its imagination from them, optimistic? The saved agent (a training
+    checkpoint: it needs its critic and reward head) drives its sampled policy, as trained, on tracks
+    ``first_track ..``; on every frame t of those real episodes (its posterior state, as imagination starts from):
+
+    * ``value``: the critic's V(s_t), against ``realised_return``: G_t, the same quantity realised (real rewards and
+      terminations, the entropy bonus -alpha log pi of a fresh action at s_t, the critic's own value of the last
+      frame where the episode was truncated: ``bootstrap_weight`` is the mean weight gamma^(T - t) of that value);
+    * ``imagined_task_return``: the world model's H-step discounted reward from s_t, imagining with the actor (H:
+      the agent's imagination horizon), against ``real_task_return``: the H-step discounted reward that followed s_t
+      in the real episode (starts whose episode was truncated before t + H left out: ``horizon_starts``).
+
+    Means over all frames of all tracks, whatever happened after them (averages over windows picked by their
+    outcome, such as those ending in an elimination, would look optimistic even for a perfect model). value >
+    realised: the critic is optimistic; imagined > real: the actor gets more reward in the model than on the road.
+    And the races that ended in an elimination (``eliminations``, ``elimination_reasons``: the env's reasons), on
+    their terminal frame itself: the real reward (the penalty), the reward head's mean and sigma there and the
+    continue head's probability, against the reward head's median sigma over all frames (``reward_sigma``)."""
+    import torch
+
+    from race import read_checkpoint
+    from utils import make_vec_env
+
+    script, checkpoint = read_checkpoint(path)
+    agent = script.agent_from_checkpoint(path, 0)
+    if agent.acting_only:
+        raise ValueError(f"{path}: an acting-only export has no critic or reward head; give a training checkpoint")
+    args = script.args_from_checkpoint(checkpoint, path, num_agents=1)
+    horizon = horizon or args.imagination_horizon
+    envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
+    torch.manual_seed(first_track)
+    episodes, reasons = [], []
+    try:
+        for seed in range(first_track, first_track + tracks):
+            envs.seed(seed)
+            obs, state = envs.reset(), None
+            episode = script.CarEpisode(script.preprocess_frames(obs, args.image_size)[0], agent.action_dim)
+            while True:
+                action, state = agent.act(script.preprocess_frames(obs, args.image_size), state, None, "stochastic")
+                obs, reward, dones, infos, _ = script.step_with_repeat(envs, action, args.action_repeat)
+                if dones[0]:  # (the vec env has reset: the episode's last frame is the terminal observation)
+                    frame = script.preprocess_frames(infos[0]["terminal_observation"][None], args.image_size)[0]
+                    episode.add(frame, action[0], reward[0], not infos[0]["TimeLimit.truncated"])
+                    reasons.append(infos[0].get("eliminated"))  # None: a finished lap or the time limit
+                    break
+                episode.add(script.preprocess_frames(obs, args.image_size)[0], action[0], reward[0], False)
+            episodes.append(episode.arrays())
+    finally:
+        envs.close()
+    sums = dict.fromkeys(("value", "realised_return", "bootstrap_weight", "imagined", "real"), 0.0)
+    starts = horizon_starts = 0
+    terminal, sigmas = [], []  # per elimination: real reward, predicted mean, sigma, continue; every frame's sigma
+    wm, actor, gamma = agent.world_model, agent.actor, args.gamma
+    agent._set_training(False)  # running statistics, as when acting
+    with torch.no_grad():
+        for (frames, actions, rewards, terminated), reason in zip(episodes, reasons):
+            is_first = torch.zeros(1, len(frames), dtype=torch.bool)
+            is_first[0, 0] = True
+            post = wm.observe(wm.encoder(torch.as_tensor(frames[None])), torch.as_tensor(actions[None]), is_first)
+            features = torch.cat([post["z"], post["h"]], -1)[0]
+            values = agent.critic(features)[0].numpy()
+            reward_mean, reward_std = script.gaussian_params(wm.reward(features), script.HEAD_MIN_STD)
+            sigmas.append(reward_std.squeeze(-1).numpy())
+            if reason is not None:
+                last_continue = torch.sigmoid(wm.cont(features[-1:]).float()).item()
+                terminal.append((rewards[-1], reward_mean[-1].item(), reward_std[-1].item(), last_continue))
+            mean, std = actor(features)
+            log_pi = script.policy_log_prob(mean + std * torch.randn_like(std), mean, std).numpy()
+            g = realised_returns(rewards, terminated, -float(agent.alpha()) * log_pi, values[-1], gamma)
+            last = len(frames) - 1
+            if not terminated[-1]:  # truncated: G_t carries gamma^(T - t) V(s_T)
+                sums["bootstrap_weight"] += float(np.sum(gamma ** (last - np.arange(last))))
+            state = tuple(s[0, :-1] for s in post["states"])
+            imagined, _, _, _ = script.imagine_rollout(wm, actor, state, post["h"][0, :-1], post["z"][0, :-1], horizon)
+            reward = script.gaussian_params(wm.reward(imagined[1:]), script.HEAD_MIN_STD)[0].squeeze(-1)
+            continues = torch.sigmoid(wm.cont(imagined[1:]).float().squeeze(-1))
+            i_task = (script.discount_weights(continues, gamma) * reward).sum(0).numpy()
+            j_task = horizon_task_returns(rewards, terminated, gamma, horizon)
+            valid = ~np.isnan(j_task)
+            sums["value"] += values[:-1].sum()
+            sums["realised_return"] += g.sum()
+            sums["imagined"] += i_task[valid].sum()
+            sums["real"] += j_task[valid].sum()
+            starts, horizon_starts = starts + len(g), horizon_starts + int(valid.sum())
+    named = sorted({r for r in reasons if r is not None})
+    return {
+        "checkpoint": path, "variant": checkpoint["variant"], "updates": int(checkpoint["agents"][0]["num_updates"]),
+        "tracks": f"{first_track}..{first_track + tracks - 1}", "horizon": horizon, "starts": starts,
+        **{k: round(float(sums[k] / max(starts, 1)), 3 if k == "bootstrap_weight" else 2)
+           for k in ("value", "realised_return", "bootstrap_weight")},
+        "imagined_task_return": round(float(sums["imagined"] / max(horizon_starts, 1)), 2),
+        "real_task_return": round(float(sums["real"] / max(horizon_starts, 1)), 2),
+        "horizon_starts": horizon_starts, "eliminations": len(terminal),
+        "elimination_reasons": " ".join(f"{r}:{reasons.count(r)}" for r in named),
+        **dict(zip(
+            ("terminal_reward", "terminal_reward_predicted", "terminal_reward_sigma", "terminal_continue"),
+            np.round(np.mean(terminal, axis=0), 3) if terminal else [float("nan")] * 4,
+        )),
+        "reward_sigma": round(float(np.median(np.concatenate(sigmas))), 3),
+    }  # fmt: skip
+
+
+def write_calibration_row(row: dict, path: str = os.path.join(RESULTS, "calibration.csv")) -> None:
+    """Add `row` to calibration.csv, replacing an earlier row of the same checkpoint, tracks and horizon."""
+    key = ("checkpoint", "tracks", "horizon")
+    rows = []
+    if os.path.exists(path):
+        with open(path, newline="") as f:
+            rows = [r for r in csv.DictReader(f) if tuple(str(r[k]) for k in key) != tuple(str(row[k]) for k in key)]
+    rows.append(row)
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=CALIBRATION_COLUMNS)
+        writer.writeheader()
+        writer.writerows(rows)

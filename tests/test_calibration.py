@@ -1,0 +1,58 @@
+"""benchmarks/calibration.py: the realised returns the critic and the imagination are set against, and a
+calibration of a tiny trained agent on the episode it drives."""
+
+import importlib
+import os
+import sys
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
+import calibration  # noqa: E402
+import learning  # noqa: E402
+from conftest import TINY_RUN  # noqa: E402
+import utils.checkpoint as ckpt  # noqa: E402
+
+
+def test_realised_and_horizon_returns_match_their_sums_written_out():
+    """G_t and J_t of --calibrate against the sums they stand for, term by term."""
+    rng = np.random.default_rng(0)
+    rewards, bonus, gamma, last = rng.normal(size=7), rng.normal(size=6), 0.9, 5.0
+    for ended in (False, True):  # truncated (bootstrapped with the last value) or terminated (nothing after)
+        terminated = np.array([False] * 6 + [ended])
+        expected = [
+            sum(gamma**k * (rewards[t + k + 1] + bonus[t + k]) for k in range(6 - t))
+            + (not ended) * gamma ** (6 - t) * last
+            for t in range(6)
+        ]  # fmt: skip
+        np.testing.assert_allclose(calibration.realised_returns(rewards, terminated, bonus, last, gamma), expected)
+        horizon = calibration.horizon_task_returns(rewards, terminated, gamma, 4)
+        for t in range(6):
+            if t + 4 <= 6 or ended:
+                assert horizon[t] == pytest.approx(sum(gamma**k * rewards[t + 1 + k] for k in range(min(4, 6 - t))))
+            else:  # truncated before t + H: the rewards there are unknown
+                assert np.isnan(horizon[t])
+
+
+def test_calibrate_measures_the_real_episode_the_agent_drives(tmp_path):
+    """With gamma 1 and a horizon as long as the episode, the real task return from the first frame is the race's
+    return, which the evaluation of the same agent with the same sampled actions measures independently; an
+    acting-only export, which has no critic, is refused naming the file."""
+    script = importlib.import_module("dreamer_gru")
+    run_dir = script.main(script.Args(stage="single", runs_dir=str(tmp_path), gamma=1.0, action_repeat=2, **TINY_RUN))
+    latest = os.path.join(run_dir, "checkpoints", "latest.pt")
+    row = calibration.calibrate_checkpoint(latest, 10_100, 1)
+    assert row["horizon"] == TINY_RUN["imagination_horizon"] and row["starts"] == 15  # 30 env steps, repeat 2
+    assert row["horizon_starts"] == row["starts"] - row["horizon"] + 1  # truncated: the last starts lack H rewards
+    assert row["bootstrap_weight"] == 1.0  # truncated at gamma 1: every G_t carries all of V(s_T)
+    assert row["eliminations"] == 0 and row["elimination_reasons"] == "" and np.isnan(row["terminal_reward"])
+    assert row["reward_sigma"] >= 0.1  # (the heads' minimum sigma)
+    assert all(np.isfinite(row[k]) for k in ("value", "realised_return", "imagined_task_return", "real_task_return"))
+    whole = calibration.calibrate_checkpoint(latest, 10_100, 1, horizon=row["starts"])
+    reference = learning.evaluate_checkpoint(latest, 10_100, 1, "stochastic")
+    assert whole["horizon_starts"] == 1
+    assert whole["real_task_return"] == pytest.approx(reference["eval_return"], abs=0.01)
+    ckpt.export_policy(script, latest, str(tmp_path / "policy.pt"))
+    with pytest.raises(ValueError, match=r"policy\.pt: an acting-only export has no critic"):
+        calibration.calibrate_checkpoint(str(tmp_path / "policy.pt"))
