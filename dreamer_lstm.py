@@ -1194,11 +1194,13 @@ def evaluate(agents: list[Agent], args: Args, eval_envs, policy: str | None = No
     return readings["return"], readings["progress"], readings["abs_steer"]
 
 
-def drive_races(agents: list[Agent], args: Args, eval_envs, policy: str | None = None, seeds=None) -> dict:
+def drive_races(agents: list[Agent], args: Args, eval_envs, policy: str | None = None, seeds=None,
+                records: list | None = None) -> dict:  # fmt: skip
     """`evaluate`'s races, with every reading per race and car, each an (E, N) array: return, progress, abs_steer;
     gas (mean of max(action[1], 0) over decisions), brake_share (share of decisions with action[1] at or below the
     dead zone's edge: braking), speed (mean over env steps while racing), lap_finished (within the time limit) and
-    eliminated (off the road or stalled)."""
+    eliminated (off the road or stalled). `records`, if given, receives each race's cars as CarEpisodes (frames at
+    the encoder's size, actions, rewards, terminal flags, final info), as training stores them."""
     n, policy = args.num_agents, policy or args.eval_policy
     seeds = [args.eval_seed + e for e in range(args.eval_episodes)] if seeds is None else list(seeds)
     keys = ("return", "progress", "abs_steer", "gas", "brake_share", "speed", "lap_finished", "eliminated")
@@ -1208,8 +1210,9 @@ def drive_races(agents: list[Agent], args: Args, eval_envs, policy: str | None =
         eval_envs.seed(seed)
         obs, states, is_first = eval_envs.reset(), [None] * n, np.ones(n, dtype=bool)
         racing = np.ones(n, dtype=bool)
+        frames = preprocess_frames(obs, args.image_size)
+        cars = [CarEpisode(frames[i], agents[i].action_dim) for i in range(n)] if records is not None else None
         while True:
-            frames = preprocess_frames(obs, args.image_size)
             actions = np.zeros((n, 2), dtype=np.float32)
             for i, agent in enumerate(agents):
                 car = slice(i, i + 1)
@@ -1219,6 +1222,7 @@ def drive_races(agents: list[Agent], args: Args, eval_envs, policy: str | None =
             out["brake_share"][e] += (actions[:, 1] <= args.dead_zone_end) * racing
             decisions[e] += racing
             obs, rewards, dones, infos, _ = step_with_repeat(eval_envs, actions, args.action_repeat)
+            frames = preprocess_frames(obs, args.image_size)
             out["return"][e] += rewards  # cars that are out get reward 0
             for i, info in enumerate(infos):
                 if racing[i] and "speed" in info:  # (the speed after the decision's last env step)
@@ -1229,7 +1233,14 @@ def drive_races(agents: list[Agent], args: Args, eval_envs, policy: str | None =
                     out["progress"][e, i] = info.get("progress", 0.0)
                     out["lap_finished"][e, i] = float(bool(info.get("lap_finished", False)))
                     out["eliminated"][e, i] = float(bool(info.get("eliminated")))
+                if cars is not None and info["alive"]:  # (a done car's last frame is its terminal observation)
+                    last = info["terminal_observation"][None] if dones[i] else None
+                    frame = frames[i] if last is None else preprocess_frames(last, args.image_size)[0]
+                    cars[i].add(frame, actions[i], rewards[i], dones[i] and not info["TimeLimit.truncated"])
+                    cars[i].final_info = info if dones[i] else None
             if infos[0]["is_first"]:
+                if records is not None:
+                    records.append(cars)
                 break
             is_first[:] = False
     for key in ("abs_steer", "gas", "brake_share"):

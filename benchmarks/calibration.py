@@ -80,24 +80,13 @@ def calibrate_checkpoint(path: str, first_track: int = 10_100, tracks: int = 5, 
     horizon = horizon or args.imagination_horizon
     envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
     torch.manual_seed(first_track)
-    episodes, reasons = [], []
-    try:
-        for seed in range(first_track, first_track + tracks):
-            envs.seed(seed)
-            obs, state = envs.reset(), None
-            episode = script.CarEpisode(script.preprocess_frames(obs, args.image_size)[0], agent.action_dim)
-            while True:
-                action, state = agent.act(script.preprocess_frames(obs, args.image_size), state, None, "stochastic")
-                obs, reward, dones, infos, _ = script.step_with_repeat(envs, action, args.action_repeat)
-                if dones[0]:  # (the vec env has reset: the episode's last frame is the terminal observation)
-                    frame = script.preprocess_frames(infos[0]["terminal_observation"][None], args.image_size)[0]
-                    episode.add(frame, action[0], reward[0], not infos[0]["TimeLimit.truncated"])
-                    reasons.append(infos[0].get("eliminated"))  # None: a finished lap or the time limit
-                    break
-                episode.add(script.preprocess_frames(obs, args.image_size)[0], action[0], reward[0], False)
-            episodes.append(episode.arrays())
+    records = []
+    try:  # the sampled policy, as trained, recorded as training stores a car's episode
+        script.drive_races([agent], args, envs, "stochastic", range(first_track, first_track + tracks), records)
     finally:
         envs.close()
+    episodes = [cars[0].arrays() for cars in records]
+    reasons = [cars[0].final_info.get("eliminated") for cars in records]  # None: a finished lap or the time limit
     sums = dict.fromkeys(("value", "realised_return", "bootstrap_weight", "imagined", "real"), 0.0)
     starts = horizon_starts = 0
     terminal, sigmas = [], []  # per elimination: real reward, predicted mean, sigma, continue; every frame's sigma
