@@ -72,6 +72,10 @@ class Spec:
     """more flags of the dreamer scripts as name=value (e.g. entropy_coef=0.5), on top of the preset"""
     single_updates: int = 8000
     """updates of a single-stage trial"""
+    single_cpu_hours: float = 0.0
+    """if > 0, a single-stage trial ends when its run has used this many CPU-hours (process CPU time over all its
+    sittings, the dreamer scripts' --cpu-hours-limit; the final protocol's budget, 3.1, is the PPO peer's) instead
+    of at --single-updates: its final policy is the one it has when the budget runs out"""
     ghost_updates: int = 2000
     """updates of a ghost-stage trial beyond its starting best.pt (and of its control)"""
     controls: bool = True
@@ -179,10 +183,13 @@ def trial_args(spec: dict, stage: str, variant: str, seed: int):
                 "eval_policy": spec["eval_policy"]}  # fmt: skip
     if stage == "single":
         first, target = None, spec["single_updates"]
+        if spec["single_cpu_hours"] > 0:  # the budget ends the trial (dreamer_trial), whatever the updates
+            settings["cpu_hours_limit"], target = spec["single_cpu_hours"], 10**12
         # the learning benchmark's run (benchmarks/learning.py --runs-dir <storage>/trials reads it) unless the
         # spec changes the preset, a flag, the updates, the threads or the evaluation policy (which picks best.pt):
         # the scripts' default, or the sampled policy the final protocol's runs were made with
         plain = spec["preset"] == "cpu" and not spec["overrides"] and spec["single_updates"] == learning.FINAL_UPDATES
+        plain = plain and spec["single_cpu_hours"] == 0
         plain = plain and spec["torch_threads"] == learning.LEARNING_CONFIG["torch_threads"]
         plain = plain and spec["eval_policy"] in (script.Args().eval_policy, "stochastic")
         args = script.preset_args(
@@ -232,13 +239,20 @@ def dreamer_trial(config: dict) -> None:
         if chaos and stage == "single" and done >= chaos and not os.path.exists(marker):
             open(marker, "w").close()
             os.kill(os.getpid(), signal.SIGKILL)  # a dying worker: Ray retries the trial, which resumes
-        if done >= target:
+        if done >= target or spent_budget(os.path.join(run, "checkpoints", "latest.pt"), script, args):
             return
         goal = max(goal, done) + spec["report_every"]
 
 
 def updates_of(path: str, script) -> int:
     return int(script.load_checkpoint(path)["agents"][0]["num_updates"])
+
+
+def spent_budget(path: str, script, args) -> bool:
+    """Whether the run of checkpoint `path` has used its --cpu-hours-limit (no limit: never)."""
+    if args.cpu_hours_limit <= 0:
+        return False
+    return float(script.load_checkpoint(path)["extra"].get("cpu_seconds", 0.0)) >= 3600 * args.cpu_hours_limit
 
 
 def latest_metrics(run: str) -> dict:
@@ -433,7 +447,7 @@ def runtime_env(spec: Spec) -> dict:
 
 # What fixes the trials of an experiment: a rerun must ask for the same (Tune restores the trials it saved).
 TRIAL_FIELDS = (
-    "variants", "seeds", "preset", "overrides", "single_updates", "ghost_updates", "race_episodes", "tournament_every",
+    "variants", "seeds", "preset", "overrides", "single_updates", "single_cpu_hours", "ghost_updates", "race_episodes", "tournament_every",
     "tournament_races", "race_train_steps", "report_every", "torch_threads", "eval_policy", "controls",
 )  # fmt: skip
 # The trial fields that may change until the stage that first uses them has begun: the evaluation policy until the

@@ -767,6 +767,38 @@ def test_a_trial_whose_checkpoint_is_done_ends_though_its_csv_is_a_race_behind(t
     assert reports == [{"updates": 900}]
 
 
+def test_a_cpu_hour_budget_ends_a_single_trial_whatever_its_updates(tmp_path, monkeypatch):
+    """--single-cpu-hours: the trial's run gets --cpu-hours-limit and the trial ends once its checkpoint has used the
+    budget, though it made fewer updates than --single-updates (the final protocol: the policy when the budget ran
+    out); without the budget the same checkpoint would be trained further."""
+    pytest.importorskip("ray")
+    from ray import tune
+
+    spec = dataclasses.asdict(experiment.Spec(storage=str(tmp_path), single_cpu_hours=3.1, report_every=500))
+    script, args, _, target = experiment.trial_args(spec, "single", "gru", 12)
+    assert args.cpu_hours_limit == 3.1 and target > 10**9 and args.exp_name == "gru_single"
+    checkpoints = os.path.join(experiment.trial_dir(spec, "single", "gru", 12), "run", "checkpoints")
+    os.makedirs(checkpoints)
+    open(os.path.join(checkpoints, "latest.pt"), "w").close()
+    spent = {"agents": [{"num_updates": 4321}], "extra": {"cpu_seconds": 3.1 * 3600}}
+    monkeypatch.setattr(tune, "report", lambda metrics: None)
+    monkeypatch.setattr(experiment, "latest_metrics", lambda run: {})
+    monkeypatch.setattr(script, "load_checkpoint", lambda path: spent)
+    monkeypatch.setattr(script, "main", lambda *a: pytest.fail("the budget is spent: nothing is left to train"))
+    experiment.dreamer_trial({"trial": {"spec": spec, "stage": "single", "variant": "gru", "seed": 12}})
+
+    class Trains(Exception):
+        """The trial resumed its run: budget left."""
+
+    def train(*args):
+        raise Trains
+
+    monkeypatch.setattr(script, "main", train)
+    spent["extra"]["cpu_seconds"] = 3.0 * 3600
+    with pytest.raises(Trains):
+        experiment.dreamer_trial({"trial": {"spec": spec, "stage": "single", "variant": "gru", "seed": 12}})
+
+
 GHOST_TABLE = ("variant,seed,updates_at_start,updates,return_before,return_after_ghost,return_after_control\n"
                "lstm,11,7600,2000,315.1,817.9,812.5\nlstm,12,6100,2000,822.0,789.7,807.7\n"
                "gru,11,6600,2000,576.1,635.0,416.3\ngru,12,7600,2000,539.5,600.2,434.2\n")  # fmt: skip
