@@ -45,6 +45,8 @@ import shutil
 import signal
 import sys
 import tempfile
+import types
+import typing
 from typing import Literal
 
 import numpy as np
@@ -164,15 +166,39 @@ def start_checkpoint(spec: dict, stage: str, variant: str, seed: int, name: str)
 
 
 def parse_overrides(script, overrides) -> dict:
-    """name=value pairs, each converted to the type of the script's Args field (a bad name fails loudly)."""
+    """name=value pairs, each converted to the type its field of the script's Args is annotated with (bool: 1, true,
+    yes or 0, false, no; an optional field: none; a Literal: one of its values); a bad name or value fails loudly."""
     fields, values = {f.name: f for f in dataclasses.fields(script.Args)}, {}
+    hints = typing.get_type_hints(script.Args, include_extras=False)
     for item in overrides:
         name, _, text = item.partition("=")
         if name not in fields or not _:
             raise ValueError(f"--overrides: {item!r} is not name=value with a field of {script.__name__}.Args")
-        default = getattr(script.Args(), name)
-        values[name] = type(default)(text) if not isinstance(default, bool) else text.lower() in ("1", "true", "yes")
+        try:
+            values[name] = convert(text, hints[name])
+        except ValueError as e:
+            raise ValueError(f"--overrides: {item!r}: {e}") from None
     return values
+
+
+def convert(text: str, kind) -> object:
+    """`text` as a value of the annotation `kind` (bool, int, float, str, a Literal, or one of them | None)."""
+    options = [k for k in typing.get_args(kind) if k is not type(None)] if typing.get_origin(kind) in (
+        typing.Union, types.UnionType) else [kind]  # fmt: skip
+    if len(options) < (len(typing.get_args(kind)) or 1) and text.lower() == "none":
+        return None
+    kind = options[0]
+    if typing.get_origin(kind) is Literal:
+        choices = typing.get_args(kind)
+        match = [c for c in choices if str(c) == text]
+        if not match:
+            raise ValueError(f"must be one of {', '.join(map(str, choices))}")
+        return match[0]
+    if kind is bool:
+        if text.lower() not in ("1", "true", "yes", "0", "false", "no"):
+            raise ValueError("must be true or false")
+        return text.lower() in ("1", "true", "yes")
+    return kind(text)
 
 
 def trial_args(spec: dict, stage: str, variant: str, seed: int):

@@ -894,3 +894,19 @@ def test_an_experiment_without_controls_keeps_the_measured_table_and_compares_it
             "(635.00). Largest difference: 0.25.") in summary
     assert "ghost_lstm_seed12 (8500 of 9000 updates); ghost_gru_seed12 (not started)" in summary
     assert not any("control" in path for path in measured)
+
+
+def test_overrides_take_the_type_of_their_field_optional_and_literal_ones_too():
+    import dreamer_lstm
+
+    values = experiment.parse_overrides(dreamer_lstm, [
+        "entropy_target=0.0", "action_penalty=none", "norm=mixed", "image_size=64", "return_norm=false",
+        "entropy_coef=0.3", "batch_size=7",
+    ])  # fmt: skip
+    assert values == {"entropy_target": 0.0, "action_penalty": None, "norm": "mixed", "image_size": 64,
+                      "return_norm": False, "entropy_coef": 0.3, "batch_size": 7}  # fmt: skip
+    assert type(values["image_size"]) is int and type(values["batch_size"]) is int
+    for bad, message in (("norm=group", "must be one of batch, layer, mixed"), ("return_norm=maybe", "true or false"),
+                         ("batch_size=x", "invalid literal"), ("no_such=1", "is not name=value")):  # fmt: skip
+        with pytest.raises(ValueError, match=message):
+            experiment.parse_overrides(dreamer_lstm, [bad])
