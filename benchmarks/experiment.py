@@ -473,8 +473,9 @@ def runtime_env(spec: Spec) -> dict:
 
 # What fixes the trials of an experiment: a rerun must ask for the same (Tune restores the trials it saved).
 TRIAL_FIELDS = (
-    "variants", "seeds", "preset", "overrides", "single_updates", "single_cpu_hours", "ghost_updates", "race_episodes", "tournament_every",
-    "tournament_races", "race_train_steps", "report_every", "torch_threads", "eval_policy", "controls",
+    "variants", "seeds", "preset", "overrides", "single_updates", "single_cpu_hours", "ghost_updates", "race_episodes",
+    "tournament_every", "tournament_races", "race_train_steps", "report_every", "torch_threads", "eval_policy",
+    "controls",
 )  # fmt: skip
 # The trial fields that may change until the stage that first uses them has begun: the evaluation policy until the
 # race stage (the tables measured before are measured again with the new one), the controls until the ghost stage.
