@@ -122,9 +122,10 @@ class Args:
     total_updates: int = 0
     """stop after the first race at which every agent has made this many updates (0: no limit)"""
     time_limit_hours: float = 0.0
-    """stop after the first race that ends past this many hours of this process, with checkpoints (0: no limit)"""
+    """stop, with checkpoints, at the start or at the end of the first race past this many hours of this process (0: no
+    limit)"""
     cpu_hours_limit: float = 0.0
-    """stop, with checkpoints, once the run has used this many CPU-hours (checked at the start and at the end of every
+    """stop, with checkpoints, once the run has used this many CPU-hours (checked at its start and at the end of every
     race): process CPU time summed over every sitting of a resumed run (0: no limit); unlike wall time it does not
     depend on what else the machine runs"""
     prefill_episodes: int = 5

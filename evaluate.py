@@ -59,12 +59,11 @@ def evaluate_checkpoint(path: str, first_track: int = 10_000, tracks: int = 10, 
     args = script.args_from_checkpoint(checkpoint, path, num_agents=1)
     agent = script.agent_from_checkpoint(path, index)
     envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
-    out = {}
+    out, tracks_of = {}, list(range(first_track, first_track + tracks) if seeds is None else seeds)
     try:
         for policy in policies:
             torch.manual_seed(first_track)  # a sampled policy: the same command gives the same numbers
-            seeds = range(first_track, first_track + tracks) if seeds is None else seeds
-            readings = script.drive_races([agent], args, envs, policy, seeds)
+            readings = script.drive_races([agent], args, envs, policy, tracks_of)
             out[policy] = {key: [float(v) for v in value[:, 0]] for key, value in readings.items()}
     finally:
         envs.close()

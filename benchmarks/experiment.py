@@ -58,6 +58,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import learning  # noqa: E402  (the single stage is the learning benchmark's run)
 RESULTS = os.path.join(ROOT, "benchmarks", "results")
 TOURNAMENT_SEED = 7_777  # held-out tracks of the tournaments (training races use the pair's seed)
+NO_UPDATE_TARGET = 10**12  # the update target of a trial that a CPU budget ends (--single-cpu-hours)
 
 
 @dataclasses.dataclass
@@ -183,11 +184,10 @@ def parse_overrides(script, overrides) -> dict:
 
 def convert(text: str, kind) -> object:
     """`text` as a value of the annotation `kind` (bool, int, float, str, a Literal, or one of them | None)."""
-    options = [k for k in typing.get_args(kind) if k is not type(None)] if typing.get_origin(kind) in (
-        typing.Union, types.UnionType) else [kind]  # fmt: skip
-    if len(options) < (len(typing.get_args(kind)) or 1) and text.lower() == "none":
-        return None
-    kind = options[0]
+    if typing.get_origin(kind) in (typing.Union, types.UnionType) and type(None) in typing.get_args(kind):
+        if text.lower() == "none":
+            return None
+        kind = next(k for k in typing.get_args(kind) if k is not type(None))
     if typing.get_origin(kind) is Literal:
         choices = typing.get_args(kind)
         match = [c for c in choices if str(c) == text]
@@ -210,7 +210,7 @@ def trial_args(spec: dict, stage: str, variant: str, seed: int):
     if stage == "single":
         first, target = None, spec["single_updates"]
         if spec["single_cpu_hours"] > 0:  # the budget ends the trial (dreamer_trial), whatever the updates
-            settings["cpu_hours_limit"], target = spec["single_cpu_hours"], 10**12
+            settings["cpu_hours_limit"], target = spec["single_cpu_hours"], NO_UPDATE_TARGET
         # the learning benchmark's run (benchmarks/learning.py --runs-dir <storage>/trials reads it) unless the
         # spec changes the preset, a flag, the updates, the threads or the evaluation policy (which picks best.pt):
         # the scripts' default, or the sampled policy the final protocol's runs were made with
@@ -543,12 +543,19 @@ def trial_progress(spec: dict, kind: str, variant: str, seed: int) -> tuple[str 
     run = run_of(trial_dir(spec, kind, variant, seed))
     if run is None:
         return None, 0, None
-    script, _, _, target = trial_args(spec, kind, variant, seed)
-    return run, updates_of(os.path.join(run, "checkpoints", "latest.pt"), script), target
+    script, args, _, target = trial_args(spec, kind, variant, seed)
+    latest = os.path.join(run, "checkpoints", "latest.pt")
+    done = updates_of(latest, script)
+    return run, done, done if spent_budget(latest, script, args) else target  # a spent CPU budget ends a trial
+
 
 
 def progress_text(name: str, run: str | None, done: int, target: int | None) -> str:
-    return f"{name} (not started)" if run is None else f"{name} ({done} of {target} updates)"
+    if run is None:
+        return f"{name} (not started)"
+    if target == NO_UPDATE_TARGET:
+        return f"{name} ({done} updates, CPU budget not spent)"
+    return f"{name} ({done} of {target} updates)"
 
 
 def unfinished(spec: dict, stage: str, variants, seeds) -> list[str]:

@@ -79,7 +79,11 @@ def report(sweep) -> str:
         if run is None or done < sweep.updates:
             waiting.append(f"{name} ({done} of {sweep.updates} updates)")
             continue
-        path = checkpoint_at(run, sweep.updates)
+        try:
+            path = checkpoint_at(run, sweep.updates)
+        except ValueError as e:  # e.g. updates per race that do not divide --updates: said, not measured
+            waiting.append(f"{name} (no policy kept at {sweep.updates} updates: {e})")
+            continue
         key = f"{os.path.relpath(path, sweep.storage)}@{sweep.first_track}+{sweep.tracks}"
         if key not in cache:
             cache[key] = measure(path, run, sweep.updates, sweep.first_track, sweep.tracks)

@@ -793,10 +793,14 @@ def test_a_cpu_hour_budget_ends_a_single_trial_whatever_its_updates(tmp_path, mo
     def train(*args):
         raise Trains
 
+    monkeypatch.setattr(experiment, "updates_of", lambda path, script: 4321)
+    assert experiment.unfinished(spec, "single", ["gru"], [12]) == []  # the next stage may start from it
     monkeypatch.setattr(script, "main", train)
     spent["extra"]["cpu_seconds"] = 3.0 * 3600
     with pytest.raises(Trains):
         experiment.dreamer_trial({"trial": {"spec": spec, "stage": "single", "variant": "gru", "seed": 12}})
+    assert experiment.unfinished(spec, "single", ["gru"], [12]) == ["single_gru_seed12 (4321 updates, CPU budget "
+                                                                    "not spent)"]  # fmt: skip
 
 
 GHOST_TABLE = ("variant,seed,updates_at_start,updates,return_before,return_after_ghost,return_after_control\n"
@@ -907,6 +911,7 @@ def test_overrides_take_the_type_of_their_field_optional_and_literal_ones_too():
                       "return_norm": False, "entropy_coef": 0.3, "batch_size": 7}  # fmt: skip
     assert type(values["image_size"]) is int and type(values["batch_size"]) is int
     for bad, message in (("norm=group", "must be one of batch, layer, mixed"), ("return_norm=maybe", "true or false"),
-                         ("batch_size=x", "invalid literal"), ("no_such=1", "is not name=value")):  # fmt: skip
+                         ("batch_size=x", "invalid literal"), ("no_such=1", "is not name=value"),
+                         ("norm=none", "must be one of"), ("eval_policy=None", "must be one of")):  # fmt: skip
         with pytest.raises(ValueError, match=message):
             experiment.parse_overrides(dreamer_lstm, [bad])

@@ -248,6 +248,7 @@ class Run:
     cpu_started: float = dataclasses.field(default_factory=time.process_time)
     cpu_before: float = 0.0  # CPU seconds of the run's earlier sittings (a resumed run)
     fault: str | None = None  # set when an agent had --max-nonfinite-updates faulty updates in a row
+    out_of_time: bool = False  # the time or CPU budget was spent when last checked (set-up, the end of a race)
     update_seconds: list = dataclasses.field(default_factory=list)  # the first two updates' times (CPU report)
     pbar: object = None
 
@@ -263,15 +264,22 @@ class Run:
         return os.path.join(self.checkpoint_dir, f"replay_car_{j}")
 
     def finished(self) -> bool:
-        """The run's end: --total-episodes races, --total-updates updates, the time or CPU budget, or a fault."""
+        """The run's end: --total-episodes races, --total-updates updates, the time or CPU budget (as found at the
+        set-up or at the end of the last race: a race is never cut short, so a resume continues exactly), a fault."""
         args = self.args
         return (
             self.counters["episode"] >= args.total_episodes
             or (args.total_updates > 0 and min(agent.num_updates for agent in self.agents) >= args.total_updates)
-            or (args.time_limit_hours > 0 and time.time() - self.started > 3600 * args.time_limit_hours)
-            or (args.cpu_hours_limit > 0 and self.cpu_seconds() > 3600 * args.cpu_hours_limit)
+            or self.out_of_time
             or self.fault is not None
         )
+
+    def check_budget(self) -> None:
+        """Whether --time-limit-hours (this process) or --cpu-hours-limit (the run, over all its sittings) is spent."""
+        args = self.args
+        wall = args.time_limit_hours > 0 and time.time() - self.started > 3600 * args.time_limit_hours
+        cpu = args.cpu_hours_limit > 0 and self.cpu_seconds() > 3600 * args.cpu_hours_limit
+        self.out_of_time = wall or cpu
 
     def acts_randomly(self) -> bool:
         """Random actions in the prefill races of a new single or race stage (also when resumed during them)."""
@@ -365,6 +373,7 @@ def setup_run(method, args, overrides=()) -> Run:
         set_rng_state(resumed["rng"])  # last of the set-up: the random streams continue where they stopped
     elif args.checkpoint:
         print(f"agents start from {args.checkpoint}")
+    run.check_budget()
     return run
 
 
@@ -580,6 +589,7 @@ def after_training(run: Run, cars: list, env_sps: float) -> None:
             run.manifests = [save_replay(replay, run.replay_dir(j)) for j, replay in enumerate(run.replays)]
         if args.checkpoint_every and episode % args.checkpoint_every == 0:
             save_latest(run)
+    run.check_budget()
     run.logger.record("charts/cpu_hours", run.cpu_seconds() / 3600)  # after the race's training and evaluation
     run.logger.dump(counters["global_step"])
     if run.pbar is not None:
