@@ -63,6 +63,8 @@ import tyro  # noqa: E402
 from scipy.ndimage import gaussian_filter1d  # noqa: E402
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator  # noqa: E402
 
+import utils.run as run_tools  # noqa: E402
+
 VARIANTS = ("lstm", "gru")
 STAGES = ("single", "ghost", "race")
 AGENT_PREFIX = re.compile(r"^car_\d+/")
@@ -363,9 +365,8 @@ def make_figures(logdir: str, out: str, sigma: float = 2.0, head_to_head: str | 
 
 
 def usage_error(message: str) -> None:
-    """Exit as argparse does on bad input: status 2, the message on stderr's last line."""
-    print(f"plot.py: error: {message}", file=sys.stderr)
-    raise SystemExit(2)
+    """Exit as argparse does on bad input: status 2, one line on stderr (utils.run.usage_error)."""
+    run_tools.usage_error("plot.py", message)
 
 
 def parse_args(argv=None) -> Args:

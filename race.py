@@ -42,6 +42,7 @@ import tyro
 
 from envs import MultiCarRacing, race_winners
 from envs.pursuit import PursuitDriver, lane_of
+import utils.run as run_tools
 from utils import checkpoint as saved
 
 VARIANT_SCRIPTS = {"lstm": "dreamer_lstm", "gru": "dreamer_gru"}
@@ -302,9 +303,8 @@ def write_outputs(out: str, rows: list[dict], frames: list[np.ndarray]) -> list[
 
 # --- Main -------------------------------------------------------------------------------------
 def usage_error(message: str) -> None:
-    """Exit as argparse does on bad input: status 2, the message on stderr's last line."""
-    print(f"race.py: error: {message}", file=sys.stderr)
-    raise SystemExit(2)
+    """Exit as argparse does on bad input: status 2, one line on stderr (utils.run.usage_error)."""
+    run_tools.usage_error("race.py", message)
 
 
 def parse_args(argv=None) -> Args:

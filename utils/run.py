@@ -139,6 +139,12 @@ def validate_args(args, log_sigma_range: tuple[float, float]) -> None:
         raise UsageError("--fresh-replay applies to a run started from --checkpoint (give one, or drop the flag)")
 
 
+def usage_error(program: str, message: str) -> None:
+    """Exit as argparse does on bad input: status 2, `program: error: message` as stderr's last line."""
+    print(f"{program}: error: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
 def parse_args(method, argv: list[str] | None = None):
     """Args of a command line, with its --preset applied under the flags it sets, and the fields it sets."""
     import tyro
