@@ -42,7 +42,7 @@ import torch.nn.functional as F
 import tyro
 from torch import nn
 
-from utils import checkpoint as saved
+from utils import checkpoint as checkpoint_io
 from utils.checkpoint import UsageError
 from utils.run import after_training, finish_run, log_race, log_updates, progress_callback, setup_run
 
@@ -1364,17 +1364,17 @@ def main(args: Args, overrides=()) -> str:
 # =====================================================================================
 def load_checkpoint(path: str, map_location="cpu", training: bool = False) -> dict:
     """A checkpoint or acting-only export of this script, loaded with weights_only=True (utils.checkpoint)."""
-    return saved.load_checkpoint(path, VARIANT, map_location, training)
+    return checkpoint_io.load_checkpoint(path, VARIANT, map_location, training)
 
 
 def args_from_checkpoint(checkpoint: dict, path: str, **overrides) -> Args:
     """The Args a checkpoint was trained with (new flags keep their defaults, flags removed since are dropped)."""
-    return saved.args_from_checkpoint(Args, checkpoint, path, **overrides)
+    return checkpoint_io.args_from_checkpoint(Args, checkpoint, path, **overrides)
 
 
 def agent_from_checkpoint(path: str, index: int = 0, device="cpu") -> Agent:
     """Agent `index` of a checkpoint of this script, built with the sizes it was trained with (race.py)."""
-    return saved.agent_from_checkpoint(sys.modules[__name__], path, index, device)
+    return checkpoint_io.agent_from_checkpoint(sys.modules[__name__], path, index, device)
 
 
 if __name__ == "__main__":

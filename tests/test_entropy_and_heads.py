@@ -3,7 +3,6 @@ authors' normalisation mix, and a CPU-time budget. Each is off by default (tests
 default to what it computed before); here each does what it says when on."""
 
 import csv
-import glob
 import math
 import os
 
