@@ -242,12 +242,10 @@ class Args:
 
 
 # --preset cpu: a configuration that learns on a 2-core CPU in hours (docs/deviations.md); explicit flags override it.
-# Smaller networks and 64 px frames; 2 env steps per decision; 20 random prefill races (they end off the road
-# after ~50 steps); 100 updates per race; the dead-zone schedule within the first 30 races; evaluation every 5;
-# a unit-variance pixel likelihood (log sigma floored at 0: with a learned sigma kl_dyn grew without bound on CPU runs).
-# It keeps the paper's LSTM-vs-GRU trade: the same imagined steps per update (B * L * H with all starts), the
-# LSTM with a small batch and a long horizon (paper: B=15, H=50), the GRU with a larger batch and a short one
-# (paper: B=50, H=15).
+# Smaller networks, 64 px frames, 2 env steps per decision, 20 random prefill races, 100 updates per race, the
+# dead-zone schedule in 30 races, evaluation every 5, a unit-variance pixel likelihood (log sigma floored at 0: a
+# learned sigma let kl_dyn grow without bound on CPU runs). It keeps the paper's trade: the same imagined steps per
+# update (B * L * H), the LSTM with a small batch and a long horizon (B=15, H=50), the GRU the other way (B=50, H=15).
 PRESETS: dict[str, dict] = {
     "paper": {},
     "cpu": {
@@ -264,24 +262,18 @@ def preset_args(preset: str = "paper", **overrides) -> Args:
     return dataclasses.replace(Args(preset=preset), **{**PRESETS[preset], **overrides})
 
 
-
 # =====================================================================================
 # 2. Environment
 # =====================================================================================
+ENV_FIELDS = ("max_steps", "stall_steps", "brake_speed_threshold", "collision_penalty", "offroad_penalty",
+              "speed_reward_coef")  # the racing env's options, as Args fields of the same names
+
+
 def env_kwargs(args: Args, dead_zone: float) -> dict:
     """Keyword arguments of the env constructor (the racing env's options; other envs get num_agents only)."""
     if args.env_id != "multi_car_racing":
         return {"num_agents": args.num_agents}
-    return {
-        "num_agents": args.num_agents,
-        "max_steps": args.max_steps,
-        "stall_steps": args.stall_steps,
-        "brake_speed_threshold": args.brake_speed_threshold,
-        "collision_penalty": args.collision_penalty,
-        "offroad_penalty": args.offroad_penalty,
-        "speed_reward_coef": args.speed_reward_coef,
-        "dead_zone": dead_zone,
-    }
+    return {"num_agents": args.num_agents, **{k: getattr(args, k) for k in ENV_FIELDS}, "dead_zone": dead_zone}
 
 
 def dead_zone_at(episode: int, args: Args) -> float:
@@ -314,21 +306,6 @@ def preprocess_frames(frames: np.ndarray, image_size: int) -> np.ndarray:
     return np.stack([cv2.resize(f, (image_size, image_size), interpolation=cv2.INTER_AREA) for f in frames])
 
 
-def step_with_repeat(envs, actions: np.ndarray, repeat: int):
-    """Step the vec env `repeat` times with the same actions, summing rewards.
-
-    Stops early at the first step in which any slot is done, so that a terminal observation or the
-    first observation of a new race is never stepped over. Also returns the number of env steps taken.
-    """
-    total = np.zeros(envs.num_envs, dtype=np.float32)
-    for repeats in range(1, repeat + 1):
-        obs, rewards, dones, infos = envs.step(actions)
-        total += rewards
-        if dones.any():
-            break
-    return obs, total, dones, infos, repeats
-
-
 # =====================================================================================
 # 3. Networks (paper appendix)
 # =====================================================================================
@@ -339,6 +316,7 @@ ACTOR_STD_BOUNDS = (0.1, 1.0)  # the paper authors' soft bounds of the actor's s
 RETURN_NORM_RATE = 0.01  # --return-norm: EMA rate of the return scale (DreamerV3)
 EVAL_POLICIES = ("deterministic", "mean-action", "stochastic")  # Agent.act's policies (--eval-policy)
 ACTING_PARTS = ("encoder.", "recurrent_input.", "cell.", "representation.")  # the world model's share of acting
+AGENT_PARTS = ("world_model", "actor", "critic", "targets", "model_optimizer", "actor_optimizer", "critic_optimizer")
 
 
 def norm_1d(kind: str, size: int) -> nn.Module:
@@ -1113,18 +1091,9 @@ class Agent:
 
     # --- persistence -------------------------------------------------------------------------
     def state_dict(self) -> dict:
-        return {
-            "world_model": self.world_model.state_dict(),
-            "actor": self.actor.state_dict(),
-            "critic": self.critic.state_dict(),
-            "targets": self.targets.state_dict(),
-            "model_optimizer": self.model_optimizer.state_dict(),
-            "actor_optimizer": self.actor_optimizer.state_dict(),
-            "critic_optimizer": self.critic_optimizer.state_dict(),
-            "return_scale": self.return_scale.clone(),
-            "num_updates": self.num_updates,
-            "nonfinite_updates": self.nonfinite_updates,
-            "nonfinite_in_a_row": self.nonfinite_in_a_row,
+        return {name: getattr(self, name).state_dict() for name in AGENT_PARTS} | {
+            "return_scale": self.return_scale.clone(), "num_updates": self.num_updates,
+            "nonfinite_updates": self.nonfinite_updates, "nonfinite_in_a_row": self.nonfinite_in_a_row,
         } | ({} if self.log_alpha is None else {
             "log_alpha": self.log_alpha.detach().clone(), "alpha_optimizer": self.alpha_optimizer.state_dict(),
         })  # fmt: skip
@@ -1144,13 +1113,8 @@ class Agent:
             self.actor.load_state_dict(state["actor"])
             self.num_updates, self.acting_only = int(state["num_updates"]), True
             return
-        self.world_model.load_state_dict(state["world_model"])
-        self.actor.load_state_dict(state["actor"])
-        self.critic.load_state_dict(state["critic"])
-        self.targets.load_state_dict(state["targets"])
-        self.model_optimizer.load_state_dict(state["model_optimizer"])
-        self.actor_optimizer.load_state_dict(state["actor_optimizer"])
-        self.critic_optimizer.load_state_dict(state["critic_optimizer"])
+        for name in AGENT_PARTS:
+            getattr(self, name).load_state_dict(state[name])
         if "return_scale" in state:
             self.return_scale.copy_(state["return_scale"])
         if self.log_alpha is not None and "log_alpha" in state:  # (else alpha starts at --entropy-coef)
@@ -1176,7 +1140,7 @@ class CarEpisode:
 
     def add(self, frame, action, reward, terminated) -> None:
         self.obs.append(frame)
-        self.action.append(np.asarray(action, dtype=np.float32))
+        self.action.append(np.array(action, dtype=np.float32))  # (a copy: the caller's array is reused)
         self.reward.append(float(reward))
         self.terminated.append(bool(terminated))
         self.ret += float(reward)
@@ -1186,67 +1150,148 @@ class CarEpisode:
         return np.stack(self.obs), np.stack(self.action), reward, terminated
 
 
-def evaluate(agents: list[Agent], args: Args, eval_envs, policy: str | None = None, seeds=None) -> tuple:
-    """Races with `policy` (default --eval-policy) on the tracks `seeds` (default: the held-out eval_seed + i, i <
-    eval_episodes); per race and car the return, the final progress (fraction of tiles) and the mean |action[0]|
-    of the car's decisions while racing, each (E, N). On the racing env action 0 is the steer: near 1 is bang-bang
-    steering (the pursuit driver: ~0.06). `drive_races` has more readings of the same races."""
-    readings = drive_races(agents, args, eval_envs, policy, seeds)
-    return readings["return"], readings["progress"], readings["abs_steer"]
+# What a race reads of each car: its return; as its race ended, its progress (fraction of tiles), lap_finished
+# (within the time limit) and eliminated (off the road or stalled); over its decisions, abs_steer (mean |action[0]|:
+# near 1 is bang-bang steering, the pursuit driver ~0.06), gas (mean max(action[1], 0)) and brake_share (share with
+# action[1] at or below the dead zone's edge); speed (mean at the end of its decisions).
+READINGS = ("return", "progress", "abs_steer", "gas", "brake_share", "speed", "lap_finished", "eliminated")
+
+
+@dataclasses.dataclass
+class Race:
+    """A race that ended: its cars' episodes (in agent order) and their READINGS, each an (n,) array."""
+
+    cars: list[CarEpisode]
+    readings: dict[str, np.ndarray]
+
+
+class Races:
+    """The one collector: the cars of a vec env's K races as they are driven, in training, evaluation and race.py.
+
+    Agent i drives car i of every race (slots i, i + n, ...). A car decides when its race starts and then every
+    `repeats[i]` env steps (default --action-repeat), holding its action; its transition sums the held steps'
+    rewards and ends with the frame after them (its terminal frame if it went out), and once out it decides no more.
+    `drive` steps until a race ends; K > 1 races go on side by side across calls. An agent needs `act(obs, state,
+    is_first, policy) -> (actions, state)` and `action_dim`; the policy "random" draws uniform actions (prefill)."""
+
+    def __init__(self, agents: list, args: Args, envs, obs: np.ndarray, repeats: list[int] | None = None):
+        self.agents, self.args, self.envs, self.n = agents, args, envs, len(agents)
+        self.repeat = np.tile(repeats or [args.action_repeat] * self.n, envs.num_envs // self.n)  # per slot
+        self.actions = np.zeros((envs.num_envs, max(a.action_dim for a in agents)), dtype=np.float32)
+        self.states, slots = [None] * self.n, envs.num_envs  # agent i's recurrent state over its K cars
+        self.is_first, self.racing = np.ones(slots, dtype=bool), np.ones(slots, dtype=bool)
+        self.held, self.reward = np.zeros(slots, dtype=int), np.zeros(slots)  # since the car's last decision
+        self.cars: list[CarEpisode] = [None] * slots
+        self.sums = {key: np.zeros(slots) for key in READINGS + ("decisions", "speed_samples")}
+        self.start(obs)
+
+    def start(self, obs: np.ndarray, races=None) -> None:
+        """New races (default: all) from their first observations in `obs` (after a reset or an auto-reset)."""
+        self.obs = obs
+        races = range(self.envs.num_envs // self.n) if races is None else races
+        slots = np.array([k * self.n + i for k in races for i in range(self.n)])
+        for slot, frame in zip(slots, preprocess_frames(obs[slots], self.args.image_size)):
+            self.cars[slot] = CarEpisode(frame, self.agents[slot % self.n].action_dim)
+        self.is_first[slots], self.racing[slots], self.held[slots], self.reward[slots] = True, True, 0, 0.0
+        for sums in self.sums.values():
+            sums[slots] = 0.0
+
+    def decide(self, policies: list[str]) -> None:
+        """Every racing car whose held action has run out gets a new one from its agent."""
+        deciding = self.racing & (self.held == 0)
+        for i, agent in enumerate(self.agents):
+            mine = np.arange(i, len(deciding), self.n)
+            rows = np.flatnonzero(deciding[mine])
+            now = mine[rows]
+            if len(now) == 0:
+                continue
+            if policies[i] == "random":
+                self.actions[now] = np.random.uniform(-1, 1, size=(len(now), agent.action_dim))
+            elif len(now) == len(mine):
+                self.actions[now], self.states[i] = agent.act(self.obs[now], self.states[i], self.is_first[now],
+                                                              policies[i])  # fmt: skip
+            else:  # K > 1 races out of step: the deciding cars' rows of the agent's state
+                state = self.states[i] if self.states[i] is not None else agent.initial_state(len(mine))
+                self.actions[now], part = agent.act(self.obs[now], state_rows(state, rows), self.is_first[now],
+                                                    policies[i])  # fmt: skip
+                self.states[i] = state_rows(state, rows, part)
+        steer, pedal = self.actions[deciding, 0], self.actions[deciding, 1]
+        self.sums["abs_steer"][deciding] += np.abs(steer)
+        self.sums["gas"][deciding] += np.maximum(pedal, 0.0)
+        self.sums["brake_share"][deciding] += pedal <= self.args.dead_zone_end
+        self.sums["decisions"][deciding] += 1
+        self.is_first[deciding] = False
+
+    def drive(self, policies: list[str], video: list | None = None) -> tuple[list[Race], int]:
+        """Step until at least one race ends, each agent acting with its policy (EVAL_POLICIES or "random"); returns
+        the races that ended and the env steps taken. `video` receives race 0's rendered frame after every step."""
+        for steps in itertools.count(1):
+            self.decide(policies)
+            obs, rewards, dones, infos = self.envs.step(self.actions)
+            if video is not None:
+                video.append(self.envs.get_images()[0])
+            self.sums["return"] += rewards  # (0 for cars that are out)
+            for slot in np.flatnonzero(self.racing):  # (a car racing before this step is alive in it)
+                info, done = infos[slot], bool(dones[slot])
+                self.held[slot] += 1
+                self.reward[slot] += rewards[slot]
+                self.sums["progress"][slot] = info.get("progress", 0.0)
+                self.sums["lap_finished"][slot] = bool(info.get("lap_finished"))
+                self.sums["eliminated"][slot] = bool(info.get("eliminated"))
+                if done or self.held[slot] == self.repeat[slot]:  # the decision's transition is complete
+                    last = info["terminal_observation"] if done else obs[slot]
+                    frame = preprocess_frames(last[None], self.args.image_size)[0]
+                    terminated = done and not info["TimeLimit.truncated"]
+                    self.cars[slot].add(frame, self.actions[slot], self.reward[slot], terminated)
+                    self.held[slot], self.reward[slot] = 0, 0.0
+                    if "speed" in info:
+                        self.sums["speed"][slot] += info["speed"]
+                        self.sums["speed_samples"][slot] += 1
+                if done:
+                    self.racing[slot] = False
+                    self.cars[slot].final_info = info
+            self.obs = obs
+            ended = np.flatnonzero([info["is_first"] for info in infos[:: self.n]])  # races that ended (and reset)
+            if len(ended):
+                races = [self.race(k) for k in ended]
+                self.start(obs, ended)  # their slots now hold the first observations of new races
+                return races, steps
+
+    def race(self, k: int) -> Race:
+        """Race k's cars and readings (means over decisions and speed samples)."""
+        slots, sums = slice(k * self.n, (k + 1) * self.n), self.sums
+        readings = {key: sums[key][slots].copy() for key in READINGS}
+        for key in ("abs_steer", "gas", "brake_share"):
+            readings[key] /= np.maximum(sums["decisions"][slots], 1)
+        readings["speed"] /= np.maximum(sums["speed_samples"][slots], 1)
+        return Race(self.cars[slots], readings)
+
+
+def state_rows(state, rows: np.ndarray, part=None):
+    """Rows `rows` of a recurrent state (nested tuples of batch-first tensors); with `part`, the state with them
+    replaced by `part`."""
+    if isinstance(state, tuple):
+        return tuple(state_rows(s, rows, None if part is None else p) for s, p in zip(state, part or state))
+    if part is None:
+        return state[torch.as_tensor(rows)]
+    return state.index_put((torch.as_tensor(rows),), part)
 
 
 def drive_races(agents: list[Agent], args: Args, eval_envs, policy: str | None = None, seeds=None,
                 records: list | None = None) -> dict:  # fmt: skip
-    """`evaluate`'s races, with every reading per race and car, each an (E, N) array: return, progress, abs_steer;
-    gas (mean of max(action[1], 0) over decisions), brake_share (share of decisions with action[1] at or below the
-    dead zone's edge: braking), speed (mean over env steps while racing), lap_finished (within the time limit) and
-    eliminated (off the road or stalled). `records`, if given, receives each race's cars as CarEpisodes (frames at
-    the encoder's size, actions, rewards, terminal flags, final info), as training stores them."""
-    n, policy = args.num_agents, policy or args.eval_policy
+    """Races with `policy` (default --eval-policy), one per track of `seeds` (default: the held-out eval_seed + i,
+    i < eval_episodes): every reading (READINGS) per race and car, each an (E, N) array. `records`, if given,
+    receives each race's cars as CarEpisodes, as training stores them."""
+    policy = policy or args.eval_policy
     seeds = [args.eval_seed + e for e in range(args.eval_episodes)] if seeds is None else list(seeds)
-    keys = ("return", "progress", "abs_steer", "gas", "brake_share", "speed", "lap_finished", "eliminated")
-    out = {key: np.zeros((len(seeds), n)) for key in keys}
-    decisions, steps = np.zeros((len(seeds), n)), np.zeros((len(seeds), n))
+    out = {key: np.zeros((len(seeds), len(agents))) for key in READINGS}
     for e, seed in enumerate(seeds):
         eval_envs.seed(seed)
-        obs, states, is_first = eval_envs.reset(), [None] * n, np.ones(n, dtype=bool)
-        racing = np.ones(n, dtype=bool)
-        frames = preprocess_frames(obs, args.image_size)
-        cars = [CarEpisode(frames[i], agents[i].action_dim) for i in range(n)] if records is not None else None
-        while True:
-            actions = np.zeros((n, 2), dtype=np.float32)
-            for i, agent in enumerate(agents):
-                car = slice(i, i + 1)
-                actions[car], states[i] = agent.act(frames[car], states[i], is_first[car], policy)
-            out["abs_steer"][e] += np.abs(actions[:, 0]) * racing
-            out["gas"][e] += np.maximum(actions[:, 1], 0.0) * racing
-            out["brake_share"][e] += (actions[:, 1] <= args.dead_zone_end) * racing
-            decisions[e] += racing
-            obs, rewards, dones, infos, _ = step_with_repeat(eval_envs, actions, args.action_repeat)
-            frames = preprocess_frames(obs, args.image_size)
-            out["return"][e] += rewards  # cars that are out get reward 0
-            for i, info in enumerate(infos):
-                if racing[i] and "speed" in info:  # (the speed after the decision's last env step)
-                    out["speed"][e, i] += info["speed"]
-                    steps[e, i] += 1
-                racing[i] = info["alive"] and not dones[i]  # a car that went out this step decides no more
-                if info["alive"]:
-                    out["progress"][e, i] = info.get("progress", 0.0)
-                    out["lap_finished"][e, i] = float(bool(info.get("lap_finished", False)))
-                    out["eliminated"][e, i] = float(bool(info.get("eliminated")))
-                if cars is not None and info["alive"]:  # (a done car's last frame is its terminal observation)
-                    last = info["terminal_observation"][None] if dones[i] else None
-                    frame = frames[i] if last is None else preprocess_frames(last, args.image_size)[0]
-                    cars[i].add(frame, actions[i], rewards[i], dones[i] and not info["TimeLimit.truncated"])
-                    cars[i].final_info = info if dones[i] else None
-            if infos[0]["is_first"]:
-                if records is not None:
-                    records.append(cars)
-                break
-            is_first[:] = False
-    for key in ("abs_steer", "gas", "brake_share"):
-        out[key] /= np.maximum(decisions, 1)
-    out["speed"] /= np.maximum(steps, 1)
+        [race], _ = Races(agents, args, eval_envs, eval_envs.reset()).drive([policy] * len(agents))
+        for key in READINGS:
+            out[key][e] = race.readings[key]
+        if records is not None:
+            records.append(race.cars)
     return out
 
 
@@ -1294,68 +1339,40 @@ def main(args: Args, overrides=()) -> str:
 
     run = setup_run(sys.modules[__name__], args, overrides)  # a new run, or a saved one exactly as it stopped
     args, n, k_races = run.args, run.args.num_agents, run.args.num_races
-    slots = k_races * n  # agent i drives car i of every race: slots i, i + n, ...
     # One race at a time starts on its own track (start_race); K races side by side auto-reset on the tracks of
     # each race's seeded stream, with the dead zone set ahead for the race that starts next (below).
     obs, track_seed = start_race(run) if k_races == 1 else (run.envs.reset(), None)
     if args.env_id == "multi_car_racing" and k_races > 1:
         run.envs.env_method("set_dead_zone", dead_zone_at(run.counters["episode"] + 1, args))
-    frames, is_first = preprocess_frames(obs, args.image_size), np.ones(slots, dtype=bool)
-    states, episodes = [None] * n, [None] * slots
-    env_time, env_steps, env_sps = 0.0, 0, 0.0
+    races = Races(run.agents, args, run.envs, obs)  # agent i drives car i of every race
     run.pbar = tqdm(total=args.total_episodes, initial=run.counters["episode"], desc=f"{VARIANT} {args.stage}")
     while not run.finished():
-        t0 = time.time()
-        # --- act: every agent drives its own car in every race (random actions during the prefill) -------
-        for slot in np.flatnonzero(is_first):
-            episodes[slot] = CarEpisode(frames[slot], run.agents[0].action_dim)
-        actions = np.zeros((slots, run.agents[0].action_dim), dtype=np.float32)
-        for i, agent in enumerate(run.agents):
-            mine = np.arange(i, slots, n)
-            if run.acts_randomly():
-                actions[mine] = np.random.uniform(-1, 1, size=(len(mine), agent.action_dim))
-            else:
-                actions[mine], states[i] = agent.act(frames[mine], states[i], is_first[mine])
-        obs, rewards, dones, infos, repeats = step_with_repeat(run.envs, actions, args.action_repeat)
-        frames = preprocess_frames(obs, args.image_size)
-        run.counters["global_step"] += k_races * repeats
-        env_steps += k_races * repeats
-        # --- store: each live car's transition goes to its own agent's episode, a finished one to its replay
-        for slot, info in enumerate(infos):
-            if not info["alive"]:
-                continue
-            if dones[slot]:
-                frame = preprocess_frames(info["terminal_observation"][None], args.image_size)[0]
-                episodes[slot].add(frame, actions[slot], rewards[slot], terminated=not info["TimeLimit.truncated"])
-                episodes[slot].final_info = info
-                run.replays[slot % n].add_episode(*episodes[slot].arrays())
-            else:
-                episodes[slot].add(frames[slot], actions[slot], rewards[slot], terminated=False)
-        is_first = np.array([info["is_first"] for info in infos], dtype=bool)
-        env_time += time.time() - t0
-        if is_first.any():  # env steps per second while the agents acted, since the last race ended
-            env_sps, env_time, env_steps = env_steps / max(env_time, 1e-9), 0.0, 0
-        # --- train: after every race that ended, each agent updates on its own replay --------------------
-        for race in np.flatnonzero(is_first[::n]):
-            cars = episodes[race * n : (race + 1) * n]
+        # --- act: every agent drives its own car in every race until a race ends (random actions in the prefill)
+        started = time.time()
+        ended, steps = races.drive(["random" if run.acts_randomly() else "stochastic"] * n)
+        run.counters["global_step"] += k_races * steps
+        env_sps = k_races * steps / max(time.time() - started, 1e-9)
+        for race in ended:
+            # --- store: each car's episode goes to its own agent's replay
+            for j, car in enumerate(race.cars):
+                run.replays[j].add_episode(*car.arrays())
             run.counters["episode"] += 1
-            log_race(run, cars, track_seed)
-            for j in range(n):
-                run.logger.record(f"car_{j}/perf/env_sps", env_sps)
+            log_race(run, race.cars, track_seed, env_sps)
             if args.env_id == "multi_car_racing":
                 run.envs.env_method("set_dead_zone", next_dead_zone(args, run.counters["episode"]))
+            # --- train: after every race that ended, each agent updates on its own replay
             if run.learns_now():
                 for j, (agent, replay) in enumerate(zip(run.agents, run.replays)):
                     updates_per_s = train_agent(agent, replay, args, run.logger, f"car_{j}/", progress_callback(run, j))
                     log_updates(run, j, updates_per_s)
                     if run.fault is not None:
                         break
-            after_training(run, cars, env_sps)  # video, evaluation and best.pt, replay save, latest.pt, logs
+            after_training(run, race.cars, env_sps)  # video, evaluation and best.pt, replay save, latest.pt, logs
             if run.finished():
                 break
-        if k_races == 1 and is_first.any() and not run.finished():
+        if k_races == 1 and not run.finished():
             obs, track_seed = start_race(run)  # the next race's own track (the ghost stage: with its ghost)
-            frames, is_first[:] = preprocess_frames(obs, args.image_size), True
+            races.start(obs)
     return finish_run(run)
 
 

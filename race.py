@@ -9,7 +9,8 @@ agent is built and loaded by that script's own functions; an acting-only export 
 checkpoint. A path may end in ``:k`` to pick agent ``k`` of a multi-agent checkpoint (default 0).
 
 Races run on seeded tracks: track ``j`` is raced once per car with the start grid rotated, so every car starts from
-every grid slot equally often. Each Dreamer racer decides at the rate it was trained at: a new action every
+every grid slot equally often, driven by the scripts' own collector (``Races``, as in training and evaluation).
+Each Dreamer racer decides at the rate it was trained at: a new action every
 ``action_repeat`` env steps of its own, held in between (its recorded transitions sum the rewards of the held
 steps), with ``--policy`` (default: the mean action from a sampled latent; ``--train`` always samples; torch is
 seeded with ``--seed``). The table per racer
@@ -139,57 +140,29 @@ class DreamerRacer:
         folder = os.path.dirname(os.path.abspath(path))  # a run's checkpoints/ is named by its run directory
         owner = os.path.dirname(folder) if os.path.basename(folder) == "checkpoints" else folder
         self.name = f"{self.variant}:{os.path.basename(owner)}/{os.path.basename(path)}:{self.index}"
-        self.state, self.learns = None, True
+        self.learns = True
         self.action_repeat = int(self.args.action_repeat)  # as in training: one decision per this many env steps
-        self.held, self.held_steps = None, 0
-
-    def reset(self, env, agent):
-        self.state, self.held, self.held_steps = None, None, 0
-
-    def act(self, obs: np.ndarray, is_first: bool) -> np.ndarray:
-        """A new action every action_repeat env steps of this racer (the rate it was trained at), else the held one."""
-        if self.held is None or self.held_steps == self.action_repeat:
-            action, self.state = self.agent.act(obs[None], self.state, np.array([is_first]), self.policy)
-            self.held, self.held_steps = action[0], 0
-        self.held_steps += 1
-        return self.held
 
 
 class PursuitRacer:
-    """The scripted pure-pursuit driver of ``envs/pursuit.py`` as a racer, keeping to the lane
-    of its start-grid column."""
+    """The scripted pure-pursuit driver of ``envs/pursuit.py`` as a racer, keeping to the lane of its start-grid
+    column; it decides every env step and drives like an agent of the scripts' collector (``act``)."""
 
-    learns = False
+    learns, action_repeat, action_dim, policy = False, 1, 2, "scripted"
 
     def __init__(self, speed: float):
         self.speed = speed
         self.name = f"pursuit@{speed:g}"
+        self.env = self.agent = self.driver = None
 
-    def reset(self, env, agent):
-        self.driver = PursuitDriver(env, agent, self.speed, lane=lane_of(env, agent))
+    def bind(self, env: MultiCarRacing, agent: str) -> None:
+        """The race env it reads the track and its car from, and the car it drives."""
+        self.env, self.agent = env, agent
 
-    def act(self, obs, is_first):
-        return self.driver.act()
-
-
-class EpisodeRecorder:
-    """A learning racer's own car episode, frames at its encoder's size (its script's CarEpisode), one transition
-    per decision as in training: rewards summed over the racer's action repeat, the frame after the last of them."""
-
-    def __init__(self, racer: DreamerRacer, first_obs: np.ndarray):
-        self.racer = racer
-        self.episode = racer.module.CarEpisode(self._frame(first_obs))
-        self.reward, self.steps = 0.0, 0
-
-    def _frame(self, obs):
-        return self.racer.module.preprocess_frames(obs[None], self.racer.args.image_size)[0]
-
-    def add(self, obs, action, reward, terminated, done):
-        """One env step of the car; `done`: its episode ended with this step (terminated or truncated)."""
-        self.reward, self.steps = self.reward + reward, self.steps + 1
-        if self.steps == self.racer.action_repeat or done:
-            self.episode.add(self._frame(obs), action, self.reward, terminated)
-            self.reward, self.steps = 0.0, 0
+    def act(self, obs, state, is_first, policy):
+        if is_first[0]:  # a new race: the lane of its grid column
+            self.driver = PursuitDriver(self.env, self.agent, self.speed, lane=lane_of(self.env, self.agent))
+        return self.driver.act()[None], state
 
 
 # --- One race -------------------------------------------------------------------------------
@@ -199,36 +172,35 @@ class RaceResult:
     returns: list[float]
     winners: list[bool]
     frames: list[np.ndarray]
-    episodes: list  # per racer: its EpisodeRecorder when training, else None
+    episodes: list  # per racer: its car's episode (the script's CarEpisode, frames at the script's image size)
 
 
-def run_race(
-    env: MultiCarRacing, racers: list, seed: int, grid: list[int], record_video=False, episodes=None
-) -> RaceResult:
-    """One race; ``episodes[i]`` (optional, a callable obs -> episode recorder) collects racer i's transitions."""
-    obs, infos = env.reset(seed=seed, options={"grid": grid})
-    agents = env.possible_agents
-    for racer, agent in zip(racers, agents):
-        racer.reset(env, agent)
-    recorders = [make(obs[a]) if make else None for make, a in zip(episodes or [None] * len(racers), agents)]
-    final = dict(infos)
-    returns = [0.0] * len(racers)
-    frames = [env.render()] if record_video else []
-    first = True
-    while env.agents:
-        actions = {a: racers[i].act(obs[a], first) for i, a in enumerate(agents) if a in env.agents}
-        obs, rewards, terms, truncs, infos = env.step(actions)
-        first = False
-        for i, a in enumerate(agents):
-            if a in rewards:
-                returns[i] += rewards[a]
-                if recorders[i] is not None:
-                    recorders[i].add(obs[a], actions[a], rewards[a], terms[a], terms[a] or truncs[a])
-        final.update(infos)
-        if record_video:
-            frames.append(env.render())
-    final_infos = [final[a] for a in agents]
-    return RaceResult(final_infos, returns, race_winners(final_infos), frames, recorders)
+def collector(racers: list):
+    """The dreamer script whose `Races` drives the races (the first Dreamer racer's; scripted drivers alone: the
+    LSTM's) and its Args for the env settings and recorded frames."""
+    dreamers = [r for r in racers if isinstance(r, DreamerRacer)]
+    script = dreamers[0].module if dreamers else importlib.import_module(VARIANT_SCRIPTS["lstm"])
+    return script, (dreamers[0].args if dreamers else script.Args())
+
+
+def run_race(envs, racers: list, seed: int, grid: list[int], record_video=False) -> RaceResult:
+    """One race on track `seed` with start grid `grid`, driven by the script's collector (`Races`): each Dreamer
+    racer decides every action_repeat env steps of its own car with its policy, the pursuit driver every step."""
+    script, args = collector(racers)
+    env = envs.get_attr("unwrapped")[0]  # (the env itself: the race runs in this process)
+    for racer, agent in zip(racers, env.possible_agents):
+        if isinstance(racer, PursuitRacer):
+            racer.bind(env, agent)
+    envs.set_options({"grid": grid})
+    envs.seed(seed)
+    obs = envs.reset()
+    frames = [envs.get_images()[0]] if record_video else None
+    drivers = [r.agent if isinstance(r, DreamerRacer) else r for r in racers]
+    races = script.Races(drivers, args, envs, obs, [r.action_repeat for r in racers])
+    [race], _ = races.drive([r.policy for r in racers], frames)
+    final_infos = [car.final_info for car in race.cars]
+    returns = [float(r) for r in race.readings["return"]]
+    return RaceResult(final_infos, returns, race_winners(final_infos), frames or [], race.cars)
 
 
 # --- Statistics -----------------------------------------------------------------------------
@@ -346,24 +318,19 @@ def build_racers(args: Args, device) -> list:
     return racers + [PursuitRacer(speed) for speed in opponent_speeds(args)]
 
 
-def make_env(args, racers, render=False) -> MultiCarRacing:
-    """The race env with the first Dreamer racer's env settings (all cars share one env)."""
+def make_env(args, racers, render=False):
+    """The race as a one-race vec env of the scripts (utils.make_vec_env), with the env settings the first Dreamer
+    racer trained with (its script's env_kwargs at the final dead zone; all cars share one env)."""
+    from utils import make_vec_env
+
     kwargs = {}
     dreamers = [r for r in racers if isinstance(r, DreamerRacer)]
     if dreamers:
-        a = dreamers[0].args
-        kwargs = dict(
-            max_steps=a.max_steps,
-            stall_steps=a.stall_steps,
-            brake_speed_threshold=a.brake_speed_threshold,
-            collision_penalty=a.collision_penalty,
-            offroad_penalty=a.offroad_penalty,
-            speed_reward_coef=a.speed_reward_coef,
-            dead_zone=a.dead_zone_end,
-        )
+        kwargs = dreamers[0].module.env_kwargs(dreamers[0].args, dreamers[0].args.dead_zone_end)
+    kwargs["num_agents"] = len(racers)
     if args.max_steps is not None:
         kwargs["max_steps"] = args.max_steps
-    return MultiCarRacing(num_agents=len(racers), render_mode="rgb_array" if render else None, **kwargs)
+    return make_vec_env("multi_car_racing", 1, None, render_mode="rgb_array" if render else None, **kwargs)
 
 
 def schedule(seed: int, race: int, num_cars: int) -> tuple[int, list[int]]:
@@ -408,6 +375,9 @@ def train(args: Args, racers: list, device) -> str:
     learners = [i for i, r in enumerate(racers) if r.learns]
     if not learners:
         raise SystemExit("race.py: --train needs at least one checkpoint (scripted drivers do not learn)")
+    sizes = {racers[i].args.image_size for i in learners}
+    if len(sizes) > 1:  # (the race records every car's frames at one size)
+        raise SystemExit(f"race.py: --train needs learning racers of one image size, got {sorted(sizes)}")
     env = make_env(args, racers)
     run_dir = os.path.join(args.runs_dir, make_run_name("multi_car_racing", args.exp_name, args.seed))
     checkpoint_dir = os.path.join(run_dir, "checkpoints")
@@ -436,9 +406,7 @@ def train(args: Args, racers: list, device) -> str:
     random.seed(stream)
     for episode in range(args.episodes):
         seed, grid = schedule(args.seed, done_before + episode, len(racers))
-        recorders = [(lambda obs, r=racers[i]: EpisodeRecorder(r, obs)) if i in learners else None
-                     for i in range(len(racers))]  # fmt: skip
-        result = run_race(env, racers, seed, grid, episodes=recorders)
+        result = run_race(env, racers, seed, grid)
         env_steps += max(int(info["step"]) for info in result.final_infos)
         logger.record("charts/race", done_before + episode + 1)  # over every sitting: the x of plot.py's race figures
         for i, (info, won, ret) in enumerate(zip(result.final_infos, result.winners, result.returns)):
@@ -451,7 +419,7 @@ def train(args: Args, racers: list, device) -> str:
                 logger.record(f"{prefix}/charts/lap_time", info["finish_step"])
         for i in learners:
             racer, replay, prefix = racers[i], replays[i], f"racer_{i}_{racers[i].variant}/"
-            replay.add_episode(*result.episodes[i].episode.arrays())
+            replay.add_episode(*result.episodes[i].arrays())
             if replay.can_sample(racer.args.seq_len):
                 updates_per_s = racer.module.train_agent(racer.agent, replay, train_args[i], logger, prefix)
                 logger.record(f"{prefix}perf/updates_per_s", updates_per_s)

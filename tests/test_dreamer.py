@@ -891,8 +891,10 @@ def test_time_limit_stops_with_a_checkpoint(tmp_path, script, monkeypatch):
 
 
 class _ScriptedSteer:
-    """Stands in for an Agent in evaluate(): steers `steer` with full gas while it sees a camera
+    """Stands in for an Agent in drive_races(): steers `steer` with full gas while it sees a camera
     image, and steers 0 on the blank observation of a car that is already out."""
+
+    action_dim = 2
 
     def __init__(self, steer: float):
         self.steer, self.blank_calls = steer, 0
@@ -903,19 +905,21 @@ class _ScriptedSteer:
         return np.array([[self.steer if sees_track else 0.0, 1.0]], dtype=np.float32), state
 
 
-def test_evaluate_averages_steer_over_the_decisions_of_cars_still_racing(script):
+def test_evaluation_averages_steer_over_the_decisions_of_cars_still_racing(script):
     """car_0 steers hard at full gas and leaves the road early; car_1 races on. car_0's mean |steer| is
-    exactly 1: the decisions after it went out (blank observations, steer 0) are not counted."""
+    exactly 1: after it went out it is not asked to decide (it would see a blank observation and steer 0)."""
     from utils import make_vec_env
 
     args = tiny_args(script, num_agents=2, eval_episodes=1, eval_seed=3, max_steps=400, action_repeat=2)
     envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
     drivers = [_ScriptedSteer(1.0), _ScriptedSteer(-0.25)]
-    returns, progress, abs_steer = script.evaluate(drivers, args, envs)
+    readings = script.drive_races(drivers, args, envs)
     envs.close()
+    returns, progress, abs_steer = readings["return"], readings["progress"], readings["abs_steer"]
     assert returns.shape == progress.shape == abs_steer.shape == (1, 2)
-    assert drivers[0].blank_calls > 0  # car_0 was asked to act after it went out ...
-    assert abs_steer[0].tolist() == pytest.approx([1.0, 0.25])  # ... and those decisions do not count
+    assert readings["eliminated"][0, 0] == 1.0  # car_0 went out ...
+    assert drivers[0].blank_calls == 0  # ... and was not asked to act after it
+    assert abs_steer[0].tolist() == pytest.approx([1.0, 0.25])
 
 
 class _ScriptedPedal(_ScriptedSteer):
@@ -944,10 +948,92 @@ def test_drive_races_reads_gas_brakes_speed_and_how_each_race_ended(script):
     assert readings["gas"][0].tolist() == [1.0, 0.0] and readings["brake_share"][0].tolist() == [0.0, 1.0]
     assert readings["speed"][0, 0] > 10 and readings["speed"][0, 1] < 1e-3  # (physics leaves ~1e-7)
     assert readings["eliminated"][0].tolist() == [1.0, 1.0] and readings["lap_finished"][0].tolist() == [0.0, 0.0]
-    returns, progress, abs_steer = script.evaluate([_ScriptedPedal(1.0, 1.0), _ScriptedPedal(0.0, -1.0)], args,
-                                                   make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, -0.5)))
-    for key, value in (("return", returns), ("progress", progress), ("abs_steer", abs_steer)):
-        np.testing.assert_array_equal(readings[key], value)  # evaluate() is drive_races' first three readings
+    assert readings["abs_steer"][0].tolist() == [1.0, 0.0] and readings["progress"][0, 0] > readings["progress"][0, 1]
+
+
+class _ConstantDriver:
+    """An agent of the collector that always takes `action`; its state counts its car's decisions since its race
+    started (a batch-first tensor, as an Agent's), so a state mixed up between cars shows."""
+
+    action_dim = 2
+
+    def __init__(self, action):
+        self.action, self.calls = np.asarray(action, dtype=np.float32), []
+
+    def initial_state(self, n):
+        return (torch.zeros(n),)
+
+    def act(self, obs, state, is_first, policy):
+        state = self.initial_state(len(obs)) if state is None else state
+        self.calls.append(len(obs))
+        count = torch.where(torch.as_tensor(is_first), torch.zeros(len(obs)), state[0]) + 1
+        return np.tile(self.action, (len(obs), 1)), (count,)
+
+
+def _env_rewards(args, seed, actions):
+    """Per car, the rewards of every env step of a race driven with constant `actions`, straight from the env (no
+    vec env, no collector): the independent reference of the collector's transitions."""
+    from envs import MultiCarRacing
+
+    env = MultiCarRacing(**script_env(args))
+    env.reset(seed=seed)
+    rewards = {agent: [] for agent in env.possible_agents}
+    while env.agents:
+        _, step_rewards, _, _, _ = env.step({agent: actions[int(agent[-1])] for agent in env.agents})
+        for agent, reward in step_rewards.items():
+            rewards[agent].append(reward)
+    return [np.asarray(rewards[agent]) for agent in env.possible_agents]
+
+
+def script_env(args) -> dict:
+    return {"num_agents": args.num_agents, "max_steps": args.max_steps, "dead_zone": args.dead_zone_end}
+
+
+def test_each_car_decides_every_repeat_steps_of_its_own_and_its_transitions_sum_the_held_rewards(script):
+    """Two cars with action repeats 3 and 2: car_0 steers hard and leaves the road, car_1 drives on. Each decides
+    at the start and then every 3 (2) of its env steps, also after the other car went out; each transition's reward
+    is the sum of the env's rewards over the steps it held (read straight from the env); a car that is out decides
+    no more."""
+    from utils import make_vec_env
+
+    args = tiny_args(script, num_agents=2, max_steps=120)
+    actions = [np.array([1.0, 1.0], np.float32), np.array([0.0, 0.3], np.float32)]
+    agents = [_ConstantDriver(actions[0]), _ConstantDriver(actions[1])]
+    envs = make_vec_env(args.env_id, 1, 3, **script_env(args))
+    [race], steps = script.Races(agents, args, envs, envs.reset(), repeats=[3, 2]).drive(["stochastic"] * 2)
+    envs.close()
+    reference = _env_rewards(args, 3, actions)
+    assert len(reference[0]) < len(reference[1]) == steps  # car_0 went out first, car_1 raced to the end
+    for car, agent, repeat, env_rewards in zip(race.cars, agents, (3, 2), reference):
+        decisions = math.ceil(len(env_rewards) / repeat)
+        assert len(agent.calls) == decisions and len(car.obs) == 1 + decisions
+        expected = [env_rewards[k : k + repeat].sum() for k in range(0, len(env_rewards), repeat)]
+        np.testing.assert_allclose(car.arrays()[2][1:], expected, rtol=1e-5, atol=1e-5)
+        assert car.arrays()[3][1:].tolist() == [False] * (decisions - 1) + [car.final_info["eliminated"] is not None]
+
+
+def test_races_side_by_side_keep_each_cars_state_when_they_fall_out_of_step(script):
+    """K = 2 one-car races on different tracks end at different steps. After the first ends, its new race's car
+    decides while the other car holds: the agent acts on that car's row of its state alone, and every row still
+    counts its own car's decisions since its race started."""
+    from utils import make_vec_env
+
+    args = tiny_args(script, num_agents=1, max_steps=200)
+    agent = _ConstantDriver([0.6, 0.4])
+    envs = make_vec_env(args.env_id, 2, 11, **script_env(args))
+    races = script.Races([agent], args, envs, envs.reset(), repeats=[3])
+    first, _ = races.drive(["stochastic"])
+    second, _ = races.drive(["stochastic"])
+    envs.close()
+    (ended,), (later,) = first, second
+    assert 1 in agent.calls  # one car decided alone
+    for race in (ended, later):
+        steps = race.cars[0].final_info["step"]
+        assert len(race.cars[0].obs) == 1 + math.ceil(steps / 3)
+    s1, s2 = ended.cars[0].final_info["step"], later.cars[0].final_info["step"]
+    assert s1 < s2  # (both races started together: the later one ended s2 env steps in, the new race s2 - s1 ago)
+    counts = sorted(races.states[0][0].tolist())
+    assert counts == sorted([math.ceil(s2 / 3), math.ceil((s2 - s1) / 3)])
 
 
 def test_dead_zone_of_the_next_race_is_set_before_its_reset(script):

@@ -155,10 +155,9 @@ def test_tiny_train_run_logs_per_agent_win_rates(tiny_checkpoints, tmp_path):
 
 
 def test_dreamer_racer_decides_every_action_repeat_steps_and_records_summed_rewards(tiny_checkpoints):
-    """A racer acts at its training rate: one decision per action_repeat env steps, one transition per decision."""
-    from envs import MultiCarRacing
-
-    racer = race.DreamerRacer(tiny_checkpoints["lstm"], "cpu", "deterministic")
+    """A racer acts at its training rate: one decision per action_repeat env steps, one transition per decision;
+    the pursuit driver beside it decides every step."""
+    racer, pursuit = race.DreamerRacer(tiny_checkpoints["lstm"], "cpu", "deterministic"), race.PursuitRacer(60.0)
     racer.action_repeat = 3
     decisions, act = [], racer.agent.act
 
@@ -167,20 +166,15 @@ def test_dreamer_racer_decides_every_action_repeat_steps_and_records_summed_rewa
         return act(obs, state, is_first, policy)
 
     racer.agent.act = counting_act
-    env = MultiCarRacing(num_agents=2, max_steps=31)
-    result = race.run_race(
-        env,
-        [racer, race.PursuitRacer(60.0)],
-        seed=3,
-        grid=[0, 1],
-        episodes=[lambda obs: race.EpisodeRecorder(racer, obs), None],
-    )
+    envs = race.make_env(race.Args(max_steps=31), [racer, pursuit])
+    result = race.run_race(envs, [racer, pursuit], seed=3, grid=[0, 1])
     steps = result.final_infos[0]["step"]  # env steps car_0 raced
     assert steps > 3
     assert decisions == [True] + [False] * (math.ceil(steps / 3) - 1)  # is_first only at the race's first decision
-    obs, actions, rewards, terminated = result.episodes[0].episode.arrays()
+    obs, actions, rewards, terminated = result.episodes[0].arrays()
     assert len(obs) == 1 + math.ceil(steps / 3)  # the first frame, then one frame per decision
     assert rewards.sum() == pytest.approx(result.returns[0], abs=1e-4)
+    assert len(result.episodes[1].obs) == 1 + result.final_infos[1]["step"]  # the pursuit driver: every step
 
 
 def test_train_continues_with_the_replay_saved_beside_the_checkpoint(tiny_checkpoints, tmp_path, capsys):

@@ -516,7 +516,7 @@ if where == "step":  # the n-th env step of race 2 (a prefill race here)
     def after_training(run, *args):
         real_after_training(run, *args)
         if run.counters["episode"] == 1:
-            kill_on_call(script, "step_with_repeat")
+            kill_on_call(type(run.envs), "step")
     script.after_training = after_training
 elif where == "update":
     kill_on_call(script.Agent, "update")

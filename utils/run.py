@@ -471,9 +471,9 @@ def finish_run(run: Run) -> str:
 
 
 # --- After every race ------------------------------------------------------------------------
-def log_race(run: Run, cars: list, track_seed: int | None) -> None:
+def log_race(run: Run, cars: list, track_seed: int | None, env_sps: float) -> None:
     """Per car: return, progress, lap time and win rate (race stages; the ghost stage: beating the ghost, whose
-    record is replaced when beaten)."""
+    record is replaced when beaten), and the env steps per second while the cars drove."""
     from envs import race_winners
 
     args, logger = run.args, run.logger
@@ -487,6 +487,7 @@ def log_race(run: Run, cars: list, track_seed: int | None) -> None:
         logger.record("ghost/track_seed", track_seed)
         logger.record("ghost/ghosts_recorded", len(run.ghosts))
     for j, car in enumerate(cars):
+        logger.record(f"car_{j}/perf/env_sps", env_sps)
         logger.record(f"car_{j}/charts/episodic_return", car.ret)
         logger.record(f"car_{j}/charts/progress", float(final_infos[j].get("progress", 0.0)))
         if final_infos[j].get("lap_finished"):
@@ -562,7 +563,8 @@ def evaluate_and_keep_best(run: Run) -> None:
     args, counters, method = run.args, run.counters, run.method
     if run.eval_envs is None:
         run.eval_envs = make_vec_env(args.env_id, 1, None, **method.env_kwargs(args, args.dead_zone_end))
-    returns, progress, abs_steer = method.evaluate(run.agents, args, run.eval_envs)
+    readings = method.drive_races(run.agents, args, run.eval_envs)
+    returns, progress, abs_steer = readings["return"], readings["progress"], readings["abs_steer"]
     for j in range(len(run.agents)):
         run.logger.record(f"car_{j}/eval/episodic_return", float(returns[:, j].mean()))
         run.logger.record(f"car_{j}/eval/progress", float(progress[:, j].mean()))
