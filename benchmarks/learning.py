@@ -1,8 +1,10 @@
 """Does the agent learn to drive, and does it keep driving? CPU-sized single-car runs, evaluated on held-out tracks.
 
-    python benchmarks/learning.py --variant lstm --seed 11                 # a run of the final protocol (8,000 updates)
+    python benchmarks/learning.py --runs-dir runs/final/trials --variant lstm --seed 21 --protocol-row   # a row
+    python benchmarks/learning.py --protocol-report                        # the final protocol's learning_final.md
+    python benchmarks/learning.py --variant lstm --seed 11                 # a run of the old protocol (8,000 updates)
     python benchmarks/learning.py --variant lstm --seed 11 --resume        # continue it in a later sitting
-    python benchmarks/learning.py --variant lstm --seed 11 --final         # its row of learning_final.csv
+    python benchmarks/learning.py --variant lstm --seed 11 --final --results-dir benchmarks/results/history
     python benchmarks/learning.py --report                                 # curves + table only
     python benchmarks/learning.py --variant lstm --seed 11 --diagnose      # sigma, entropy, kl_dyn... per 500 updates
     python benchmarks/learning.py --runs-dir runs/experiment/trials --variant gru --seed 12 --final
@@ -16,8 +18,8 @@ Trains `dreamer_<variant>.py --preset cpu` on the single-car race (stage ``singl
 share two cores) until ``--updates`` updates or ``--hours`` of wall time (resumable: a run may span sittings),
 evaluating every 5 races on the 10 held-out tracks (seeds 10000..10009) and keeping each evaluated policy
 (``checkpoints/eval_<race>.pt``). At most one mode flag (``--report``, ``--diagnose``, ``--final``,
-``--final-report``, ``--screen``, ``--policy-rule``, ``--calibrate``) replaces the training. It writes, under
-``benchmarks/results/``:
+``--final-report``, ``--protocol-row``, ``--protocol-report``, ``--screen``, ``--policy-rule``, ``--calibrate``)
+replaces the training. It writes, under ``benchmarks/results/``:
 
 * ``learning_<variant>_seed<S>.csv``: evaluation return and progress against env steps, updates and hours;
 * ``baselines.json``: random actions and the pure-pursuit driver on the same 10 tracks;
@@ -32,16 +34,24 @@ evaluating every 5 races on the 10 held-out tracks (seeds 10000..10009) and keep
   10100..10119) and, in ``learning_final.md``, the IQM and mean over seeds with stratified-bootstrap intervals
   (rliable, descriptive), the parts of the bar each variant fails, and the LSTM minus the GRU and each variant
   minus the SB3 PPO peer (``ppo_peer.csv``), judged by the exact permutation test and Welch's t interval
-  (benchmarks/stats.py); ``--final-report`` rewrites ``learning_final.md`` alone.
+  (benchmarks/stats.py); ``--final-report`` rewrites ``learning_final.md`` alone;
+* with ``--protocol-row``: the final protocol's row of ``learning_final.csv`` and ``learning_final.md``;
+  ``--protocol-report`` rewrites ``learning_final.md`` alone.
 
-The bar, per variant over 3 seeds: final-policy mean return >= 600 with every seed >= 350, mean progress >= 0.65,
-mean |steer| <= 0.3, and each run's last three evaluations within 150 of its best (docs/learning.md).
+The final protocol (CPU budget: per variant the seeds 21..25, each a single-stage trial of ``benchmarks/experiment.py
+--single-cpu-hours 3.1``, measured on the report tracks 10300..10329; its bar and its peers' files) is
+``final_protocol.py``, which these two modes call. It replaces the 8,000-update protocol, whose files go to
+``benchmarks/results/history/``, where ``--results-dir`` points ``--final`` and ``--final-report``. That protocol's
+bar, per variant over 3 seeds: final-policy mean return >= 600 with every seed >= 350, mean progress >= 0.65, mean
+|steer| <= 0.3, and each run's last three evaluations within 150 of its best.
 
-This file is the protocol: its constants, the runs (names, settings, curves read from their event files), the
-measurement of a saved policy and the final rows. The rest lives beside it: ``learning_report.py`` (curves, tables,
-figure, diagnostics, ``learning_final.md``), ``screening.py`` (screens and the evaluation-policy rule) and
-``calibration.py``. A saved agent on other tracks, or its acting-only export: ``evaluate.py`` at the top level
-(``python evaluate.py CHECKPOINT --first-track 10100 --tracks 20``, ``python evaluate.py CHECKPOINT --export OUT``).
+This file is the 8,000-update protocol (its constants, the runs: names, settings, curves read from their event
+files; the measurement of a saved policy and the final rows), the helpers both protocols share (eval_curve,
+training_hours, eval_summary, read_rows, replace_row) and the command line. The rest lives beside it:
+``learning_report.py`` (curves, tables, figure, diagnostics, the 8,000-update protocol's ``learning_final.md``),
+``final_protocol.py``, ``screening.py`` (screens and the evaluation-policy rule) and ``calibration.py``. A saved
+agent on other tracks, or its acting-only export: ``evaluate.py`` at the top level (``python evaluate.py CHECKPOINT
+--first-track 10100 --tracks 20``, ``python evaluate.py CHECKPOINT --export OUT``).
 
 ``benchmarks/experiment.py`` trains these same runs as its single stage (under ``<storage>/trials/``);
 ``--runs-dir`` points every mode at them.
@@ -69,12 +79,12 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 # --- The protocol ----------------------------------------------------------------------------
 RESULTS = os.path.join(ROOT, "benchmarks", "results")
 RUNS = os.path.join(ROOT, "runs", "learning")
-# The bar of the final protocol, per variant over its seeds: final-policy mean return and progress (the figure draws
-# them), every seed's return, the mean |steer|; and each run holds: its last three evaluations average within
-# BAR_HOLD of its best.
+# The bar of the 8,000-update protocol, per variant over its seeds: final-policy mean return and progress (the
+# figure draws them), every seed's return, the mean |steer|; and each run holds: its last three evaluations average
+# within BAR_HOLD of its best.
 BAR_RETURN, BAR_PROGRESS, BAR_SEED_RETURN, BAR_STEER, BAR_HOLD = 600.0, 0.65, 350.0, 0.3, 150.0
 VARIANTS = ("lstm", "gru")
-FINAL_UPDATES = 8000  # the final protocol: every run trains for this many updates
+FINAL_UPDATES = 8000  # the 8,000-update protocol (replaced by final_protocol.py's): every run's updates
 FRESH_TRACKS = (10_100, 20)  # first seed and count of the fresh tracks the final policy is measured on
 # What the benchmark adds to the scripts' CPU preset (--preset cpu): one car; decisions evaluated on the 10 held-out
 # tracks every 5 races, each evaluated policy kept; the run ends at --updates; one thread, two runs on two cores.
@@ -273,7 +283,7 @@ def final_row(
     variant: str, seed: int, exp_name: str | None = None, policy: str = "stochastic", runs_dir: str = RUNS,
     updates: int = FINAL_UPDATES,
 ) -> dict:
-    """The final protocol's row of one run: its last policy (latest.pt) and its best evaluation (best.pt), both
+    """The 8,000-update protocol's row of one run: its last policy (latest.pt) and its best evaluation (best.pt), both
     measured with `policy` on the fresh tracks FRESH_TRACKS; the last policy's mean action there too (how smoothly
     the policy means to steer, without the sampling noise); the run's updates, env steps and training hours; and
     its best and last-three-average evaluation returns (the 10 evaluation tracks), which say whether it holds.
@@ -292,7 +302,7 @@ def final_row(
     final = evaluate_checkpoint(latest, *FRESH_TRACKS, policy)
     best = evaluate_checkpoint(os.path.join(run, "checkpoints", "best.pt"), *FRESH_TRACKS, policy)
     mean_action = evaluate_checkpoint(latest, *FRESH_TRACKS, "mean-action")
-    evals = [r["eval_return"] for r in curve]
+    best_eval, last3_eval = eval_summary(curve)
     return {
         "exp_name": exp_name or experiment_name(variant), "variant": variant, "seed": seed, "updates": final["updates"],
         # the whole run's, to its last update (not its last evaluation's)
@@ -303,25 +313,52 @@ def final_row(
         "mean_action_return": round(mean_action["eval_return"], 2),
         "mean_action_progress": round(mean_action["eval_progress"], 4),
         "mean_action_abs_steer": round(mean_action["mean_abs_steer"], 4),
-        "best_eval_return": round(max(evals), 2) if evals else float("nan"),
-        "last3_eval_return": round(float(np.mean(evals[-3:])), 2) if evals else float("nan"),
+        "best_eval_return": best_eval, "last3_eval_return": last3_eval,
     }  # fmt: skip
 
+
+def eval_summary(curve: list[dict]) -> tuple[float, float]:
+    """A run's best evaluation return and the mean of its last three (eval_curve's points, its own evaluation
+    tracks 10000..10009), 2 decimals: how far its last policies fell from its best. NaN, NaN without evaluations."""
+    evals = [r["eval_return"] for r in curve]
+    if not evals:
+        return float("nan"), float("nan")
+    return round(max(evals), 2), round(float(np.mean(evals[-3:])), 2)
+
+
+OLD_PROTOCOL_HOME = os.path.join("benchmarks", "results", "history")  # where a replaced protocol's files go
+
+
+def read_rows(path: str, columns: tuple[str, ...], advice: str) -> list[dict]:
+    """The rows of the CSV at `path` (none if it does not exist or is empty), refused with a one-line ValueError
+    naming the file and ending in `advice` when its header is not `columns`: learning_final.csv holds the rows of
+    one protocol at a time, and rows of two protocols side by side would be compared as one."""
+    if not os.path.exists(path):
+        return []
+    with open(path, newline="") as f:
+        reader = csv.DictReader(f)
+        if reader.fieldnames is not None and tuple(reader.fieldnames) != tuple(columns):
+            raise ValueError(f"{path} has the columns {','.join(reader.fieldnames)}, not {','.join(columns)}: {advice}")
+        return list(reader)
+
+
+def replace_row(row: dict, path: str, columns: tuple[str, ...], key, advice: str) -> None:
+    """Add `row` to the CSV at `path` (header `columns`, else refused: read_rows), replacing an earlier row of the
+    same key(row); rows sorted by key."""
+    rows = [r for r in read_rows(path, columns, advice) if key(r) != key(row)] + [row]
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=columns)
+        writer.writeheader()
+        writer.writerows(sorted(rows, key=key))
+
+
+FINAL_ADVICE = f"it holds another protocol's rows; give --results-dir {OLD_PROTOCOL_HOME} (the 8,000-update protocol's)"
 
 
 def write_final_row(row: dict, path: str = os.path.join(RESULTS, "learning_final.csv")) -> None:
     """Add `row` to learning_final.csv, replacing an earlier row of the same experiment (an ablation is its own) and
-    seed."""
-    rows = []
-    if os.path.exists(path):
-        with open(path, newline="") as f:
-            rows = [r for r in csv.DictReader(f) if (r["exp_name"], int(r["seed"])) != (row["exp_name"], row["seed"])]
-    rows.append(row)
-    rows.sort(key=lambda r: (r["exp_name"], int(r["seed"])))
-    with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=FINAL_COLUMNS)
-        writer.writeheader()
-        writer.writerows(rows)
+    seed. A file of another protocol's columns is refused (read_rows)."""
+    replace_row(row, path, FINAL_COLUMNS, lambda r: (r["exp_name"], int(r["seed"])), FINAL_ADVICE)
 
 
 # --- Command line ----------------------------------------------------------------------------
@@ -358,9 +395,21 @@ class Args:
     """mode: only the run's diagnostics per 500 updates (returns, sigma, entropy, kl_dyn, reward NLL, imagined
     return, evaluations): printed and written to benchmarks/results/<experiment>_seed<S>_diagnostics.md"""
     final: bool = False
-    """mode: only evaluate the run's final and best policies on the fresh tracks; its row in learning_final.csv"""
+    """mode: only evaluate the run's final and best policies on the fresh tracks; its row in learning_final.csv (the
+    8,000-update protocol's)"""
     final_report: bool = False
     """mode: only rewrite learning_final.md from learning_final.csv and ppo_peer.csv (no evaluation)"""
+    protocol_row: bool = False
+    """mode: only measure the final protocol's run of --variant and --seed (21..25: the single-stage trial of
+    experiment.py --single-cpu-hours 3.1 under --runs-dir <storage>/trials, refused before its budget is spent),
+    its latest.pt sampled and with its mean action on the 30 report tracks 10300..10329: its row of
+    learning_final.csv, then learning_final.md"""
+    protocol_report: bool = False
+    """mode: only rewrite learning_final.md from the final protocol's learning_final.csv and its peers'
+    <peer>_peer_10300.csv (no evaluation)"""
+    results_dir: str = RESULTS
+    """--final, --final-report, --protocol-row, --protocol-report: where learning_final.csv and .md (and the peers'
+    CSVs) are (the 8,000-update protocol's, once replaced: benchmarks/results/history)"""
     screen: Annotated[int | None, tyro.conf.arg(metavar="UPDATES")] = None
     """mode: only compare the ablation given by its flags with the default run of the same variant and seed (in
     --reference-runs-dir), each at the policy it kept at UPDATES updates, sampled and mean action on the 20
@@ -382,7 +431,9 @@ class Args:
     """--calibrate: number of tracks"""
 
 
-MODES = ("report", "diagnose", "final", "final_report", "screen", "policy_rule", "calibrate")  # Args' mode fields
+MODES = ("report", "diagnose", "final", "final_report", "protocol_row", "protocol_report", "screen", "policy_rule",
+         "calibrate")  # Args' mode fields
+FINAL_MODES = ("final", "final_report", "protocol_row", "protocol_report")  # the modes --results-dir is for
 
 
 def check(args: Args) -> None:
@@ -395,6 +446,13 @@ def check(args: Args) -> None:
         raise ValueError("--horizon is the imagination horizon of --calibrate; give --calibrate CHECKPOINT")
     if args.reference_runs_dir is not None and args.screen is None:
         raise ValueError("--reference-runs-dir is the default run's place for --screen; give --screen UPDATES")
+    if args.results_dir != RESULTS and not any(getattr(args, name) for name in FINAL_MODES):
+        raise ValueError("--results-dir is the place of learning_final.csv for --final, --final-report, "
+                         "--protocol-row and --protocol-report; give one of them")  # fmt: skip
+    ablated = [name for name, value in ablation(args).items() if value is not None]
+    if (args.protocol_row or args.protocol_report) and ablated:
+        raise ValueError(f"the final protocol measures the default method, not an ablation "
+                         f"(--{', --'.join(n.replace('_', '-') for n in ablated)})")  # fmt: skip
     if args.hours <= 0:
         raise ValueError(f"--hours must be > 0, got {args.hours}")
     if args.updates < 1:
@@ -447,9 +505,19 @@ def run_mode(args: Args) -> bool:
 
         if args.final:
             row = final_row(args.variant, args.seed, name, "stochastic", args.runs_dir, args.updates)
-            write_final_row(row)
+            write_final_row(row, os.path.join(args.results_dir, "learning_final.csv"))
             print(json.dumps(row, indent=1))
-        print(write_final_report())
+        print(write_final_report(args.results_dir))
+    elif args.protocol_row or args.protocol_report:
+        import final_protocol as protocol  # (it imports this file: not at the top)
+
+        if args.protocol_row:
+            path = os.path.join(args.results_dir, "learning_final.csv")
+            read_rows(path, protocol.PROTOCOL_COLUMNS, protocol.PROTOCOL_ADVICE)  # the old protocol's: refused first
+            row = protocol.protocol_row(args.variant, args.seed, args.runs_dir)
+            protocol.write_protocol_row(row, path)
+            print(json.dumps(row, indent=1))
+        print(protocol.write_protocol_report(args.results_dir))
     else:
         return False
     return True

@@ -8,7 +8,9 @@ compare.
   driver: ``baselines``);
 * diagnostics: a run's progress.csv per bucket of updates (``--diagnose``; the screens' training readings);
 * ``learning_final.md`` from ``learning_final.csv``: the bar per variant with rliable intervals, the LSTM against the
-  GRU, the references on the fresh tracks and the SB3 PPO peer (``--final``, ``--final-report``).
+  GRU, the references on the fresh tracks and the SB3 PPO peer (``--final``, ``--final-report``: the 8,000-update
+  protocol). The final protocol's (CPU budget: ``--protocol-row``, ``--protocol-report``) is written by
+  ``final_protocol.py``.
 """
 
 from __future__ import annotations
@@ -22,8 +24,8 @@ import re
 import numpy as np
 
 from learning import (
-    BAR_HOLD, BAR_PROGRESS, BAR_RETURN, BAR_SEED_RETURN, BAR_STEER, FRESH_TRACKS, RESULTS, RUNS, eval_curve,
-    experiment_name, learning_runs,
+    BAR_HOLD, BAR_PROGRESS, BAR_RETURN, BAR_SEED_RETURN, BAR_STEER, FINAL_ADVICE, FINAL_COLUMNS, FRESH_TRACKS, RESULTS,
+    RUNS, eval_curve, experiment_name, learning_runs, read_rows,
 )  # fmt: skip
 
 
@@ -299,7 +301,7 @@ def diagnostics_table(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-# --- The final protocol's summary: learning_final.md -----------------------------------------
+# --- The 8,000-update protocol's summary: learning_final.md ---------------------------------
 # learning_final.csv's columns of the final policy, by how it acts: sampled (as trained) or its mean action
 FINAL_POLICY_COLUMNS = {
     "stochastic": ("final_return", "final_progress"), "mean-action": ("mean_action_return", "mean_action_progress"),
@@ -338,8 +340,7 @@ def final_summary(
     fail."""
     from stats import interval_estimates
 
-    with open(path, newline="") as f:
-        rows = list(csv.DictReader(f))
+    rows = read_rows(path, FINAL_COLUMNS, FINAL_ADVICE)
     return_key, progress_key = FINAL_POLICY_COLUMNS[policy]
     lines = [
         f"The final policy {'sampled, as trained' if policy == 'stochastic' else 'driving its mean action'}:",
@@ -386,8 +387,7 @@ def variant_difference(path: str = os.path.join(RESULTS, "learning_final.csv")) 
     variants have a row."""
     from stats import describe, two_group_claim
 
-    with open(path, newline="") as f:
-        rows = [r for r in csv.DictReader(f) if r["exp_name"] == experiment_name(r["variant"])]
+    rows = [r for r in read_rows(path, FINAL_COLUMNS, FINAL_ADVICE) if r["exp_name"] == experiment_name(r["variant"])]
     if not {"lstm", "gru"} <= {r["variant"] for r in rows}:
         return ""
     lines = ["", "| final policy: LSTM - GRU | difference of means | test (one-sided p of the claim) "
@@ -420,8 +420,8 @@ def peer_summary(
     if not peer:
         return ""
     ppo = np.array([float(r["final_return"]) for r in peer])
-    with open(final_path, newline="") as f:
-        rows = [r for r in csv.DictReader(f) if r["exp_name"] == experiment_name(r["variant"])]
+    rows = read_rows(final_path, FINAL_COLUMNS, FINAL_ADVICE)
+    rows = [r for r in rows if r["exp_name"] == experiment_name(r["variant"])]
     budget = {r["seed"]: f" at {float(r['cpu_hours']):.2f} CPU-h" if r.get("cpu_hours") else "" for r in peer}
     seeds = ", ".join(f"{r['seed']}: {float(r['final_return']):.1f}{budget[r['seed']]}" for r in peer)
     if ppo.size >= MIN_RUNS:

@@ -6,7 +6,7 @@ the single-car race, at equal CPU time.
     python benchmarks/ppo_peer.py --algo recurrent-ppo --seed 11 --cpu-hours 3.1           # the same with the LSTM
     python benchmarks/ppo_peer.py --algo recurrent-ppo --seed 11 --curve                    # evaluate its snapshots
     python benchmarks/ppo_peer.py --seed 11 --evaluate-only --first-track 10300 --tracks 30 \\
-        --results benchmarks/results/ppo_peer_final30.csv                  # the final protocol's 30 tracks
+        --results benchmarks/results/ppo_peer_10300.csv                    # the final protocol's 30 tracks
 
 PPO (``--algo ppo``) trains on ``dlc/SingleCarRacing-v0`` with rl-baselines3-zoo's CarRacing-v3 hyperparameters
 (hyperparams/ppo.yml), untuned: frame skip 2 (rewards summed), 64x64 grayscale, 2 stacked frames, 8 envs, rewards

@@ -1,0 +1,364 @@
+"""The final protocol of the learning benchmark (CPU budget): how the LSTM- and GRU-Dreamer's final policies are
+measured, judged against the bar and compared with each other and with the PPO peers. It replaces the 8,000-update
+protocol of ``learning.py`` (``--final``, ``--final-report``), whose ``learning_final.csv`` and ``.md`` go to
+``benchmarks/results/history/`` first.
+
+* The runs: per variant (lstm, gru) the seeds 21..25 (PROTOCOL_SEEDS), each a single-stage trial of
+  ``benchmarks/experiment.py --stages single --single-cpu-hours 3.1``: trained until it has spent 3.1 CPU-hours of
+  process CPU time over all its sittings (PROTOCOL_CPU_HOURS, the peers' budget), whatever its updates; found under
+  ``<storage>/trials/single_<variant>_seed<S>/`` (``--runs-dir <storage>/trials``).
+* A run's row of ``learning_final.csv`` (protocol_row, PROTOCOL_COLUMNS): its final policy, latest.pt once the
+  budget is spent (refused before), driven sampled (``final_*``) and with its mean action (``mean_action_*``, with
+  the share of tracks whose lap it finished and its mean speed) on the 30 report tracks 10300..10329
+  (REPORT_TRACKS), which serve no choice; beside them its updates, env steps, CPU-hours and wall hours, and the best
+  and last-three-average returns of its own evaluations (tracks 10000..10009). ``learning_final.csv`` holds one
+  protocol's rows at a time: a file with the 8,000-update protocol's columns is refused.
+* The peers (PROTOCOL_PEERS: ``ppo_peer.py --algo ppo`` and ``--algo recurrent-ppo``): their deterministic policy
+  after the same CPU time on the same tracks, one file each, ``<peer>_peer_10300.csv`` beside learning_final.csv
+  (protocol_peer_path); a row measured on other tracks is refused.
+* The bar, per variant over its seeds (protocol_bar): with its mean action, mean return >= 800 with every seed
+  >= 650, mean progress >= 0.85 and mean |steer| <= 0.3; sampled, mean return >= 700. A variant short of seeds is
+  provisional.
+* ``learning_final.md`` (write_protocol_report): per variant and policy and per peer the mean and the IQM over seeds
+  with rliable's stratified-bootstrap 95% intervals (descriptions), the bar, every run's row, and the LSTM minus the
+  GRU and each variant minus each peer, judged by the exact permutation test and Welch's t interval
+  (benchmarks/stats.py).
+
+How to run it (``learning.py`` stays the benchmark's one command line; its ``--results-dir`` moves
+learning_final.csv, learning_final.md and the peers' files):
+
+    python benchmarks/experiment.py --stages single --single-cpu-hours 3.1 --seeds 21 22 23 24 25 \\
+        --storage runs/final                                               # the runs
+    python benchmarks/learning.py --runs-dir runs/final/trials --variant lstm --seed 21 --protocol-row   # a row
+    python benchmarks/ppo_peer.py --seed 14 --cpu-hours 3.1 --first-track 10300 --tracks 30 \\
+        --results benchmarks/results/ppo_peer_10300.csv                    # a peer's row (and --algo recurrent-ppo)
+    python benchmarks/learning.py --protocol-report                        # learning_final.md alone, from the CSVs
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+
+import numpy as np
+
+from learning import (
+    OLD_PROTOCOL_HOME, RESULTS, VARIANTS, eval_curve, eval_summary, read_rows, replace_row, training_hours,
+)  # fmt: skip
+
+# --- The protocol ----------------------------------------------------------------------------
+# Each run is a single-stage trial of benchmarks/experiment.py trained until it has spent PROTOCOL_CPU_HOURS of
+# process CPU time (``--single-cpu-hours 3.1``, the PPO peers' budget); its final policy is its latest.pt then,
+# whatever its updates, measured sampled and with its mean action on REPORT_TRACKS, which serve no choice. (The
+# 8,000-update protocol it replaces, learning.py's FINAL_UPDATES, FRESH_TRACKS and final_row, is kept to reproduce
+# its rows, now in benchmarks/results/history/.)
+PROTOCOL_CPU_HOURS = 3.1
+PROTOCOL_SEEDS = (21, 22, 23, 24, 25)  # per variant
+REPORT_TRACKS = (10_300, 30)  # first seed and count of the report tracks
+PROTOCOL_POLICIES = ("stochastic", "mean-action")  # sampled (as trained) and the actor's mean
+# The bar, per variant over its seeds. Mean action: mean return, every seed's return, mean progress, mean |steer|;
+# sampled: mean return.
+PROTOCOL_BAR_RETURN, PROTOCOL_BAR_SEED_RETURN, PROTOCOL_BAR_PROGRESS, PROTOCOL_BAR_STEER = 800.0, 650.0, 0.85, 0.3
+PROTOCOL_BAR_SAMPLED_RETURN = 700.0
+PROTOCOL_COLUMNS = (
+    "variant", "seed", "updates", "env_steps", "cpu_hours", "wall_hours",
+    "final_return", "final_progress", "final_mean_abs_steer",
+    "mean_action_return", "mean_action_progress", "mean_action_abs_steer", "mean_action_laps_finished",
+    "mean_speed", "best_eval_return", "last3_eval_return",
+)  # fmt: skip
+PROTOCOL_PEERS = ("ppo", "recurrent_ppo")  # benchmarks/ppo_peer.py's variants (--algo ppo, recurrent-ppo)
+PEER_COLUMNS = (
+    "variant", "seed", "updates", "env_steps", "cpu_hours", "final_return", "final_progress", "final_mean_abs_steer"
+)  # a peer's row (ppo_peer.py's COLUMNS), its deterministic policy on the report tracks; "tracks" may follow
+PROTOCOL_ADVICE = (
+    f"move the old protocol's files (learning_final.csv, learning_final.md) to {OLD_PROTOCOL_HOME}/ first"
+)
+
+
+# --- A run's row of learning_final.csv --------------------------------------------------------
+def track_block(first: int, count: int) -> str:
+    """A block of tracks as the rows name it: ``10300..10329``."""
+    return f"{first}..{first + count - 1}"
+
+
+def protocol_peer_path(peer: str, results_dir: str = RESULTS) -> str:
+    """The CSV of a peer's rows on the report tracks: ``<peer>_peer_10300.csv`` (ppo_peer.py's columns).
+
+    A file of its own, named by the first report track, rather than a ``tracks`` column in ``<peer>_peer.csv``:
+    ppo_peer.py keeps one row per seed in a file (a row on the report tracks would replace the same seed's row on
+    other tracks), writes any file its ``--results`` names without a change, and ``<peer>_peer.csv`` holds rows of
+    the fresh tracks 10100..10119 without saying so. A ``tracks`` column is still read when a peer writes one
+    (read_peer_rows)."""
+    return os.path.join(results_dir, f"{peer}_peer_{REPORT_TRACKS[0]}.csv")
+
+
+def protocol_run(variant: str, seed: int, runs_dir: str) -> str:
+    """The run directory of the protocol's trial of `variant` and `seed`: the latest run with a latest.pt under
+    ``<runs_dir>/single_<variant>_seed<S>/`` (experiment.py's trial_dir and run_of, ``runs_dir`` its
+    ``<storage>/trials``)."""
+    from experiment import run_of  # (the experiment driver: loaded only when a row is measured)
+
+    trial = os.path.join(runs_dir, f"single_{variant}_seed{seed}")
+    run = run_of(trial)
+    if run is None:
+        raise ValueError(f"no run with checkpoints/latest.pt under {trial} (experiment.py --stages single "
+                         f"--single-cpu-hours {PROTOCOL_CPU_HOURS} trains it)")  # fmt: skip
+    return run
+
+
+def protocol_cpu_hours(run: str, checkpoint: dict) -> float:
+    """The CPU-hours the run of `checkpoint` (its latest.pt) has spent over all its sittings; a run short of
+    PROTOCOL_CPU_HOURS is refused (ValueError naming the run, its CPU-hours and updates): no final policy yet."""
+    hours = float((checkpoint.get("extra") or {}).get("cpu_seconds", 0.0)) / 3600
+    if hours < PROTOCOL_CPU_HOURS:
+        updates = int(checkpoint["agents"][0]["num_updates"])
+        raise ValueError(f"{run} has spent {hours:.2f} of its {PROTOCOL_CPU_HOURS} CPU-hours ({updates} updates): "
+                         f"not a final policy yet")  # fmt: skip
+    return hours
+
+
+def track_means(readings: dict[str, list[float]]) -> dict[str, float]:
+    """The mean over the tracks of each reading of one policy (evaluate.evaluate_checkpoint's per-track values)."""
+    return {key: float(np.mean(values)) for key, values in readings.items()}
+
+
+def protocol_row(variant: str, seed: int, runs_dir: str) -> dict:
+    """The final protocol's row of one run (PROTOCOL_COLUMNS): its latest.pt, refused unless the run has spent its
+    CPU budget (protocol_cpu_hours), driven on the REPORT_TRACKS sampled (``final_*``) and with its mean action
+    (``mean_action_*``), each a mean over the tracks of evaluate.py's readings; ``mean_action_laps_finished`` is
+    the share of tracks whose lap the mean action finished within the time limit and ``mean_speed`` the mean
+    action's mean speed. Beside them agent 0's updates, the env steps (``counters["global_step"]``), the CPU-hours
+    of latest.pt, the wall hours of the sittings (training_hours), and the best and last-three-average returns of
+    the run's own evaluations (eval_summary)."""
+    if seed not in PROTOCOL_SEEDS:
+        raise ValueError(f"the final protocol's seeds are {', '.join(map(str, PROTOCOL_SEEDS))}, got {seed}")
+    run = protocol_run(variant, seed, runs_dir)
+    latest = os.path.join(run, "checkpoints", "latest.pt")
+    import evaluate
+    import race
+
+    checkpoint = race.read_checkpoint(latest)[1]
+    cpu_hours = protocol_cpu_hours(run, checkpoint)
+    readings = evaluate.evaluate_checkpoint(latest, *REPORT_TRACKS, PROTOCOL_POLICIES)
+    sampled, mean_action = (track_means(readings[policy]) for policy in PROTOCOL_POLICIES)
+    best_eval, last3_eval = eval_summary(eval_curve(run))
+    return {
+        "variant": variant, "seed": seed, "updates": int(checkpoint["agents"][0]["num_updates"]),
+        "env_steps": int(checkpoint["counters"]["global_step"]), "cpu_hours": round(cpu_hours, 4),
+        "wall_hours": training_hours(run),
+        "final_return": round(sampled["return"], 2), "final_progress": round(sampled["progress"], 4),
+        "final_mean_abs_steer": round(sampled["abs_steer"], 4),
+        "mean_action_return": round(mean_action["return"], 2),
+        "mean_action_progress": round(mean_action["progress"], 4),
+        "mean_action_abs_steer": round(mean_action["abs_steer"], 4),
+        "mean_action_laps_finished": round(mean_action["lap_finished"], 4),
+        "mean_speed": round(mean_action["speed"], 2),
+        "best_eval_return": best_eval, "last3_eval_return": last3_eval,
+    }  # fmt: skip
+
+
+def write_protocol_row(row: dict, path: str = os.path.join(RESULTS, "learning_final.csv")) -> None:
+    """Add a row of the final protocol to learning_final.csv, replacing an earlier row of the same variant and seed.
+    A file with other columns (the 8,000-update protocol's) is refused: its files go to benchmarks/results/history/
+    first (read_rows)."""
+    replace_row(row, path, PROTOCOL_COLUMNS, lambda r: (r["variant"], int(r["seed"])), PROTOCOL_ADVICE)
+
+
+# --- learning_final.md -----------------------------------------------------------------------
+# Its CSV's return, progress and |steer| of the final policy, by how it acts; the mean action first (the evaluation
+# policy of docs/learning.md's rule), then sampled, as trained
+PROTOCOL_POLICY_COLUMNS = {
+    "mean-action": ("mean_action_return", "mean_action_progress", "mean_action_abs_steer"),
+    "stochastic": ("final_return", "final_progress", "final_mean_abs_steer"),
+}
+POLICY_NAMES = {"mean-action": "mean action", "stochastic": "sampled"}
+PEER_NAMES = {"ppo": "SB3 PPO", "recurrent_ppo": "RecurrentPPO"}
+# Each part of the bar (protocol_bar's keys): what it says, and how its value is shown
+PROTOCOL_BAR_PARTS = {
+    "return": (f"mean action: mean return >= {PROTOCOL_BAR_RETURN:g}", ".1f"),
+    "every seed": (f"mean action: every seed >= {PROTOCOL_BAR_SEED_RETURN:g}", ".1f"),
+    "progress": (f"mean action: mean progress >= {PROTOCOL_BAR_PROGRESS:g}", ".2f"),
+    "steer": (f"mean action: mean \\|steer\\| <= {PROTOCOL_BAR_STEER:g}", ".2f"),
+    "sampled return": (f"sampled: mean return >= {PROTOCOL_BAR_SAMPLED_RETURN:g}", ".1f"),
+}
+
+
+def column(rows: list[dict], key: str) -> np.ndarray:
+    """Column `key` of CSV rows as floats."""
+    return np.array([float(r[key]) for r in rows])
+
+
+def protocol_bar(rows: list[dict]) -> dict[str, tuple[float, bool]]:
+    """Each part of the final protocol's bar for the rows of one variant (its seeds): (its value, met). The mean
+    action: mean return >= PROTOCOL_BAR_RETURN, every seed's >= PROTOCOL_BAR_SEED_RETURN (the value: the lowest),
+    mean progress >= PROTOCOL_BAR_PROGRESS, mean |steer| <= PROTOCOL_BAR_STEER; sampled: mean return >=
+    PROTOCOL_BAR_SAMPLED_RETURN."""
+    returns, progress, steer = (column(rows, key) for key in PROTOCOL_POLICY_COLUMNS["mean-action"])
+    sampled = column(rows, PROTOCOL_POLICY_COLUMNS["stochastic"][0])
+    parts = {
+        "return": (returns.mean(), returns.mean() >= PROTOCOL_BAR_RETURN),
+        "every seed": (returns.min(), returns.min() >= PROTOCOL_BAR_SEED_RETURN),
+        "progress": (progress.mean(), progress.mean() >= PROTOCOL_BAR_PROGRESS),
+        "steer": (steer.mean(), steer.mean() <= PROTOCOL_BAR_STEER),
+        "sampled return": (sampled.mean(), sampled.mean() >= PROTOCOL_BAR_SAMPLED_RETURN),
+    }
+    return {part: (float(value), bool(met)) for part, (value, met) in parts.items()}
+
+
+def read_peer_rows(path: str) -> list[dict]:
+    """A peer's rows on the report tracks (protocol_peer_path; none while its file does not exist),
+    refused with a one-line ValueError naming the file when it lacks a column of PEER_COLUMNS or, if it has a
+    ``tracks`` column, a row names other tracks than REPORT_TRACKS: only runs measured on the same tracks are
+    compared."""
+    if not os.path.exists(path):
+        return []
+    with open(path, newline="") as f:
+        reader = csv.DictReader(f)
+        rows, columns = list(reader), reader.fieldnames or []
+    missing = [c for c in PEER_COLUMNS if c not in columns]
+    if missing:
+        raise ValueError(f"{path} lacks the column(s) {', '.join(missing)} of a peer's row")
+    report = track_block(*REPORT_TRACKS)
+    elsewhere = sorted({r["tracks"] for r in rows if "tracks" in columns and r["tracks"] != report})
+    if elsewhere:
+        raise ValueError(f"{path} has rows measured on tracks {', '.join(elsewhere)}, not the report tracks {report}")
+    return rows
+
+
+def groups(rows: list[dict], peers: dict[str, list[dict]]) -> list[tuple[str, str, list[dict], tuple]]:
+    """What the report describes over seeds: (name, policy, rows, their return, progress and |steer| columns) for
+    each variant with rows, with each policy, then each peer with rows, with its deterministic policy."""
+    out = [
+        (variant, POLICY_NAMES[policy], mine, PROTOCOL_POLICY_COLUMNS[policy])
+        for variant in VARIANTS if (mine := [r for r in rows if r["variant"] == variant])
+        for policy in PROTOCOL_POLICY_COLUMNS
+    ]  # fmt: skip
+    return out + [(PEER_NAMES[peer], "deterministic", mine, PEER_COLUMNS[-3:]) for peer, mine in peers.items() if mine]
+
+
+def protocol_summary(rows: list[dict], peers: dict[str, list[dict]], reps: int = 2000) -> str:
+    """Markdown: per variant and policy, and per peer, over its seeds: the mean and the IQM of the final return
+    with stratified-bootstrap 95% intervals (rliable: descriptions; over 5 seeds the IQM is the mean of the middle
+    3, the mean counts every seed), the lowest seed, the mean progress and |steer|, and the mean action's share of
+    tracks with a finished lap."""
+    from stats import interval_estimates
+
+    described = groups(rows, peers)
+    scores = {f"{name} {policy}": column(mine, keys[0])[:, None] for name, policy, mine, keys in described}
+    estimates = interval_estimates(scores, reps=reps)
+    lines = [
+        "| runs | policy | seeds | mean return [95% CI] | IQM return [95% CI] | min seed | mean progress "
+        "| mean \\|steer\\| | laps finished |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, policy, mine, (ret, progress, steer) in described:
+        est = estimates[f"{name} {policy}"]
+        laps = f"{column(mine, 'mean_action_laps_finished').mean():.2f}" if policy == "mean action" else ""
+        lines.append(
+            f"| {name} | {policy} | {len(mine)} | {est['mean']:.1f} [{est['mean_ci'][0]:.1f}, {est['mean_ci'][1]:.1f}] "
+            f"| {est['iqm']:.1f} [{est['iqm_ci'][0]:.1f}, {est['iqm_ci'][1]:.1f}] | {column(mine, ret).min():.1f} "
+            f"| {column(mine, progress).mean():.2f} | {column(mine, steer).mean():.2f} | {laps} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def protocol_seeds(rows: list[dict], peers: dict[str, list[dict]]) -> str:
+    """Markdown: every run's row, both policies side by side (the variants), then the peers' runs."""
+
+    def policy(row: dict, keys: tuple) -> str:
+        ret, progress, steer = (float(row[key]) for key in keys)
+        return f"{ret:.1f} / {progress:.2f} / {steer:.2f}"
+
+    lines = [
+        "| variant | seed | updates | env steps | CPU-h | wall h | mean action: return / progress / \\|steer\\| "
+        "| laps finished | mean speed | sampled: return / progress / \\|steer\\| | best / last-3 evaluations |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    lines += [
+        f"| {r['variant']} | {r['seed']} | {r['updates']} | {r['env_steps']} | {float(r['cpu_hours']):.2f} "
+        f"| {float(r['wall_hours']):.2f} | {policy(r, PROTOCOL_POLICY_COLUMNS['mean-action'])} "
+        f"| {float(r['mean_action_laps_finished']):.2f} | {float(r['mean_speed']):.1f} "
+        f"| {policy(r, PROTOCOL_POLICY_COLUMNS['stochastic'])} "
+        f"| {float(r['best_eval_return']):.1f} / {float(r['last3_eval_return']):.1f} |"
+        for r in rows
+    ]  # fmt: skip
+    lines += [
+        f"| {PEER_NAMES[peer]} | {r['seed']} | {r['updates']} | {r['env_steps']} | {float(r['cpu_hours']):.2f} | "
+        f"| deterministic: {policy(r, PEER_COLUMNS[-3:])} | | | | |"
+        for peer, mine in peers.items() for r in mine
+    ]  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
+def protocol_bar_table(rows: list[dict]) -> str:
+    """Markdown: per variant each part of the bar (protocol_bar), its value and whether it is met, and the verdict;
+    a variant without all of PROTOCOL_SEEDS is provisional."""
+    lines = [
+        "| variant | seeds | " + " | ".join(label for label, _ in PROTOCOL_BAR_PARTS.values()) + " | bar |",
+        "|---|---|" + "---|" * len(PROTOCOL_BAR_PARTS) + "---|",
+    ]
+    for variant in VARIANTS:
+        mine = [r for r in rows if r["variant"] == variant]
+        if not mine:
+            continue
+        parts = protocol_bar(mine)
+        cells = [f"{value:{PROTOCOL_BAR_PARTS[part][1]}} {'met' if met else 'not met'}"
+                 for part, (value, met) in parts.items()]  # fmt: skip
+        failed = [part for part, (_, met) in parts.items() if not met]
+        verdict = "met" if not failed else "not met: " + ", ".join(failed)
+        missing = sorted(set(PROTOCOL_SEEDS) - {int(r["seed"]) for r in mine})
+        if missing:
+            verdict += f" (provisional: seeds {', '.join(map(str, missing))} missing)"
+        lines.append(f"| {variant} | {len(mine)} | " + " | ".join(cells) + f" | {verdict} |")
+    return "\n".join(lines) + "\n"
+
+
+def protocol_comparisons(rows: list[dict], peers: dict[str, list[dict]]) -> str:
+    """Markdown: the LSTM minus the GRU with each policy, and each variant with each policy minus each peer (its
+    deterministic policy), over independent runs: the difference of the means, its exact permutation test's
+    one-sided p and Welch's t 95% interval, and the verdict (stats.two_group_claim: with 6 runs a side or fewer no
+    bootstrap judges a claim). A comparison a side of which has no row is left out."""
+    from stats import describe, two_group_claim
+
+    returns = {(variant, p): column([r for r in rows if r["variant"] == variant], keys[0])
+               for variant in VARIANTS for p, keys in PROTOCOL_POLICY_COLUMNS.items()}  # fmt: skip
+    sides = [(f"{POLICY_NAMES[p]}: LSTM - GRU", returns["lstm", p], returns["gru", p]) for p in PROTOCOL_POLICY_COLUMNS]
+    sides += [
+        (f"{POLICY_NAMES[p]}: {variant} - {PEER_NAMES[peer]}", returns[variant, p], column(theirs, "final_return"))
+        for variant in VARIANTS for p in PROTOCOL_POLICY_COLUMNS for peer, theirs in peers.items()
+    ]  # fmt: skip
+    lines = ["| comparison | difference of means | test (one-sided p of the claim) | the first is higher |",
+             "|---|---|---|---|"]  # fmt: skip
+    for name, x, y in sides:
+        if x.size and y.size:
+            claim = two_group_claim(x, y)
+            lines.append(f"| {name} | {claim['estimate']:+.1f} | {describe(claim)} | {claim['verdict']} |")
+    return "\n".join(lines) + "\n"
+
+
+def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
+    """(Re)write learning_final.md from the final protocol's learning_final.csv (refused if it holds the old
+    protocol's columns) and its peers' rows on the report tracks (``<peer>_peer_10300.csv``, when present): the mean
+    and IQM per variant and policy and per peer, the bar, every run's row, and the comparisons. Returns the text."""
+    rows = read_rows(os.path.join(results_dir, "learning_final.csv"), PROTOCOL_COLUMNS, PROTOCOL_ADVICE)
+    peers = {peer: read_peer_rows(protocol_peer_path(peer, results_dir)) for peer in PROTOCOL_PEERS}
+    peers = {peer: theirs for peer, theirs in peers.items() if theirs}
+    header = (
+        f"# The final protocol (CPU budget)\n\nEach run trained until it had spent {PROTOCOL_CPU_HOURS:g} CPU-hours "
+        f"of process CPU time; its final policy (latest.pt then) drove the {REPORT_TRACKS[1]} report tracks "
+        f"{track_block(*REPORT_TRACKS)} sampled and with its mean action. The peers (benchmarks/ppo_peer.py, their "
+        f"deterministic policy) had the same CPU time and tracks. Means and IQMs over seeds carry rliable's "
+        f"stratified-bootstrap 95% intervals (descriptions); the comparisons are judged by the exact permutation "
+        f"test and Welch's t interval (benchmarks/stats.py).\n\n"
+    )
+    if not rows:
+        text = header + "No run measured yet.\n"
+    else:
+        text = (
+            header + protocol_summary(rows, peers, reps) + "\nThe bar, per variant over its seeds:\n\n"
+            + protocol_bar_table(rows) + "\nEvery run:\n\n" + protocol_seeds(rows, peers)
+            + "\nThe comparisons (independent runs):\n\n" + protocol_comparisons(rows, peers)
+        )  # fmt: skip
+    with open(os.path.join(results_dir, "learning_final.md"), "w") as f:
+        f.write(text)
+    return text

@@ -1,0 +1,254 @@
+"""The final protocol (CPU budget), benchmarks/final_protocol.py, and its modes of benchmarks/learning.py's command
+line: a run's row from its latest.pt, its event files and known per-track readings; the refusals (a run short of
+its budget, a results file of the old protocol's columns, a peer measured on other tracks); the bar; and
+learning_final.md's mean, IQM and exact tests, each checked against numbers computed here by hand."""
+
+import csv
+import itertools
+import os
+import re
+import sys
+
+import numpy as np
+import pytest
+import torch
+from scipy import stats as sps
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
+import evaluate  # noqa: E402
+import final_protocol  # noqa: E402
+import learning  # noqa: E402
+from test_learning_report import write_sitting  # noqa: E402
+
+BUDGET_SECONDS = 3600 * final_protocol.PROTOCOL_CPU_HOURS
+
+
+def fake_trial(trials, variant="lstm", seed=21, cpu_seconds=BUDGET_SECONDS + 36.0, updates=7421, steps=61234):
+    """A single-stage trial as experiment.py leaves it under <storage>/trials: a run directory with event files of
+    two sittings and a checkpoints/latest.pt that the real checkpoint reader accepts (no networks: the evaluation is
+    replaced by known readings), and a later run killed before its first checkpoint (ignored, as run_of does)."""
+    trial = os.path.join(trials, f"single_{variant}_seed{seed}")
+    run = os.path.join(trial, f"multi_car_racing__{variant}_single__{seed}__1700000000")
+    os.makedirs(os.path.join(run, "checkpoints"))
+    os.makedirs(os.path.join(trial, f"multi_car_racing__{variant}_single__{seed}__1800000000"))
+    points = [(500, -80.0, 0.02, 100), (1000, 400.0, 0.5, 300), (1500, 650.0, 0.8, 600), (2000, 610.0, 0.8, 900),
+              (2500, 590.0, 0.75, 1200)]  # fmt: skip
+    write_sitting(run, points, wall_start=1_000_000.0, pid=101)  # 4000 s
+    write_sitting(run, [(3000, 600.0, 0.8, 1500), (3500, 620.0, 0.8, 1800)], wall_start=2_000_000.0, pid=202)  # 1000 s
+    checkpoint = {"variant": variant, "args": {}, "rng": {}, "agents": [{"num_updates": updates}],
+                  "counters": {"global_step": steps, "episode": 250},
+                  "extra": {"cpu_seconds": cpu_seconds}}  # fmt: skip
+    torch.save(checkpoint, os.path.join(run, "checkpoints", "latest.pt"))
+    return run
+
+
+def known_readings(path, first_track, tracks, policies, *_, **__):
+    """evaluate.evaluate_checkpoint's answer for 30 tracks, with per-track values whose means are easy by hand."""
+    assert (first_track, tracks, tuple(policies)) == (10_300, 30, ("stochastic", "mean-action"))
+    assert path.endswith(os.path.join("checkpoints", "latest.pt"))
+    other = {"gas": [0.5] * 30, "brake_share": [0.1] * 30, "eliminated": [0.0] * 30}
+    sampled = {"return": [500.0] * 15 + [900.0] * 15, "progress": [0.6, 0.8] * 15, "abs_steer": [0.55] * 30,
+               "speed": [20.0] * 30, "lap_finished": [0.0] * 30, **other}  # fmt: skip
+    mean_action = {"return": [810.0] * 20 + [720.0] * 10, "progress": [0.9] * 27 + [0.6] * 3,
+                   "abs_steer": [0.2] * 30, "speed": [30.0] * 15 + [50.0] * 15, "lap_finished": [1.0] * 21 + [0.0] * 9,
+                   **other}  # fmt: skip
+    return {"stochastic": sampled, "mean-action": mean_action}
+
+
+def refuse_to_drive(*args, **kwargs):
+    raise AssertionError("the protocol drove a policy it should have refused first")
+
+
+# Hand-computed from fake_trial and known_readings: sampled (15 * 500 + 15 * 900) / 30 = 700, progress 0.7; mean
+# action (20 * 810 + 10 * 720) / 30 = 780, progress (27 * 0.9 + 3 * 0.6) / 30 = 0.87, laps 21 / 30 = 0.7, speed
+# (15 * 30 + 15 * 50) / 30 = 40; the evaluations' best 650 and last three (590 + 600 + 620) / 3; the sittings' 4000 s
+# and 1000 s, not the day between them.
+EXPECTED = {
+    "variant": "lstm", "seed": 21, "updates": 7421, "env_steps": 61234, "cpu_hours": 3.11, "wall_hours": 5000 / 3600,
+    "final_return": 700.0, "final_progress": 0.7, "final_mean_abs_steer": 0.55,
+    "mean_action_return": 780.0, "mean_action_progress": 0.87, "mean_action_abs_steer": 0.2,
+    "mean_action_laps_finished": 0.7, "mean_speed": 40.0, "best_eval_return": 650.0, "last3_eval_return": 603.33,
+}  # fmt: skip
+
+
+def test_a_runs_row_is_its_latest_policy_on_the_report_tracks_both_ways(tmp_path, monkeypatch):
+    trials, results = str(tmp_path / "trials"), tmp_path / "results"
+    results.mkdir()
+    fake_trial(trials)
+    monkeypatch.setattr(evaluate, "evaluate_checkpoint", known_readings)
+    row = final_protocol.protocol_row("lstm", 21, trials)
+    assert list(row) == list(final_protocol.PROTOCOL_COLUMNS)
+    assert row == pytest.approx(EXPECTED, abs=1e-4)
+    # the command line: the same row in learning_final.csv, in the protocol's column order, and learning_final.md
+    learning.cli(["--protocol-row", "--variant", "lstm", "--seed", "21", "--runs-dir", trials,
+                  "--results-dir", str(results)])  # fmt: skip
+    with open(results / "learning_final.csv", newline="") as f:
+        reader = csv.DictReader(f)
+        (written,) = list(reader)
+    assert reader.fieldnames == list(final_protocol.PROTOCOL_COLUMNS)
+    assert {k: float(v) for k, v in written.items() if k != "variant"} == pytest.approx(
+        {k: float(v) for k, v in row.items() if k != "variant"}, abs=1e-4
+    )
+    assert "| lstm | 21 | 7421 | 61234 | 3.11 | 1.39 | 780.0 / 0.87 / 0.20 | 0.70 | 40.0 | 700.0 / 0.70 / 0.55 " \
+           "| 650.0 / 603.3 |" in (results / "learning_final.md").read_text()  # fmt: skip
+
+
+def test_a_run_short_of_its_cpu_budget_is_refused_naming_it_and_how_far_it_got(tmp_path, monkeypatch):
+    trials, results = str(tmp_path / "trials"), tmp_path / "results"
+    results.mkdir()
+    run = fake_trial(trials, "gru", 23, cpu_seconds=2.5 * 3600, updates=5200)
+    monkeypatch.setattr(evaluate, "evaluate_checkpoint", refuse_to_drive)
+    message = f"{run} has spent 2.50 of its 3.1 CPU-hours (5200 updates): not a final policy yet"
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+        final_protocol.protocol_row("gru", 23, trials)
+    with pytest.raises(SystemExit) as exit_info:
+        learning.cli(["--protocol-row", "--variant", "gru", "--seed", "23", "--runs-dir", trials,
+                      "--results-dir", str(results)])  # fmt: skip
+    assert str(exit_info.value) == f"learning.py: error: {message}"
+    assert not (results / "learning_final.csv").exists()
+    for variant, seed, text in [("gru", 24, f"no run with checkpoints/latest.pt under {trials}/single_gru_seed24"),
+                                ("gru", 11, "the final protocol's seeds are 21, 22, 23, 24, 25, got 11")]:  # fmt: skip
+        with pytest.raises(ValueError, match=re.escape(text)):
+            final_protocol.protocol_row(variant, seed, trials)
+
+
+def protocol_row(variant, seed, mean_action=800.0, sampled=700.0, progress=0.875, steer=0.25):
+    """A row of the final protocol with these numbers (the rest fixed)."""
+    return {
+        "variant": variant, "seed": seed, "updates": 7000, "env_steps": 60000, "cpu_hours": 3.11, "wall_hours": 3.6,
+        "final_return": sampled, "final_progress": 0.7, "final_mean_abs_steer": 0.9,
+        "mean_action_return": mean_action, "mean_action_progress": progress, "mean_action_abs_steer": steer,
+        "mean_action_laps_finished": 0.5, "mean_speed": 40.0, "best_eval_return": 700.0, "last3_eval_return": 650.0,
+    }  # fmt: skip
+
+
+def test_the_writer_replaces_a_runs_row_and_refuses_a_file_of_other_columns(tmp_path, monkeypatch):
+    path = tmp_path / "learning_final.csv"
+    final_protocol.write_protocol_row(protocol_row("lstm", 22, 100.0), str(path))
+    final_protocol.write_protocol_row(protocol_row("gru", 21), str(path))
+    final_protocol.write_protocol_row(protocol_row("lstm", 22, 900.0), str(path))  # measured again: replaces its row
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["variant"], r["seed"], r["mean_action_return"]) for r in rows] == [("gru", "21", "800.0"),
+                                                                                  ("lstm", "22", "900.0")]  # fmt: skip
+    old = tmp_path / "old" / "learning_final.csv"  # the 8,000-update protocol's file, as benchmarks/results holds it
+    old.parent.mkdir()
+    old.write_text(",".join(learning.FINAL_COLUMNS) + "\nlearning_gru,gru,11,8000" + ",1" * 12 + "\n")
+    before = old.read_bytes()
+    advice = "move the old protocol's files (learning_final.csv, learning_final.md) to benchmarks/results/history/"
+    refusal = rf"^{re.escape(str(old))} has the columns exp_name,variant,.*{re.escape(advice)}"
+    with pytest.raises(ValueError, match=refusal):
+        final_protocol.write_protocol_row(protocol_row("lstm", 21), str(old))
+    with pytest.raises(ValueError, match=re.escape(advice)):
+        final_protocol.write_protocol_report(str(old.parent))
+    # the command line refuses it before driving a race
+    trials = str(tmp_path / "trials")
+    fake_trial(trials)
+    monkeypatch.setattr(evaluate, "evaluate_checkpoint", refuse_to_drive)
+    with pytest.raises(SystemExit, match=re.escape(advice)):
+        learning.cli(["--protocol-row", "--seed", "21", "--runs-dir", trials, "--results-dir", str(old.parent)])
+    assert old.read_bytes() == before and not (old.parent / "learning_final.md").exists()
+    # and the old protocol's writer refuses the new protocol's file
+    with pytest.raises(ValueError, match=r"another protocol's rows; give --results-dir benchmarks/results/history"):
+        learning.write_final_row({"exp_name": "learning_gru", "variant": "gru", "seed": 11}, str(path))
+
+
+def failing_parts(rows):
+    return {part for part, (_, met) in final_protocol.protocol_bar(rows).items() if not met}
+
+
+def test_the_bar_is_met_only_when_every_part_is():
+    passing = [protocol_row("lstm", s, r) for s, r in zip(final_protocol.PROTOCOL_SEEDS, (800, 820, 780, 650, 950))]
+    bar = final_protocol.protocol_bar(passing)  # mean 800 and the lowest seed 650: both at their edge
+    assert bar["return"] == (800.0, True) and bar["every seed"] == (650.0, True) and failing_parts(passing) == set()
+
+    def changed(**numbers):
+        return [{**row, **numbers} for row in passing]
+
+    assert failing_parts(changed(mean_action_return=799.0)) == {"return"}  # every seed 799: mean 799 < 800
+    low_seed = [{**row, "mean_action_return": r} for row, r in zip(passing, (1000, 1000, 1000, 1000, 649))]
+    assert failing_parts(low_seed) == {"every seed"}  # mean 929.8, a seed 649 < 650
+    low_progress = [{**row, "mean_action_progress": p} for row, p in zip(passing, (0.9, 0.9, 0.8, 0.8, 0.8))]
+    assert failing_parts(low_progress) == {"progress"}  # 0.84 < 0.85
+    assert failing_parts(changed(mean_action_abs_steer=0.3125)) == {"steer"}  # the mean action's (sampled: 0.9)
+    assert failing_parts(changed(final_return=699.0)) == {"sampled return"}
+    table = final_protocol.protocol_bar_table(low_seed + changed(variant="gru")).splitlines()
+    lstm = next(line for line in table if line.startswith("| lstm |")).split("|")
+    assert lstm[4].strip() == "649.0 not met" and lstm[-2].strip() == "not met: every seed"
+    gru = next(line for line in table if line.startswith("| gru |")).split("|")
+    assert gru[3].strip() == "800.0 met" and gru[-2].strip() == "met"
+    partial = final_protocol.protocol_bar_table(passing[:3]).splitlines()[-1]  # seeds 24 and 25 not measured yet
+    assert partial.endswith("| met (provisional: seeds 24, 25 missing) |")
+
+
+def permutation_p(x, y):
+    """One-sided p of mean(x) - mean(y) over every split of the pooled runs, enumerated here."""
+    pooled, observed = list(x) + list(y), np.mean(x) - np.mean(y)
+    diffs = [np.mean([pooled[i] for i in first]) - np.mean([pooled[i] for i in range(len(pooled)) if i not in first])
+             for first in itertools.combinations(range(len(pooled)), len(x))]  # fmt: skip
+    return sum(d >= observed - 1e-9 for d in diffs) / len(diffs)
+
+
+def summary_cells(text, runs, policy):
+    line = next(line for line in text.splitlines() if line.startswith(f"| {runs} | {policy} |"))
+    return [cell.strip() for cell in line.split("|")[1:-1]]
+
+
+def test_the_report_gives_mean_iqm_and_exact_tests_on_the_same_tracks_only(tmp_path):
+    results = tmp_path / "results"
+    results.mkdir()
+    lstm, gru, ppo = [100.0, 200.0, 300.0, 700.0, 1000.0], [150.0, 250.0, 350.0, 450.0, 550.0], [500.0, 600.0, 700.0]
+    path = str(results / "learning_final.csv")
+    for seed, a, b in zip(final_protocol.PROTOCOL_SEEDS, lstm, gru):
+        final_protocol.write_protocol_row(protocol_row("lstm", seed, a, sampled=a / 2), path)
+        final_protocol.write_protocol_row(protocol_row("gru", seed, b, sampled=b / 2), path)
+    columns = ",".join(final_protocol.PEER_COLUMNS)
+    (results / "ppo_peer_10300.csv").write_text(
+        columns + ",tracks\n" + "".join(f"ppo,{s},4800,3900000,3.1,{r},0.9,0.1,10300..10329\n" for s, r in zip(
+            (21, 22, 23), ppo))
+    )  # fmt: skip
+    (results / "ppo_peer.csv").write_text(columns + "\nppo,11,4870,4011296,3.1,5000.0,0.8,0.16\n")  # other tracks
+    text = final_protocol.write_protocol_report(str(results), reps=200)
+    assert (results / "learning_final.md").read_text() == text
+    # the mean counts every seed; the IQM (rliable: 25% trimmed from each end) of 5 seeds is the mean of the middle 3
+    for runs, policy, scores in [("lstm", "mean action", lstm), ("gru", "mean action", gru),
+                                 ("lstm", "sampled", [r / 2 for r in lstm]), ("SB3 PPO", "deterministic", ppo)]:
+        cells = summary_cells(text, runs, policy)
+        middle = sorted(scores)[1:-1] if len(scores) == 5 else scores  # of 3 it trims none: the IQM is the mean
+        assert cells[2] == str(len(scores)) and cells[5] == f"{min(scores):.1f}"
+        assert cells[3].startswith(f"{sum(scores) / len(scores):.1f} [")
+        assert cells[4].startswith(f"{sum(middle) / len(middle):.1f} [")
+    assert "5000.0" not in text and "RecurrentPPO" not in text  # the fresh tracks' PPO row and an absent peer: out
+    comparisons = {line.split("|")[1].strip(): line.split("|") for line in text.splitlines()
+                   if line.startswith("| ") and " - " in line}  # fmt: skip
+    for name, x, y in [("mean action: LSTM - GRU", lstm, gru), ("sampled: LSTM - GRU", lstm, gru),
+                       ("mean action: lstm - SB3 PPO", lstm, ppo), ("mean action: gru - SB3 PPO", gru, ppo)]:
+        if name.startswith("sampled"):
+            x, y = [v / 2 for v in x], [v / 2 for v in y]
+        welch = sps.ttest_ind(x, y, equal_var=False).confidence_interval(0.95)
+        p, (low, high) = permutation_p(x, y), (welch.low, welch.high)
+        assert float(comparisons[name][2]) == pytest.approx(np.mean(x) - np.mean(y), abs=0.05)
+        assert comparisons[name][3].strip() == (
+            f"permutation p={p:.3f}, Welch t 95% [{low:+.1f}, {high:+.1f}], n={len(x)}+{len(y)}"
+        )
+    # lstm - gru = +110 with the mean action: 77 of the 252 splits reach it (p = 0.306): weak, not a finding
+    assert permutation_p(lstm, gru) == pytest.approx(77 / 252)
+    assert comparisons["mean action: LSTM - GRU"][4].strip().startswith("weak (positive, but the exact test's p")
+    with open(results / "ppo_peer_10300.csv", "a") as f:  # a row measured on other tracks: refused, not compared
+        f.write("ppo,24,4800,3900000,3.1,800.0,0.9,0.1,10100..10119\n")
+    with pytest.raises(ValueError, match=r"ppo_peer_10300\.csv has rows measured on tracks 10100\.\.10119, not the "
+                                         r"report tracks 10300\.\.10329$"):  # fmt: skip
+        final_protocol.write_protocol_report(str(results), reps=200)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--protocol-row", "--final"], "--final and --protocol-row are separate modes: give one at most"),
+    (["--protocol-report", "--return-norm"], "the final protocol measures the default method, not an ablation "
+                                             "(--return-norm)"),
+    (["--results-dir", "elsewhere"], "--results-dir is the place of learning_final.csv for --final, --final-report"),
+])  # fmt: skip
+def test_the_command_line_refuses_a_protocol_mode_with_what_does_not_belong(argv, message, tmp_path):
+    with pytest.raises(SystemExit) as exit_info:
+        learning.cli([*argv, "--runs-dir", str(tmp_path / "runs")])
+    assert str(exit_info.value).startswith("learning.py: error: ") and message in str(exit_info.value)
+    assert not os.path.exists(tmp_path / "runs")
