@@ -14,15 +14,18 @@ protocol of ``learning.py`` (``--final``, ``--final-report``), whose ``learning_
   and last-three-average returns of its own evaluations (tracks 10000..10009). ``learning_final.csv`` holds one
   protocol's rows at a time: a file with the 8,000-update protocol's columns is refused.
 * The peers (PROTOCOL_PEERS: ``ppo_peer.py --algo ppo`` and ``--algo recurrent-ppo``): their deterministic policy
-  after the same CPU time on the same tracks, one file each, ``<peer>_peer_10300.csv`` beside learning_final.csv
-  (protocol_peer_path); a row measured on other tracks is refused.
+  after the same CPU time on the same tracks: the rows of ``<peer>_peer.csv`` beside learning_final.csv whose
+  ``tracks`` are the report tracks (protocol_peer_path, read_peer_rows); the rows of other tracks (the fresh tracks
+  10100..10119 of the 8,000-update protocol, which a row without a ``tracks`` column was measured on) are left out.
+  Their sample efficiency: the snapshots of ``<peer>_peer_curve.csv`` (``ppo_peer.py --curve``) on the report tracks.
 * The bar, per variant over its seeds (protocol_bar): with its mean action, mean return >= 800 with every seed
   >= 650, mean progress >= 0.85 and mean |steer| <= 0.3; sampled, mean return >= 700. A variant short of seeds is
   provisional.
 * ``learning_final.md`` (write_protocol_report): per variant and policy and per peer the mean and the IQM over seeds
-  with rliable's stratified-bootstrap 95% intervals (descriptions), the bar, every run's row, and the LSTM minus the
+  with rliable's stratified-bootstrap 95% intervals (descriptions), the bar, every run's row, the LSTM minus the
   GRU and each variant minus each peer, judged by the exact permutation test and Welch's t interval
-  (benchmarks/stats.py).
+  (benchmarks/stats.py), and the env steps after which each peer's snapshots reach each variant's final mean return
+  (sample_efficiency).
 
 How to run it (``learning.py`` stays the benchmark's one command line; its ``--results-dir`` moves
 learning_final.csv, learning_final.md and the peers' files):
@@ -30,14 +33,13 @@ learning_final.csv, learning_final.md and the peers' files):
     python benchmarks/experiment.py --stages single --single-cpu-hours 3.1 --seeds 21 22 23 24 25 \\
         --storage runs/final                                               # the runs
     python benchmarks/learning.py --runs-dir runs/final/trials --variant lstm --seed 21 --protocol-row   # a row
-    python benchmarks/ppo_peer.py --seed 14 --cpu-hours 3.1 --first-track 10300 --tracks 30 \\
-        --results benchmarks/results/ppo_peer_10300.csv                    # a peer's row (and --algo recurrent-ppo)
+    python benchmarks/ppo_peer.py --seed 14 --cpu-hours 3.1 --first-track 10300 --tracks 30  # a peer's row
+    python benchmarks/ppo_peer.py --seed 14 --curve --first-track 10300 --tracks 30  # its snapshots (and RecurrentPPO)
     python benchmarks/learning.py --protocol-report                        # learning_final.md alone, from the CSVs
 """
 
 from __future__ import annotations
 
-import csv
 import os
 
 import numpy as np
@@ -45,6 +47,9 @@ import numpy as np
 from learning import (
     OLD_PROTOCOL_HOME, RESULTS, VARIANTS, eval_curve, eval_summary, read_rows, replace_row, training_hours,
 )  # fmt: skip
+from ppo_peer import COLUMNS as PEER_CSV_COLUMNS
+from ppo_peer import CURVE_COLUMNS, track_block
+from ppo_peer import read_rows as read_peer_csv
 
 # --- The protocol ----------------------------------------------------------------------------
 # Each run is a single-stage trial of benchmarks/experiment.py trained until it has spent PROTOCOL_CPU_HOURS of
@@ -67,29 +72,17 @@ PROTOCOL_COLUMNS = (
     "mean_speed", "best_eval_return", "last3_eval_return",
 )  # fmt: skip
 PROTOCOL_PEERS = ("ppo", "recurrent_ppo")  # benchmarks/ppo_peer.py's variants (--algo ppo, recurrent-ppo)
-PEER_COLUMNS = (
-    "variant", "seed", "updates", "env_steps", "cpu_hours", "final_return", "final_progress", "final_mean_abs_steer"
-)  # a peer's row (ppo_peer.py's COLUMNS), its deterministic policy on the report tracks; "tracks" may follow
+PEER_COLUMNS = tuple(c for c in PEER_CSV_COLUMNS if c != "tracks")  # a peer's row (ppo_peer.py's), its tracks aside
 PROTOCOL_ADVICE = (
     f"move the old protocol's files (learning_final.csv, learning_final.md) to {OLD_PROTOCOL_HOME}/ first"
 )
 
 
 # --- A run's row of learning_final.csv --------------------------------------------------------
-def track_block(first: int, count: int) -> str:
-    """A block of tracks as the rows name it: ``10300..10329``."""
-    return f"{first}..{first + count - 1}"
-
-
-def protocol_peer_path(peer: str, results_dir: str = RESULTS) -> str:
-    """The CSV of a peer's rows on the report tracks: ``<peer>_peer_10300.csv`` (ppo_peer.py's columns).
-
-    A file of its own, named by the first report track, rather than a ``tracks`` column in ``<peer>_peer.csv``:
-    ppo_peer.py keeps one row per seed in a file (a row on the report tracks would replace the same seed's row on
-    other tracks), writes any file its ``--results`` names without a change, and ``<peer>_peer.csv`` holds rows of
-    the fresh tracks 10100..10119 without saying so. A ``tracks`` column is still read when a peer writes one
-    (read_peer_rows)."""
-    return os.path.join(results_dir, f"{peer}_peer_{REPORT_TRACKS[0]}.csv")
+def protocol_peer_path(peer: str, results_dir: str = RESULTS, curve: bool = False) -> str:
+    """The CSV of a peer's rows, ppo_peer.py's default: ``<peer>_peer.csv`` (one row per seed and tracks: its rows
+    of the report tracks are read, read_peer_rows), or with `curve` its snapshots' ``<peer>_peer_curve.csv``."""
+    return os.path.join(results_dir, f"{peer}_peer{'_curve' * curve}.csv")
 
 
 def protocol_run(variant: str, seed: int, runs_dir: str) -> str:
@@ -205,24 +198,16 @@ def protocol_bar(rows: list[dict]) -> dict[str, tuple[float, bool]]:
     return {part: (float(value), bool(met)) for part, (value, met) in parts.items()}
 
 
-def read_peer_rows(path: str) -> list[dict]:
-    """A peer's rows on the report tracks (protocol_peer_path; none while its file does not exist),
-    refused with a one-line ValueError naming the file when it lacks a column of PEER_COLUMNS or, if it has a
-    ``tracks`` column, a row names other tracks than REPORT_TRACKS: only runs measured on the same tracks are
-    compared."""
-    if not os.path.exists(path):
-        return []
-    with open(path, newline="") as f:
-        reader = csv.DictReader(f)
-        rows, columns = list(reader), reader.fieldnames or []
-    missing = [c for c in PEER_COLUMNS if c not in columns]
+def read_peer_rows(path: str, columns: tuple[str, ...] = PEER_COLUMNS) -> list[dict]:
+    """A peer's rows (or with CURVE_COLUMNS its curve's) measured on the report tracks (protocol_peer_path; none
+    while its file does not exist): only runs measured on the same tracks are compared, and a row of other tracks
+    is left out (ppo_peer.read_rows: a row without a ``tracks`` column was measured on 10100..10119). A file that
+    lacks one of `columns` is refused with a one-line ValueError naming it."""
+    rows = read_peer_csv(path)
+    missing = [c for c in columns if rows and c not in rows[0]]
     if missing:
         raise ValueError(f"{path} lacks the column(s) {', '.join(missing)} of a peer's row")
-    report = track_block(*REPORT_TRACKS)
-    elsewhere = sorted({r["tracks"] for r in rows if "tracks" in columns and r["tracks"] != report})
-    if elsewhere:
-        raise ValueError(f"{path} has rows measured on tracks {', '.join(elsewhere)}, not the report tracks {report}")
-    return rows
+    return [r for r in rows if r["tracks"] == track_block(*REPORT_TRACKS)]
 
 
 def groups(rows: list[dict], peers: dict[str, list[dict]]) -> list[tuple[str, str, list[dict], tuple]]:
@@ -336,13 +321,74 @@ def protocol_comparisons(rows: list[dict], peers: dict[str, list[dict]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def steps_label(steps: int) -> str:
+    """Env steps as the snapshots are named: 50k, 1M (else the number)."""
+    if steps % 1_000_000 == 0:
+        return f"{steps // 1_000_000}M"
+    return f"{steps // 1000}k" if steps % 1000 == 0 else f"{steps:,}"
+
+
+def curve_means(curve: list[dict]) -> dict[int, tuple[float, int]]:
+    """A peer's curve (its rows of ``<peer>_peer_curve.csv`` on the report tracks) per snapshot (the N of
+    model_<N>.zip), in order: the mean return of its deterministic policy over the seeds that have that snapshot,
+    and their number."""
+    snapshots = sorted({int(r["snapshot"]) for r in curve})
+    returns = {n: column([r for r in curve if int(r["snapshot"]) == n], "return") for n in snapshots}
+    return {n: (float(x.mean()), x.size) for n, x in returns.items()}
+
+
+def reached_at(means: dict[int, tuple[float, int]], target: float) -> str:
+    """The first snapshot whose mean return (curve_means) reaches `target`, or "not within" the last one."""
+    reached = [n for n, (mean, _) in means.items() if mean >= target]
+    return steps_label(reached[0]) if reached else f"not within {steps_label(max(means))}"
+
+
+def sample_efficiency(rows: list[dict], curves: dict[str, list[dict]]) -> str:
+    """Markdown: for each variant and policy, its final mean return and mean env steps over its seeds, and the
+    snapshot after which each peer's mean return (curve_means: over the seeds that have it) first reaches that
+    return (reached_at); then each peer's curve. "" while no peer has a curve."""
+    means = {peer: curve_means(curve) for peer, curve in curves.items() if curve}
+    if not means:
+        return ""
+    lines = [
+        "\nSample efficiency: the peers' snapshots (model_<N>.zip, kept when their env steps first passed N), their "
+        "deterministic policy on the same report tracks, against the Dreamer's final mean return over its seeds. A "
+        "peer reaches it at the first N whose mean return over the seeds that have that snapshot is at least as "
+        "high.\n",
+        "| Dreamer | its policy | its final mean return | its mean env steps | "
+        + " | ".join(f"{PEER_NAMES[peer]} snapshots reach it at" for peer in means) + " |",
+        "|---|---|---|---|" + "---|" * len(means),
+    ]
+    for variant in VARIANTS:
+        mine = [r for r in rows if r["variant"] == variant]
+        if not mine:
+            continue
+        steps = column(mine, "env_steps").mean()
+        for policy, keys in PROTOCOL_POLICY_COLUMNS.items():
+            target = column(mine, keys[0]).mean()
+            lines.append(f"| {variant} | {POLICY_NAMES[policy]} | {target:.1f} | {steps:,.0f} | "
+                         + " | ".join(reached_at(curve, target) for curve in means.values()) + " |")  # fmt: skip
+    snapshots = sorted({n for curve in means.values() for n in curve})
+    lines += ["", "| peer snapshot: mean return (seeds) | " + " | ".join(map(steps_label, snapshots)) + " |",
+              "|---|" + "---|" * len(snapshots)]  # fmt: skip
+    lines += [
+        f"| {PEER_NAMES[peer]} | "
+        + " | ".join(f"{curve[n][0]:.1f} ({curve[n][1]})" if n in curve else "" for n in snapshots) + " |"
+        for peer, curve in means.items()
+    ]  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
 def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
     """(Re)write learning_final.md from the final protocol's learning_final.csv (refused if it holds the old
-    protocol's columns) and its peers' rows on the report tracks (``<peer>_peer_10300.csv``, when present): the mean
-    and IQM per variant and policy and per peer, the bar, every run's row, and the comparisons. Returns the text."""
+    protocol's columns) and its peers' rows and snapshots on the report tracks (``<peer>_peer.csv`` and
+    ``<peer>_peer_curve.csv``, when present): the mean and IQM per variant and policy and per peer, the bar, every
+    run's row, the comparisons and the peers' sample efficiency. Returns the text."""
     rows = read_rows(os.path.join(results_dir, "learning_final.csv"), PROTOCOL_COLUMNS, PROTOCOL_ADVICE)
     peers = {peer: read_peer_rows(protocol_peer_path(peer, results_dir)) for peer in PROTOCOL_PEERS}
     peers = {peer: theirs for peer, theirs in peers.items() if theirs}
+    curves = {peer: read_peer_rows(protocol_peer_path(peer, results_dir, curve=True), CURVE_COLUMNS)
+              for peer in PROTOCOL_PEERS}  # fmt: skip
     header = (
         f"# The final protocol (CPU budget)\n\nEach run trained until it had spent {PROTOCOL_CPU_HOURS:g} CPU-hours "
         f"of process CPU time; its final policy (latest.pt then) drove the {REPORT_TRACKS[1]} report tracks "
@@ -358,6 +404,7 @@ def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
             header + protocol_summary(rows, peers, reps) + "\nThe bar, per variant over its seeds:\n\n"
             + protocol_bar_table(rows) + "\nEvery run:\n\n" + protocol_seeds(rows, peers)
             + "\nThe comparisons (independent runs):\n\n" + protocol_comparisons(rows, peers)
+            + sample_efficiency(rows, curves)
         )  # fmt: skip
     with open(os.path.join(results_dir, "learning_final.md"), "w") as f:
         f.write(text)

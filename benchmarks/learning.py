@@ -33,8 +33,8 @@ replaces the training. It writes, under ``benchmarks/results/``:
 * with ``--final``: the run's row of ``learning_final.csv`` (its final and best policies on the 20 fresh tracks
   10100..10119) and, in ``learning_final.md``, the IQM and mean over seeds with stratified-bootstrap intervals
   (rliable, descriptive), the parts of the bar each variant fails, and the LSTM minus the GRU and each variant
-  minus the SB3 PPO peer (``ppo_peer.csv``), judged by the exact permutation test and Welch's t interval
-  (benchmarks/stats.py); ``--final-report`` rewrites ``learning_final.md`` alone;
+  minus the SB3 PPO peer (``ppo_peer.csv``, its rows of the fresh tracks), judged by the exact permutation test
+  and Welch's t interval (benchmarks/stats.py); ``--final-report`` rewrites ``learning_final.md`` alone;
 * with ``--protocol-row``: the final protocol's row of ``learning_final.csv`` and ``learning_final.md``;
   ``--protocol-report`` rewrites ``learning_final.md`` alone.
 
@@ -398,15 +398,16 @@ class Args:
     """mode: only evaluate the run's final and best policies on the fresh tracks; its row in learning_final.csv (the
     8,000-update protocol's)"""
     final_report: bool = False
-    """mode: only rewrite learning_final.md from learning_final.csv and ppo_peer.csv (no evaluation)"""
+    """mode: only rewrite learning_final.md from learning_final.csv and ppo_peer.csv's rows of the fresh tracks (no
+    evaluation)"""
     protocol_row: bool = False
     """mode: only measure the final protocol's run of --variant and --seed (21..25: the single-stage trial of
     experiment.py --single-cpu-hours 3.1 under --runs-dir <storage>/trials, refused before its budget is spent),
     its latest.pt sampled and with its mean action on the 30 report tracks 10300..10329: its row of
     learning_final.csv, then learning_final.md"""
     protocol_report: bool = False
-    """mode: only rewrite learning_final.md from the final protocol's learning_final.csv and its peers'
-    <peer>_peer_10300.csv (no evaluation)"""
+    """mode: only rewrite learning_final.md from the final protocol's learning_final.csv and its peers' rows of the
+    report tracks in <peer>_peer.csv and <peer>_peer_curve.csv (no evaluation)"""
     results_dir: str = RESULTS
     """--final, --final-report, --protocol-row, --protocol-report: where learning_final.csv and .md (and the peers'
     CSVs) are (the 8,000-update protocol's, once replaced: benchmarks/results/history)"""

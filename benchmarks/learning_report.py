@@ -409,14 +409,14 @@ def peer_summary(
     each with the CPU time it had, and each variant's final policy driving its mean action minus PPO on the same
     fresh tracks: the difference of the means of independent runs, its test (the exact permutation test's one-sided
     p, Welch's t 95% interval: stats.two_group_claim) and the verdict (stats.judge: none while a side has fewer than
-    stats.MIN_RUNS runs). PPO's own mean has a stratified-bootstrap interval (rliable): a description. The
-    variants' defaults only (an ablation is not the method); "" while ppo_peer.csv has no row."""
+    stats.MIN_RUNS runs). PPO's own mean has a stratified-bootstrap interval (rliable): a description. Only PPO's
+    rows of the fresh tracks count (ppo_peer.read_rows: a row without a ``tracks`` column was measured there); the
+    variants' defaults only (an ablation is not the method); "" while ppo_peer.csv has no such row."""
+    from ppo_peer import read_rows as read_peer_rows
+    from ppo_peer import track_block
     from stats import MIN_RUNS, describe, interval_estimates, two_group_claim
 
-    if not os.path.exists(peer_path):
-        return ""
-    with open(peer_path, newline="") as f:
-        peer = list(csv.DictReader(f))
+    peer = [r for r in read_peer_rows(peer_path) if r["tracks"] == track_block(*FRESH_TRACKS)]
     if not peer:
         return ""
     ppo = np.array([float(r["final_return"]) for r in peer])

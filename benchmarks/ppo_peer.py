@@ -5,8 +5,9 @@ the single-car race, at equal CPU time.
     python benchmarks/ppo_peer.py --seed 11 --cpu-hours 3.1 --evaluate-only  # only the evaluation of the saved model
     python benchmarks/ppo_peer.py --algo recurrent-ppo --seed 11 --cpu-hours 3.1           # the same with the LSTM
     python benchmarks/ppo_peer.py --algo recurrent-ppo --seed 11 --curve                    # evaluate its snapshots
-    python benchmarks/ppo_peer.py --seed 11 --evaluate-only --first-track 10300 --tracks 30 \\
-        --results benchmarks/results/ppo_peer_10300.csv                    # the final protocol's 30 tracks
+    python benchmarks/ppo_peer.py --seed 11 --evaluate-only --first-track 10300 --tracks 30    # the report tracks
+    python benchmarks/ppo_peer.py --seed 14 --cpu-hours 3.1 --first-track 10300 --tracks 30    # (final_protocol.py)
+    python benchmarks/ppo_peer.py --seed 14 --curve --first-track 10300 --tracks 30            # its snapshots there
 
 PPO (``--algo ppo``) trains on ``dlc/SingleCarRacing-v0`` with rl-baselines3-zoo's CarRacing-v3 hyperparameters
 (hyperparams/ppo.yml), untuned: frame skip 2 (rewards summed), 64x64 grayscale, 2 stacked frames, 8 envs, rewards
@@ -20,15 +21,18 @@ rate 3e-5, GELU (inert: that policy has no hidden layer), log-std init -2. The e
 learning benchmark on one torch thread, counted as this process's CPU time (``--cpu-hours`` over all sittings), so
 that other processes on the same cores neither shorten nor lengthen it. While it trains, the model and its
 VecNormalize statistics are kept as ``model_<N>.zip`` and ``vecnormalize_<N>.pkl`` when the env steps first pass
-N = 50k, 100k, 250k, 500k, 1M (sample efficiency); ``--curve`` evaluates every snapshot on the same tracks and
-writes ``benchmarks/results/<variant>_peer_curve.csv``.
+N = 50k, 100k, 250k, 500k, 1M (sample efficiency); ``--curve`` evaluates every snapshot on the given tracks and
+writes a row per snapshot (its N, the env steps it had taken, its tracks) to
+``benchmarks/results/<variant>_peer_curve.csv``.
 
 A model is evaluated with its deterministic policy (an LSTM's state carried from step to step and reset at each
 race's start) on tracks ``--first-track`` .. + ``--tracks`` - 1: by default the Dreamer runs' 20 fresh tracks
 10100..10119; the final protocol's are the 30 tracks 10300..10329. The row goes to
-``benchmarks/results/ppo_peer.csv`` (``recurrent_ppo_peer.csv``), one per seed whatever the tracks (give another
-``--results`` for another set); for PPO on the default tracks (learning_final.csv's), ``learning_final.md`` beside it
-is rewritten with PPO over its seeds and each Dreamer variant minus PPO.
+``benchmarks/results/ppo_peer.csv`` (``recurrent_ppo_peer.csv``) with its ``tracks`` (``10300..10329``): one row
+per seed and tracks, so a seed's rows on the fresh and the report tracks stand side by side (read_rows, write_rows).
+A row of a file written before that column was measured on the old default tracks and is read as 10100..10119
+(UNNAMED_TRACKS). For PPO on the default tracks (learning_final.csv's), ``learning_final.md`` beside it is
+rewritten with PPO over its seeds (its rows of those tracks) and each Dreamer variant minus PPO.
 """
 
 from __future__ import annotations
@@ -52,9 +56,11 @@ FRESH_TRACKS = (10_100, 20)  # the default evaluation: the Dreamer runs' fresh t
 FINAL_TRACKS = (10_300, 30)  # the final protocol's tracks
 SNAPSHOT_STEPS = (50_000, 100_000, 250_000, 500_000, 1_000_000)  # env steps (frame skip included)
 COLUMNS = (
-    "variant", "seed", "updates", "env_steps", "cpu_hours", "final_return", "final_progress", "final_mean_abs_steer"
-)
-CURVE_COLUMNS = ("variant", "seed", "env_steps", "return", "progress", "mean_abs_steer")
+    "variant", "seed", "updates", "env_steps", "cpu_hours", "final_return", "final_progress", "final_mean_abs_steer",
+    "tracks",
+)  # fmt: skip
+# a snapshot's row: its N (model_<N>.zip), the env steps it had taken, its deterministic policy on `tracks`
+CURVE_COLUMNS = ("variant", "seed", "snapshot", "env_steps", "return", "progress", "mean_abs_steer", "tracks")
 # rl-baselines3-zoo, hyperparams/ppo.yml, CarRacing-v3
 ZOO = dict(
     n_envs=8, frame_skip=2, image_size=64, frame_stack=2, normalize=True, n_timesteps=4_000_000, policy="CnnPolicy",
@@ -286,35 +292,55 @@ def evaluate(model, first_track: int, tracks: int) -> dict:
     return {"return": float(np.mean(returns)), "progress": float(np.mean(progress)), "abs_steer": float(np.mean(steer))}
 
 
+def track_block(first: int, count: int) -> str:
+    """A block of tracks as the rows name it: ``10300..10329``."""
+    return f"{first}..{first + count - 1}"
+
+
+UNNAMED_TRACKS = track_block(*FRESH_TRACKS)  # the tracks of a row without a ``tracks`` (the default before it)
+
+
+def read_rows(path: str) -> list[dict]:
+    """The rows of a peer's CSV (rows or curve; none while it does not exist), each with its ``tracks``: a row
+    without one (a file written before the column, or an empty cell) was measured on the default tracks of the
+    time, 10100..10119, and is read as such (UNNAMED_TRACKS)."""
+    if not os.path.exists(path):
+        return []
+    with open(path, newline="") as f:
+        return [{**r, "tracks": r.get("tracks") or UNNAMED_TRACKS} for r in csv.DictReader(f)]
+
+
 def write_rows(rows: list[dict], path: str, columns: tuple[str, ...]) -> None:
-    """Add `rows`, replacing the earlier rows of their seeds; sorted by seed (and env steps)."""
-    seeds, kept = {int(row["seed"]) for row in rows}, []
-    if os.path.exists(path):
-        with open(path, newline="") as f:
-            kept = [r for r in csv.DictReader(f) if int(r["seed"]) not in seeds]
+    """Add `rows`, replacing the earlier rows of the same seed and tracks only (rows of the seed on other tracks
+    stay; read_rows names the tracks of an old row); sorted by seed, tracks (and env steps)."""
+    keys = {(int(row["seed"]), row["tracks"]) for row in rows}
+    kept = [r for r in read_rows(path) if (int(r["seed"]), r["tracks"]) not in keys]
     with open(path, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=columns)
         writer.writeheader()
-        writer.writerows(sorted([*kept, *rows], key=lambda r: (int(r["seed"]), int(r.get("env_steps") or 0))))
+        order = sorted([*kept, *rows], key=lambda r: (int(r["seed"]), r["tracks"], int(r.get("env_steps") or 0)))
+        writer.writerows(order)
 
 
 def write_row(row: dict, path: str = os.path.join(RESULTS, "ppo_peer.csv")) -> None:
-    """Add `row`, replacing an earlier row of the same seed."""
+    """Add `row`, replacing an earlier row of the same seed and tracks."""
     write_rows([row], path, COLUMNS)
 
 
 def curve(algo: str, seed: int, run_dir: str, first_track: int, tracks: int, path: str) -> list[dict]:
     """Evaluate every snapshot of the run (model_<threshold>.zip) on the same tracks and write one row per snapshot
-    to `path` (replacing the seed's earlier rows); env_steps is the steps the snapshot had taken."""
+    to `path` (replacing the seed's earlier rows on those tracks): snapshot is its threshold, env_steps the steps
+    it had taken."""
     variant, config = ALGOS[algo]
     rows = []
-    for _, snapshot in snapshot_paths(run_dir):
+    for threshold, snapshot in snapshot_paths(run_dir):
         model = algo_class(algo).load(snapshot, device="cpu")
         result = evaluate(model, first_track, tracks)
         rows.append({
-            "variant": variant, "seed": seed, "env_steps": int(model.num_timesteps) * config["frame_skip"],
-            "return": round(result["return"], 2), "progress": round(result["progress"], 4),
-            "mean_abs_steer": round(result["abs_steer"], 4),
+            "variant": variant, "seed": seed, "snapshot": threshold,
+            "env_steps": int(model.num_timesteps) * config["frame_skip"], "return": round(result["return"], 2),
+            "progress": round(result["progress"], 4), "mean_abs_steer": round(result["abs_steer"], 4),
+            "tracks": track_block(first_track, tracks),
         })  # fmt: skip
         print(rows[-1])
     if not rows:
@@ -377,6 +403,7 @@ def main(argv=None) -> dict | list[dict]:
         "variant": variant, "seed": args.seed, "updates": record["updates"], "env_steps": record["env_steps"],
         "cpu_hours": record["cpu_hours"], "final_return": round(result["return"], 2),
         "final_progress": round(result["progress"], 4), "final_mean_abs_steer": round(result["abs_steer"], 4),
+        "tracks": track_block(args.first_track, args.tracks),
     }  # fmt: skip
     write_row(row, results)
     print(row)

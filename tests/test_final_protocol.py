@@ -1,7 +1,8 @@
 """The final protocol (CPU budget), benchmarks/final_protocol.py, and its modes of benchmarks/learning.py's command
 line: a run's row from its latest.pt, its event files and known per-track readings; the refusals (a run short of
-its budget, a results file of the old protocol's columns, a peer measured on other tracks); the bar; and
-learning_final.md's mean, IQM and exact tests, each checked against numbers computed here by hand."""
+its budget, a results file of the old protocol's columns); the peers' rows of other tracks left out; the bar; and
+learning_final.md's mean, IQM, exact tests and sample efficiency, each checked against numbers computed here by
+hand."""
 
 import csv
 import itertools
@@ -203,11 +204,14 @@ def test_the_report_gives_mean_iqm_and_exact_tests_on_the_same_tracks_only(tmp_p
         final_protocol.write_protocol_row(protocol_row("lstm", seed, a, sampled=a / 2), path)
         final_protocol.write_protocol_row(protocol_row("gru", seed, b, sampled=b / 2), path)
     columns = ",".join(final_protocol.PEER_COLUMNS)
-    (results / "ppo_peer_10300.csv").write_text(
+    (results / "ppo_peer.csv").write_text(
         columns + ",tracks\n" + "".join(f"ppo,{s},4800,3900000,3.1,{r},0.9,0.1,10300..10329\n" for s, r in zip(
             (21, 22, 23), ppo))
+        + "ppo,21,4800,3900000,3.1,5000.0,0.8,0.16,10100..10119\n"  # the same seed on other tracks: left out
     )  # fmt: skip
-    (results / "ppo_peer.csv").write_text(columns + "\nppo,11,4870,4011296,3.1,5000.0,0.8,0.16\n")  # other tracks
+    (results / "recurrent_ppo_peer.csv").write_text(  # a file of before the tracks column: its rows, 10100..10119
+        columns + "\nrecurrent_ppo,11,4870,4011296,3.1,6000.0,0.8,0.16\n"
+    )  # fmt: skip
     text = final_protocol.write_protocol_report(str(results), reps=200)
     assert (results / "learning_final.md").read_text() == text
     # the mean counts every seed; the IQM (rliable: 25% trimmed from each end) of 5 seeds is the mean of the middle 3
@@ -218,7 +222,8 @@ def test_the_report_gives_mean_iqm_and_exact_tests_on_the_same_tracks_only(tmp_p
         assert cells[2] == str(len(scores)) and cells[5] == f"{min(scores):.1f}"
         assert cells[3].startswith(f"{sum(scores) / len(scores):.1f} [")
         assert cells[4].startswith(f"{sum(middle) / len(middle):.1f} [")
-    assert "5000.0" not in text and "RecurrentPPO" not in text  # the fresh tracks' PPO row and an absent peer: out
+    assert "5000.0" not in text and "6000.0" not in text and "RecurrentPPO" not in text  # other tracks: out
+    assert "Sample efficiency" not in text  # no peer has a curve
     comparisons = {line.split("|")[1].strip(): line.split("|") for line in text.splitlines()
                    if line.startswith("| ") and " - " in line}  # fmt: skip
     for name, x, y in [("mean action: LSTM - GRU", lstm, gru), ("sampled: LSTM - GRU", lstm, gru),
@@ -234,10 +239,12 @@ def test_the_report_gives_mean_iqm_and_exact_tests_on_the_same_tracks_only(tmp_p
     # lstm - gru = +110 with the mean action: 77 of the 252 splits reach it (p = 0.306): weak, not a finding
     assert permutation_p(lstm, gru) == pytest.approx(77 / 252)
     assert comparisons["mean action: LSTM - GRU"][4].strip().startswith("weak (positive, but the exact test's p")
-    with open(results / "ppo_peer_10300.csv", "a") as f:  # a row measured on other tracks: refused, not compared
-        f.write("ppo,24,4800,3900000,3.1,800.0,0.9,0.1,10100..10119\n")
-    with pytest.raises(ValueError, match=r"ppo_peer_10300\.csv has rows measured on tracks 10100\.\.10119, not the "
-                                         r"report tracks 10300\.\.10329$"):  # fmt: skip
+    with open(results / "ppo_peer.csv", "a") as f:  # more rows measured on other tracks: the same report
+        f.write("ppo,24,4800,3900000,3.1,800.0,0.9,0.1,10200..10219\nppo,25,4800,3900000,3.1,900.0,0.9,0.1,\n")
+    assert final_protocol.write_protocol_report(str(results), reps=200) == text
+    (results / "recurrent_ppo_peer.csv").write_text("variant,seed,final_return\nrecurrent_ppo,11,6000.0\n")
+    lacking = "updates, env_steps, cpu_hours, final_progress, final_mean_abs_steer"
+    with pytest.raises(ValueError, match=rf"recurrent_ppo_peer\.csv lacks the column\(s\) {lacking} of a peer's row$"):
         final_protocol.write_protocol_report(str(results), reps=200)
 
 
@@ -252,3 +259,48 @@ def test_the_command_line_refuses_a_protocol_mode_with_what_does_not_belong(argv
         learning.cli([*argv, "--runs-dir", str(tmp_path / "runs")])
     assert str(exit_info.value).startswith("learning.py: error: ") and message in str(exit_info.value)
     assert not os.path.exists(tmp_path / "runs")
+
+
+def test_the_sample_efficiency_table_gives_the_first_snapshot_whose_mean_reaches_the_dreamers_final_mean(tmp_path):
+    import ppo_peer
+
+    results = tmp_path / "results"
+    results.mkdir()
+    path = str(results / "learning_final.csv")
+    for variant, seed, mean_action, sampled, steps in [("lstm", 21, 650.0, 900.0, 60000),
+                                                       ("lstm", 22, 750.0, 1000.0, 50000),
+                                                       ("gru", 21, 980.0, 300.0, 61234)]:  # fmt: skip
+        row = {**protocol_row(variant, seed, mean_action, sampled), "env_steps": steps}
+        final_protocol.write_protocol_row(row, path)
+
+    def snapshots(variant, seed, returns, tracks="10300..10329"):
+        return [{"variant": variant, "seed": seed, "snapshot": n, "env_steps": n + 3000, "return": r,
+                 "progress": 0.5, "mean_abs_steer": 0.1, "tracks": tracks}
+                for n, r in zip(ppo_peer.SNAPSHOT_STEPS, returns)]  # fmt: skip
+
+    curve = str(results / "ppo_peer_curve.csv")  # seed 12 has no 1M snapshot: the 1M mean is seed 11's alone
+    ppo_peer.write_rows(snapshots("ppo", 11, [50.0, 250.0, 600.0, 800.0, 960.0]), curve, ppo_peer.CURVE_COLUMNS)
+    ppo_peer.write_rows(snapshots("ppo", 12, [150.0, 350.0, 700.0, 840.0]), curve, ppo_peer.CURVE_COLUMNS)
+    ppo_peer.write_rows(snapshots("ppo", 11, [5000.0] * 5, "10100..10119"), curve, ppo_peer.CURVE_COLUMNS)  # left out
+    curve = str(results / "recurrent_ppo_peer_curve.csv")  # snapshots up to 250k only
+    ppo_peer.write_rows(snapshots("recurrent_ppo", 11, [10.0, 200.0, 300.0]) + snapshots(
+        "recurrent_ppo", 12, [30.0, 400.0, 500.0]), curve, ppo_peer.CURVE_COLUMNS)  # fmt: skip
+    text = final_protocol.write_protocol_report(str(results), reps=200)
+    section = text[text.index("\nSample efficiency: "):]
+    # PPO's means over its seeds: 100, 300, 650, 820 at 50k..500k, and 960 at 1M (one seed); RecurrentPPO's 20,
+    # 300, 400 at 50k..250k. The Dreamer: lstm's mean action (650 + 750) / 2 = 700 -> PPO's 820 at 500k, past
+    # RecurrentPPO's last; sampled 950 -> 1M; gru's mean action 980 above either; sampled 300 -> 100k (equal)
+    assert section.split("\n\n", 1)[1] == (
+        "| Dreamer | its policy | its final mean return | its mean env steps | SB3 PPO snapshots reach it at "
+        "| RecurrentPPO snapshots reach it at |\n"
+        "|---|---|---|---|---|---|\n"
+        "| lstm | mean action | 700.0 | 55,000 | 500k | not within 250k |\n"
+        "| lstm | sampled | 950.0 | 55,000 | 1M | not within 250k |\n"
+        "| gru | mean action | 980.0 | 61,234 | not within 1M | not within 250k |\n"
+        "| gru | sampled | 300.0 | 61,234 | 100k | 100k |\n"
+        "\n"
+        "| peer snapshot: mean return (seeds) | 50k | 100k | 250k | 500k | 1M |\n"
+        "|---|---|---|---|---|---|\n"
+        "| SB3 PPO | 100.0 (2) | 300.0 (2) | 650.0 (2) | 820.0 (2) | 960.0 (1) |\n"
+        "| RecurrentPPO | 20.0 (2) | 300.0 (2) | 400.0 (2) |  |  |\n"
+    )

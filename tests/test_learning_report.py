@@ -201,6 +201,17 @@ def test_the_ppo_peer_is_compared_with_each_variants_mean_action_over_seeds(tmp_
     assert text.index("driving its mean action") < text.index("sampled, as trained") < text.index("SB3 PPO")
     # the LSTM against the GRU (700 - 500 with the mean action) stands between the variants' tables and PPO
     assert text.index("sampled, as trained") < text.index("| mean action | +200.0 |") < text.index("SB3 PPO")
+    # PPO's rows of other tracks beside them (ppo_peer.py's writer, keyed by seed and tracks) change nothing: the
+    # old rows, without a tracks column, are read and rewritten as the fresh tracks 10100..10119
+    import ppo_peer
+
+    ppo_peer.write_row({"variant": "ppo", "seed": 11, "cpu_hours": 3.1, "final_return": 9999.0,
+                        "tracks": "10300..10329"}, peer)  # fmt: skip
+    with open(peer, newline="") as f:
+        assert [(r["seed"], r["final_return"], r["tracks"]) for r in csv.DictReader(f)] == [
+            ("11", "550.0", "10100..10119"), ("11", "9999.0", "10300..10329"), ("12", "650.0", "10100..10119")
+        ]
+    assert learning_report.write_final_report(str(results), reps=500) == text
 
 
 def test_the_lstm_is_compared_with_the_gru_for_each_policy_over_seeds(tmp_path):

@@ -132,15 +132,19 @@ def test_a_recurrent_run_resumes_writes_its_row_and_its_curve(tmp_path, monkeypa
     seen = []
     monkeypatch.setattr(ppo_peer, "evaluate", lambda model, first, n: seen.append((model.num_timesteps, first, n))
                         or {"return": 1.0, "progress": 0.5, "abs_steer": 0.25})  # fmt: skip
-    for _ in range(2):  # a second time replaces the seed's rows
-        ppo_peer.main(["--algo", "recurrent-ppo", "--seed", "3", "--curve", "--first-track", "10300", "--tracks", "30",
-                       "--runs-dir", str(tmp_path), "--results", str(tmp_path / "recurrent_ppo_peer.csv")])  # fmt: skip
-    assert seen[:2] == [(64, 10_300, 30), (192, 10_300, 30)]  # every snapshot on the same tracks
+    curve_argv = ["--algo", "recurrent-ppo", "--seed", "3", "--curve", "--runs-dir", str(tmp_path), "--results",
+                  str(tmp_path / "recurrent_ppo_peer.csv")]  # fmt: skip
+    for _ in range(2):  # a second time replaces the seed's rows on those tracks
+        ppo_peer.main([*curve_argv, "--first-track", "10300", "--tracks", "30"])
+    ppo_peer.main(curve_argv)  # the default tracks: rows beside them
+    assert seen[:2] == [(64, 10_300, 30), (192, 10_300, 30)] and seen[4:] == [(64, 10_100, 20), (192, 10_100, 20)]
     with open(tmp_path / "recurrent_ppo_peer_curve.csv") as f:
         curve = list(csv.DictReader(f))
-    assert tuple(curve[0]) == ppo_peer.CURVE_COLUMNS and [(r["variant"], r["env_steps"]) for r in curve] == [
-        ("recurrent_ppo", "128"), ("recurrent_ppo", "384")
-    ]
+    assert tuple(curve[0]) == ppo_peer.CURVE_COLUMNS
+    assert [(r["variant"], r["snapshot"], r["env_steps"], r["tracks"]) for r in curve] == [
+        ("recurrent_ppo", "100", "128", "10100..10119"), ("recurrent_ppo", "300", "384", "10100..10119"),
+        ("recurrent_ppo", "100", "128", "10300..10329"), ("recurrent_ppo", "300", "384", "10300..10329"),
+    ]  # fmt: skip
 
 
 def test_the_evaluation_carries_the_lstm_state_and_resets_it_at_each_race(monkeypatch):
@@ -199,3 +203,34 @@ def test_the_evaluation_tracks_are_parameters(tmp_path, monkeypatch):
     ppo_peer.main(argv)
     ppo_peer.main([*argv, "--first-track", "10300", "--tracks", "30"])
     assert seen == [ppo_peer.FRESH_TRACKS, ppo_peer.FINAL_TRACKS] == [(10_100, 20), (10_300, 30)]
+    assert [(r["seed"], r["tracks"]) for r in ppo_peer.read_rows(str(tmp_path / "p.csv"))] == [
+        ("3", "10100..10119"), ("3", "10300..10329")
+    ]  # the seed's row on each block of tracks
+
+
+def test_a_row_replaces_only_the_row_of_its_seed_and_tracks_and_old_rows_are_the_fresh_tracks(tmp_path):
+    path = tmp_path / "ppo_peer.csv"  # as benchmarks/results holds it: written before the tracks column
+    path.write_text(",".join(ppo_peer.COLUMNS[:-1]) + "\nppo,11,4870,4011296,3.1,657.7,0.7973,0.1571\n"
+                    "ppo,12,4700,3859728,3.1,854.78,0.9529,0.0972\n")  # fmt: skip
+    assert [(r["seed"], r["tracks"]) for r in ppo_peer.read_rows(str(path))] == [("11", "10100..10119"),
+                                                                                 ("12", "10100..10119")]  # fmt: skip
+
+    def row(seed, final_return, tracks):
+        return {"variant": "ppo", "seed": seed, "updates": 4800, "env_steps": 3900000, "cpu_hours": 3.1,
+                "final_return": final_return, "final_progress": 0.9, "final_mean_abs_steer": 0.1, "tracks": tracks}
+
+    def written():
+        with open(path, newline="") as f:
+            reader = csv.DictReader(f)
+            return tuple(reader.fieldnames), [(r["seed"], r["tracks"], r["final_return"]) for r in reader]
+
+    ppo_peer.write_row(row(11, 700.0, "10300..10329"), str(path))  # beside seed 11's row of the fresh tracks
+    ppo_peer.write_row(row(13, 500.0, "10300..10329"), str(path))
+    ppo_peer.write_row(row(11, 710.0, "10300..10329"), str(path))  # measured again there: replaces that row only
+    assert written() == (ppo_peer.COLUMNS, [
+        ("11", "10100..10119", "657.7"), ("11", "10300..10329", "710.0"), ("12", "10100..10119", "854.78"),
+        ("13", "10300..10329", "500.0"),
+    ])  # fmt: skip
+    ppo_peer.write_row(row(12, 860.0, "10100..10119"), str(path))  # the old row's tracks: replaces it
+    assert written()[1] == [("11", "10100..10119", "657.7"), ("11", "10300..10329", "710.0"),
+                            ("12", "10100..10119", "860.0"), ("13", "10300..10329", "500.0")]  # fmt: skip
