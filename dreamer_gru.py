@@ -1223,11 +1223,11 @@ class Races:
 
     def drive(self, policies: list[str], video: list | None = None) -> tuple[list[Race], int]:
         """Step until at least one race ends, each agent acting with its policy (EVAL_POLICIES or "random"); returns
-        the races that ended and the env steps taken. `video` receives race 0's rendered frame after every step."""
+        the races that ended and the env steps taken. `video` gets race 0's frame after every step but its last."""
         for steps in itertools.count(1):
             self.decide(policies)
             obs, rewards, dones, infos = self.envs.step(self.actions)
-            if video is not None:
+            if video is not None and not infos[0]["is_first"]:  # (race 0 ended: the env shows the next)
                 video.append(self.envs.get_images()[0])
             self.sums["return"] += rewards  # (0 for cars that are out)
             for slot in np.flatnonzero(self.racing):  # (a car racing before this step is alive in it)
