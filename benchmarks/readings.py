@@ -74,25 +74,26 @@ def report(sweep) -> str:
         with open(cache_path) as f:
             cache = json.load(f)
     rows, waiting = [], []
-    for config, run, done in sweeps.trial_status(sweep):
+    for config, run, done, hours, finished in sweeps.trial_status(sweep):
         name = f"{config['tag']}_{config['variant']}_seed{config['seed']}"
-        if run is None or done < sweep.updates:
-            waiting.append(f"{name} ({done} of {sweep.updates} updates)")
+        if not finished:
+            waiting.append(f"{name} ({done} updates, {hours:.2f} CPU-hours of {sweeps.budget_text(sweep)})")
             continue
+        updates = done if sweep.cpu_hours > 0 else sweep.updates  # a budget: latest.pt, where the budget ran out
         try:
-            path = checkpoint_at(run, sweep.updates)
+            path = checkpoint_at(run, updates)
         except ValueError as e:  # e.g. updates per race that do not divide --updates: said, not measured
-            waiting.append(f"{name} (no policy kept at {sweep.updates} updates: {e})")
+            waiting.append(f"{name} (no policy kept at {updates} updates: {e})")
             continue
         key = f"{os.path.relpath(path, sweep.storage)}@{sweep.first_track}+{sweep.tracks}"
         if key not in cache:
-            cache[key] = measure(path, run, sweep.updates, sweep.first_track, sweep.tracks)
+            cache[key] = measure(path, run, updates, sweep.first_track, sweep.tracks)
             with open(cache_path + ".tmp", "w") as f:
                 json.dump(cache, f, indent=1)
             os.replace(cache_path + ".tmp", cache_path)
         for policy in POLICIES:
             rows.append({"tag": config["tag"], "variant": config["variant"], "seed": config["seed"],
-                         "updates": sweep.updates, "policy": policy, **cache[key][policy],
+                         "updates": updates, "policy": policy, **cache[key][policy],
                          "checkpoint": os.path.relpath(path, sweep.storage)})  # fmt: skip
     os.makedirs(sweep.results, exist_ok=True)
     base = os.path.join(sweep.results, f"sweep_{sweep.name}")
@@ -109,16 +110,20 @@ def report(sweep) -> str:
 def table(sweep, rows: list[dict], waiting: list[str]) -> str:
     """Markdown: the sweep's command, then one line per trial and policy."""
     grid = " ".join(f'"{flags}"' for flags in sweep.grid)
+    budget, when = f"--updates {sweep.updates}", f"at {sweep.updates} updates"
+    if sweep.cpu_hours > 0:
+        budget, when = f"--cpu-hours {sweep.cpu_hours:g}", f"when its {sweep.cpu_hours:g} CPU-hours ran out"
     lines = [
         f"# Sweep {sweep.name}",
         "",
         f"`python benchmarks/sweep.py --name {sweep.name} --grid {grid} --variants {' '.join(sweep.variants)} "
-        f"--seeds {' '.join(map(str, sweep.seeds))} --updates {sweep.updates}`, then `--report`: each trial's policy "
-        f"at {sweep.updates} updates on tracks {sweep.first_track}..{sweep.first_track + sweep.tracks - 1} "
-        "(benchmarks/readings.py says what each column is).",
+        f"--seeds {' '.join(map(str, sweep.seeds))} {budget}`, then `--report`: each trial's policy {when} on "
+        f"tracks {sweep.first_track}..{sweep.first_track + sweep.tracks - 1} (benchmarks/readings.py says what each "
+        "column is).",
         "",
     ]  # fmt: skip
-    shown = [c for c in COLUMNS if c not in ("updates", "checkpoint")]
+    hidden = ("checkpoint",) if sweep.cpu_hours > 0 else ("updates", "checkpoint")  # (a budget: updates differ)
+    shown = [c for c in COLUMNS if c not in hidden]
     lines += ["| " + " | ".join(shown) + " |", "|" + "---|" * len(shown)]
     for row in rows:
         cells = [f"{row[c]:.2f}" if isinstance(row[c], float) else str(row[c]) for c in shown]

@@ -5,15 +5,19 @@
     python benchmarks/sweep.py --name entropy --status                # how far each trial got (nothing runs)
     python benchmarks/sweep.py --name entropy --report                # readings of the finished trials
     python benchmarks/sweep.py --name entropy --address auto ...      # on a Ray cluster (shared --storage)
+    python benchmarks/sweep.py --name cheap --grid imagination_starts=40 action_repeat=4 --cpu-hours 1.1
+                                                                      # equal CPU time, not equal updates
 
 Each (flag set, variant, seed) is one Ray Tune trial: the single-stage run of ``benchmarks/experiment.py`` (the same
 trial code: ``--preset cpu`` with the flag set on top, one car, ``--updates`` updates, resumed from its own
-``latest.pt`` in chunks), in its own run directory ``<storage>/<name>/<tag>/trials/single_<variant>_seed<S>/``.
+``latest.pt`` in chunks; with ``--cpu-hours`` until its process CPU time reaches the budget, whatever the
+updates), in its own run directory ``<storage>/<name>/<tag>/trials/single_<variant>_seed<S>/``.
 A flag set is ``name=value`` pairs of the scripts' ``Args`` separated by spaces, or ``default`` (the preset alone);
 its tag names its directory (``entropy-coef-0.3``). The grid of a sweep is fixed when it starts (``sweep.json``):
 the same command continues it, another grid needs another ``--name``.
 
-``--report`` measures every finished trial's final policy (``latest.pt`` at ``--updates``) on the screening tracks
+``--report`` measures every finished trial's final policy (``latest.pt`` at ``--updates``, or when the CPU budget
+ran out) on the screening tracks
 (10200..10219 by default, never used to report a result), sampled and with its mean action, and writes
 ``benchmarks/results/screening/sweep_<name>.csv`` and ``.md`` with the readings that say *why* a policy drives as it
 does (``screen_readings``): return, progress, |steer|, throttle, speed, laps finished, eliminations; the actor's
@@ -52,6 +56,9 @@ class Sweep:
     """seeds of every flag set"""
     updates: int = 3100
     """updates of every trial (the screened policy is the trial's latest.pt there)"""
+    cpu_hours: float = 0.0
+    """if > 0: a CPU-time budget per trial (process CPU-hours on --torch-threads threads) that ends it instead of
+    --updates, to compare flag sets that change the cost of an update at equal CPU time"""
     storage: str = os.path.join(ROOT, "runs", "sweep")
     """where every sweep's trials and Tune's state go"""
     torch_threads: int = 1
@@ -77,7 +84,8 @@ class Sweep:
 
 
 # What fixes a sweep's trials: a rerun under the same --name must ask for the same.
-SWEEP_FIELDS = ("grid", "variants", "seeds", "updates", "torch_threads", "report_every")
+SWEEP_FIELDS = ("grid", "variants", "seeds", "updates", "cpu_hours", "torch_threads", "report_every")
+FIELD_DEFAULTS = {"cpu_hours": 0.0}  # of fields a sweep.json written before them lacks
 
 
 def flag_set(text: str) -> tuple[str, ...]:
@@ -102,7 +110,7 @@ def trial_spec(sweep: Sweep, flags: str, variant: str, seed: int) -> dict:
     """The experiment spec (as a dict) of one trial: its flag set as overrides, its own storage."""
     spec = experiment.Spec(
         variants=(variant,), seeds=(seed,), stages=("single",), overrides=flag_set(flags),
-        single_updates=sweep.updates, report_every=sweep.report_every, torch_threads=sweep.torch_threads,
+        single_updates=sweep.updates, single_cpu_hours=sweep.cpu_hours, report_every=sweep.report_every, torch_threads=sweep.torch_threads,
         storage=os.path.join(os.path.abspath(sweep.storage), sweep.name, tag_of(flags)),
     )  # fmt: skip
     return dataclasses.asdict(spec)
@@ -139,6 +147,8 @@ def check(sweep: Sweep) -> None:
                 raise SystemExit(f"sweep.py: --grid {flags!r}: {error}") from None
     if sweep.updates < 1:
         raise SystemExit(f"sweep.py: --updates must be >= 1, got {sweep.updates}")
+    if not sweep.cpu_hours >= 0:
+        raise SystemExit(f"sweep.py: --cpu-hours must be >= 0 (0: no budget), got {sweep.cpu_hours}")
     saved = saved_fields(sweep)
     if saved is not None and saved != fields(sweep):
         differ = [k for k in SWEEP_FIELDS if saved[k] != fields(sweep)[k]]
@@ -158,7 +168,7 @@ def saved_fields(sweep: Sweep) -> dict | None:
     if not os.path.exists(path):
         return None
     with open(path) as f:
-        return json.load(f)
+        return {**FIELD_DEFAULTS, **json.load(f)}
 
 
 def save_fields(sweep: Sweep) -> None:
@@ -169,8 +179,9 @@ def save_fields(sweep: Sweep) -> None:
     os.replace(path + ".tmp", path)
 
 
-def trial_status(sweep: Sweep) -> list[tuple[dict, str | None, int]]:
-    """(config, run directory or None, updates its latest.pt holds) of every trial."""
+def trial_status(sweep: Sweep) -> list[tuple[dict, str | None, int, float, bool]]:
+    """(config, run directory or None, updates and CPU-hours its latest.pt holds, whether it is finished) of every
+    trial. A trial is finished at --updates updates, or with --cpu-hours once its budget is spent."""
     import importlib
 
     rows = []
@@ -178,17 +189,26 @@ def trial_status(sweep: Sweep) -> list[tuple[dict, str | None, int]]:
         script = importlib.import_module(f"dreamer_{config['variant']}")
         directory = experiment.trial_dir(config["spec"], "single", config["variant"], config["seed"])
         run = experiment.run_of(directory)
-        done = experiment.updates_of(os.path.join(run, "checkpoints", "latest.pt"), script) if run else 0
-        rows.append((config, run, done))
+        done, hours = 0, 0.0
+        if run:
+            checkpoint = script.load_checkpoint(os.path.join(run, "checkpoints", "latest.pt"))
+            done = int(checkpoint["agents"][0]["num_updates"])
+            hours = float(checkpoint["extra"].get("cpu_seconds", 0.0)) / 3600
+        finished = hours >= sweep.cpu_hours if sweep.cpu_hours > 0 else done >= sweep.updates
+        rows.append((config, run, done, hours, run is not None and finished))
     return rows
 
 
+def budget_text(sweep: Sweep) -> str:
+    return f"{sweep.cpu_hours:g} CPU-hours" if sweep.cpu_hours > 0 else f"{sweep.updates} updates"
+
+
 def status_text(sweep: Sweep) -> str:
-    lines = [f"sweep {sweep.name} ({os.path.join(sweep.storage, sweep.name)}), {sweep.updates} updates per trial:"]
-    for config, run, done in trial_status(sweep):
+    lines = [f"sweep {sweep.name} ({os.path.join(sweep.storage, sweep.name)}), {budget_text(sweep)} per trial:"]
+    for config, run, done, hours, finished in trial_status(sweep):
         name = f"{config['tag']}_{config['variant']}_seed{config['seed']}"
-        state = "not started" if run is None else ("done" if done >= sweep.updates else f"{done} updates")
-        lines.append(f"  {name}: {state}")
+        state = "not started" if run is None else f"{done} updates, {hours:.2f} CPU-hours"
+        lines.append(f"  {name}: {'done (' + state + ')' if finished else state}")
     return "\n".join(lines)
 
 

@@ -82,6 +82,41 @@ def test_another_grid_under_the_same_name_or_an_unknown_flag_is_refused(finished
         sweeps.check(dataclasses.replace(finished, name="other", grid=("default", "default")))
 
 
+def test_a_cpu_budget_ends_each_trial_and_the_report_reads_its_last_policy(finished, monkeypatch):
+    """--cpu-hours: a budget of 1e-6 CPU-hours (3.6 ms) is spent by the first race, so the trial stops at its first
+    check (however many updates that is on this machine), far short of --updates 50, and the report measures the
+    latest.pt it stopped at. A sweep.json written before the budget existed reads as no budget."""
+    import ray
+
+    budget = dataclasses.replace(finished, name="budget", grid=GRID[:1], updates=50, cpu_hours=1e-6)
+    ray.shutdown()
+    try:
+        sweeps.main(budget)
+    finally:
+        ray.shutdown()
+    [(config, run, done, hours, ended)] = sweeps.trial_status(budget)
+    assert ended and done < 50 and hours > 1e-6
+    assert f": done ({done} updates, {hours:.2f} CPU-hours)" in sweeps.status_text(budget)
+    unfinished = sweeps.status_text(dataclasses.replace(budget, cpu_hours=0.0))  # (the same trial: short of 50)
+    assert unfinished.endswith(f": {done} updates, {hours:.2f} CPU-hours")
+    monkeypatch.setattr(readings, "measure", lambda path, run_dir, updates, *a: {
+        p: {"updates_measured": updates} for p in readings.POLICIES})  # fmt: skip
+    monkeypatch.setattr(readings, "COLUMNS", (*readings.COLUMNS, "updates_measured"))
+    monkeypatch.setattr(readings, "table", lambda *a: "")
+    readings.report(budget)
+    with open(os.path.join(budget.results, "sweep_budget.csv")) as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["updates"], r["updates_measured"], r["checkpoint"].endswith("latest.pt")) for r in rows] == [
+        (str(done), str(done), True)] * 2  # fmt: skip
+    path = os.path.join(budget.storage, "budget", "sweep.json")
+    with open(path) as f:
+        saved = json.load(f)
+    del saved["cpu_hours"]
+    with open(path, "w") as f:
+        json.dump(saved, f)
+    assert sweeps.saved_fields(budget)["cpu_hours"] == 0.0
+
+
 def test_tags_name_flag_sets_and_stay_short():
     assert sweeps.tag_of("default") == "default" and sweeps.flag_set("default") == ()
     assert sweeps.tag_of("entropy_coef=0.3 return_norm=true") == "entropy-coef-0.3_return-norm-true"
