@@ -110,7 +110,8 @@ def trial_spec(sweep: Sweep, flags: str, variant: str, seed: int) -> dict:
     """The experiment spec (as a dict) of one trial: its flag set as overrides, its own storage."""
     spec = experiment.Spec(
         variants=(variant,), seeds=(seed,), stages=("single",), overrides=flag_set(flags),
-        single_updates=sweep.updates, single_cpu_hours=sweep.cpu_hours, report_every=sweep.report_every, torch_threads=sweep.torch_threads,
+        single_updates=sweep.updates, single_cpu_hours=sweep.cpu_hours, report_every=sweep.report_every,
+        torch_threads=sweep.torch_threads,
         storage=os.path.join(os.path.abspath(sweep.storage), sweep.name, tag_of(flags)),
     )  # fmt: skip
     return dataclasses.asdict(spec)
