@@ -409,3 +409,70 @@ def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
     with open(os.path.join(results_dir, "learning_final.md"), "w") as f:
         f.write(text)
     return text
+
+
+# --- The shipped agents ----------------------------------------------------------------------
+# pretrained/<variant>_cpu.pt is replaced by the final policy (latest.pt at the budget) of the protocol's seed that
+# drives best on the screening tracks, never the report tracks, with the evaluation policy (the mean action, the
+# scripts' --eval-policy), if it beats the shipped agent on the same tracks; acting-only (evaluate.py --export),
+# loadable with weights_only=True, at most SHIP_MAX_BYTES.
+SHIP_TRACKS = (10_200, 20)
+SHIP_POLICY = "mean-action"
+SHIP_MAX_BYTES = 10_000_000
+SHIP_COLUMNS = ("variant", "candidate", "checkpoint", "return", "progress", "abs_steer", "shipped")
+
+
+def ship_rows(variant: str, runs_dir: str, shipped: str, seeds: tuple[int, ...] = PROTOCOL_SEEDS) -> list[dict]:
+    """The shipped agent and every seed's final policy (refused, naming it, while a run is short of its budget)
+    driven with SHIP_POLICY on SHIP_TRACKS: one row each (SHIP_COLUMNS, ``shipped`` False), the shipped agent first.
+    A missing shipped file is a candidate that lost already."""
+    import evaluate
+    import race
+
+    candidates = []
+    for seed in seeds:
+        run = protocol_run(variant, seed, runs_dir)
+        latest = os.path.join(run, "checkpoints", "latest.pt")
+        protocol_cpu_hours(run, race.read_checkpoint(latest)[1])  # before any driving
+        candidates.append((f"seed {seed}", latest))
+    rows = []
+    for name, path in ([("shipped", shipped)] if os.path.exists(shipped) else []) + candidates:
+        means = track_means(evaluate.evaluate_checkpoint(path, *SHIP_TRACKS, (SHIP_POLICY,))[SHIP_POLICY])
+        rows.append({"variant": variant, "candidate": name, "checkpoint": path, "return": round(means["return"], 2),
+                     "progress": round(means["progress"], 4), "abs_steer": round(means["abs_steer"], 4),
+                     "shipped": False})  # fmt: skip
+    return rows
+
+
+def ship(variant: str, runs_dir: str, shipped: str, results_dir: str = RESULTS) -> str:
+    """Measure the candidates (ship_rows); if the best seed's return beats the shipped agent's, export it over
+    `shipped` (atomically; refused above SHIP_MAX_BYTES). Writes ``ship_<variant>.csv`` in `results_dir` (its
+    ``shipped`` column marks the agent shipped after this call) and returns a markdown table of it."""
+    import csv
+
+    import race
+    from utils.checkpoint import export_policy
+
+    rows = ship_rows(variant, runs_dir, shipped)
+    current = next((r for r in rows if r["candidate"] == "shipped"), None)
+    best = max((r for r in rows if r["candidate"] != "shipped"), key=lambda r: r["return"])
+    winner = best if current is None or best["return"] > current["return"] else current
+    if winner is best:
+        script = race.read_checkpoint(best["checkpoint"])[0]
+        os.makedirs(os.path.dirname(os.path.abspath(shipped)), exist_ok=True)
+        size = export_policy(script, best["checkpoint"], shipped + ".new")
+        if size > SHIP_MAX_BYTES:
+            os.remove(shipped + ".new")
+            raise ValueError(f"{best['checkpoint']} exports to {size / 1e6:.1f} MB, over the {SHIP_MAX_BYTES / 1e6:g}"
+                             f" MB a shipped agent may take")  # fmt: skip
+        os.replace(shipped + ".new", shipped)
+    winner["shipped"] = True
+    with open(os.path.join(results_dir, f"ship_{variant}.csv"), "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=SHIP_COLUMNS)
+        writer.writeheader()
+        writer.writerows(rows)
+    lines = [f"{variant}: {POLICY_NAMES[SHIP_POLICY]} on tracks {track_block(*SHIP_TRACKS)}", "",
+             "| candidate | return | progress | \\|steer\\| | shipped |", "|---|---|---|---|---|"]  # fmt: skip
+    lines += [f"| {r['candidate']} | {r['return']:.1f} | {r['progress']:.2f} | {r['abs_steer']:.2f} | "
+              f"{'yes' if r['shipped'] else ''} |" for r in rows]  # fmt: skip
+    return "\n".join(lines) + "\n"

@@ -2,6 +2,7 @@
 
     python benchmarks/learning.py --runs-dir runs/final/trials --variant lstm --seed 21 --protocol-row   # a row
     python benchmarks/learning.py --protocol-report                        # the final protocol's learning_final.md
+    python benchmarks/learning.py --runs-dir runs/final/trials --variant lstm --protocol-ship   # pretrained/lstm_cpu.pt
     python benchmarks/learning.py --variant lstm --seed 11                 # a run of the old protocol (8,000 updates)
     python benchmarks/learning.py --variant lstm --seed 11 --resume        # continue it in a later sitting
     python benchmarks/learning.py --variant lstm --seed 11 --final --results-dir benchmarks/results/history
@@ -18,8 +19,8 @@ Trains `dreamer_<variant>.py --preset cpu` on the single-car race (stage ``singl
 share two cores) until ``--updates`` updates or ``--hours`` of wall time (resumable: a run may span sittings),
 evaluating every 5 races on the 10 held-out tracks (seeds 10000..10009) and keeping each evaluated policy
 (``checkpoints/eval_<race>.pt``). At most one mode flag (``--report``, ``--diagnose``, ``--final``,
-``--final-report``, ``--protocol-row``, ``--protocol-report``, ``--screen``, ``--policy-rule``, ``--calibrate``)
-replaces the training. It writes, under ``benchmarks/results/``:
+``--final-report``, ``--protocol-row``, ``--protocol-report``, ``--protocol-ship``, ``--screen``, ``--policy-rule``,
+``--calibrate``) replaces the training. It writes, under ``benchmarks/results/``:
 
 * ``learning_<variant>_seed<S>.csv``: evaluation return and progress against env steps, updates and hours;
 * ``baselines.json``: random actions and the pure-pursuit driver on the same 10 tracks;
@@ -36,7 +37,9 @@ replaces the training. It writes, under ``benchmarks/results/``:
   minus the SB3 PPO peer (``ppo_peer.csv``, its rows of the fresh tracks), judged by the exact permutation test
   and Welch's t interval (benchmarks/stats.py); ``--final-report`` rewrites ``learning_final.md`` alone;
 * with ``--protocol-row``: the final protocol's row of ``learning_final.csv`` and ``learning_final.md``;
-  ``--protocol-report`` rewrites ``learning_final.md`` alone.
+  ``--protocol-report`` rewrites ``learning_final.md`` alone;
+* with ``--protocol-ship``: ``ship_<variant>.csv``, the protocol's final policies and the shipped agent on the
+  screening tracks, and ``pretrained/<variant>_cpu.pt`` replaced by the best of them.
 
 The final protocol (CPU budget: per variant the seeds 21..25, each a single-stage trial of ``benchmarks/experiment.py
 --single-cpu-hours 3.1``, measured on the report tracks 10300..10329; its bar and its peers' files) is
@@ -408,6 +411,10 @@ class Args:
     protocol_report: bool = False
     """mode: only rewrite learning_final.md from the final protocol's learning_final.csv and its peers' rows of the
     report tracks in <peer>_peer.csv and <peer>_peer_curve.csv (no evaluation)"""
+    protocol_ship: bool = False
+    """mode: only choose the shipped agent of --variant: the final policies of the protocol's seeds (under
+    --runs-dir) and pretrained/<variant>_cpu.pt with the mean action on the screening tracks 10200..10219; the best
+    seed is exported over the shipped file if it drives better there (ship_<variant>.csv in --results-dir)"""
     results_dir: str = RESULTS
     """--final, --final-report, --protocol-row, --protocol-report: where learning_final.csv and .md (and the peers'
     CSVs) are (the 8,000-update protocol's, once replaced: benchmarks/results/history)"""
@@ -432,9 +439,9 @@ class Args:
     """--calibrate: number of tracks"""
 
 
-MODES = ("report", "diagnose", "final", "final_report", "protocol_row", "protocol_report", "screen", "policy_rule",
-         "calibrate")  # Args' mode fields
-FINAL_MODES = ("final", "final_report", "protocol_row", "protocol_report")  # the modes --results-dir is for
+MODES = ("report", "diagnose", "final", "final_report", "protocol_row", "protocol_report", "protocol_ship", "screen",
+         "policy_rule", "calibrate")  # Args' mode fields
+FINAL_MODES = ("final", "final_report", "protocol_row", "protocol_report", "protocol_ship")  # --results-dir's modes
 
 
 def check(args: Args) -> None:
@@ -449,9 +456,9 @@ def check(args: Args) -> None:
         raise ValueError("--reference-runs-dir is the default run's place for --screen; give --screen UPDATES")
     if args.results_dir != RESULTS and not any(getattr(args, name) for name in FINAL_MODES):
         raise ValueError("--results-dir is the place of learning_final.csv for --final, --final-report, "
-                         "--protocol-row and --protocol-report; give one of them")  # fmt: skip
+                         "--protocol-row, --protocol-report and --protocol-ship; give one of them")  # fmt: skip
     ablated = [name for name, value in ablation(args).items() if value is not None]
-    if (args.protocol_row or args.protocol_report) and ablated:
+    if (args.protocol_row or args.protocol_report or args.protocol_ship) and ablated:
         raise ValueError(f"the final protocol measures the default method, not an ablation "
                          f"(--{', --'.join(n.replace('_', '-') for n in ablated)})")  # fmt: skip
     if args.hours <= 0:
@@ -509,6 +516,11 @@ def run_mode(args: Args) -> bool:
             write_final_row(row, os.path.join(args.results_dir, "learning_final.csv"))
             print(json.dumps(row, indent=1))
         print(write_final_report(args.results_dir))
+    elif args.protocol_ship:
+        import final_protocol as protocol
+
+        shipped = os.path.join(ROOT, "pretrained", f"{args.variant}_cpu.pt")
+        print(protocol.ship(args.variant, args.runs_dir, shipped, args.results_dir))
     elif args.protocol_row or args.protocol_report:
         import final_protocol as protocol  # (it imports this file: not at the top)
 

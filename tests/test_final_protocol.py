@@ -253,6 +253,8 @@ def test_the_report_gives_mean_iqm_and_exact_tests_on_the_same_tracks_only(tmp_p
     (["--protocol-report", "--return-norm"], "the final protocol measures the default method, not an ablation "
                                              "(--return-norm)"),
     (["--results-dir", "elsewhere"], "--results-dir is the place of learning_final.csv for --final, --final-report"),
+    (["--protocol-ship", "--return-norm"], "the final protocol measures the default method, not an ablation"),
+    (["--protocol-ship", "--protocol-row"], "--protocol-row and --protocol-ship are separate modes"),
 ])  # fmt: skip
 def test_the_command_line_refuses_a_protocol_mode_with_what_does_not_belong(argv, message, tmp_path):
     with pytest.raises(SystemExit) as exit_info:
@@ -304,3 +306,61 @@ def test_the_sample_efficiency_table_gives_the_first_snapshot_whose_mean_reaches
         "| SB3 PPO | 100.0 (2) | 300.0 (2) | 650.0 (2) | 820.0 (2) | 960.0 (1) |\n"
         "| RecurrentPPO | 20.0 (2) | 300.0 (2) | 400.0 (2) |  |  |\n"
     )
+
+
+def test_the_shipped_agent_is_replaced_only_by_a_better_seed_on_the_screening_tracks(tmp_path, monkeypatch):
+    """Every seed's final policy and the shipped agent drive the screening tracks (never the report tracks) with the
+    mean action; the best seed (by return) is exported over the shipped file only if it drives better there, and a
+    run short of its budget or an export over 10 MB is refused, leaving the shipped file as it was."""
+    import utils.checkpoint
+
+    trials, results = str(tmp_path / "trials"), str(tmp_path)
+    runs = {seed: fake_trial(trials, seed=seed) for seed in final_protocol.PROTOCOL_SEEDS}
+    shipped = tmp_path / "pretrained" / "lstm_cpu.pt"
+    shipped.parent.mkdir()
+    shipped.write_bytes(b"the agent shipped before")
+    returns = {str(shipped): 500.0, **{os.path.join(runs[s], "checkpoints", "latest.pt"): r
+                                       for s, r in zip(final_protocol.PROTOCOL_SEEDS, (400, 450, 520, 510, 300))}}
+
+    def screening_readings(path, first_track, tracks, policies):
+        assert (first_track, tracks, tuple(policies)) == (10_200, 20, ("mean-action",))
+        return {"mean-action": {"return": [returns[path]] * 20, "progress": [0.5] * 20, "abs_steer": [0.2] * 20}}
+
+    exported = []
+
+    def export(script, path, out, index=0, size=1000):
+        exported.append(path)
+        with open(out, "wb") as f:
+            f.write(b"x" * size)
+        return size
+
+    monkeypatch.setattr(evaluate, "evaluate_checkpoint", screening_readings)
+    monkeypatch.setattr(utils.checkpoint, "export_policy", export)
+    text = final_protocol.ship("lstm", trials, str(shipped), results)
+    seed23 = os.path.join(runs[23], "checkpoints", "latest.pt")
+    assert exported == [seed23] and shipped.read_bytes() == b"x" * 1000  # 520 beats the shipped 500
+    with open(tmp_path / "ship_lstm.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["candidate"], float(r["return"]), r["shipped"]) for r in rows] == [
+        ("shipped", 500.0, "False"), ("seed 21", 400.0, "False"), ("seed 22", 450.0, "False"),
+        ("seed 23", 520.0, "True"), ("seed 24", 510.0, "False"), ("seed 25", 300.0, "False")]  # fmt: skip
+    assert "| seed 23 | 520.0 | 0.50 | 0.20 | yes |" in text
+
+    returns[str(shipped)] = 600.0  # now the shipped agent drives better: nothing is exported
+    shipped.write_bytes(b"the agent shipped before")
+    final_protocol.ship("lstm", trials, str(shipped), results)
+    assert exported == [seed23] and shipped.read_bytes() == b"the agent shipped before"
+
+    returns[str(shipped)] = 100.0  # an export over the limit is refused and removed
+    too_big = final_protocol.SHIP_MAX_BYTES + 1
+    monkeypatch.setattr(utils.checkpoint, "export_policy", lambda *a: export(*a, size=too_big))
+    with pytest.raises(ValueError, match="over the 10 MB"):
+        final_protocol.ship("lstm", trials, str(shipped), results)
+    assert shipped.read_bytes() == b"the agent shipped before" and not os.path.exists(str(shipped) + ".new")
+
+    short = fake_trial(str(tmp_path / "short"), seed=21, cpu_seconds=BUDGET_SECONDS - 1)
+    for seed in final_protocol.PROTOCOL_SEEDS[1:]:
+        fake_trial(str(tmp_path / "short"), seed=seed)
+    monkeypatch.setattr(evaluate, "evaluate_checkpoint", refuse_to_drive)
+    with pytest.raises(ValueError, match=f"{short}.*not a final policy yet"):
+        final_protocol.ship("lstm", str(tmp_path / "short"), str(shipped), results)
