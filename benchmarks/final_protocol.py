@@ -445,9 +445,9 @@ def ship_rows(variant: str, runs_dir: str, shipped: str, seeds: tuple[int, ...] 
 
 
 def ship(variant: str, runs_dir: str, shipped: str, results_dir: str = RESULTS) -> str:
-    """Measure the candidates (ship_rows); if the best seed's return beats the shipped agent's, export it over
-    `shipped` (atomically; refused above SHIP_MAX_BYTES). Writes ``ship_<variant>.csv`` in `results_dir` (its
-    ``shipped`` column marks the agent shipped after this call) and returns a markdown table of it."""
+    """Measure the candidates (ship_rows) and write them to ``ship_<variant>.csv`` in `results_dir` (its ``shipped``
+    column marks the winner); then, if the best seed's return beats the shipped agent's, export it over `shipped`
+    (atomically; refused above SHIP_MAX_BYTES, the shipped file unchanged). Returns a markdown table of the rows."""
     import csv
 
     import race
@@ -457,6 +457,12 @@ def ship(variant: str, runs_dir: str, shipped: str, results_dir: str = RESULTS) 
     current = next((r for r in rows if r["candidate"] == "shipped"), None)
     best = max((r for r in rows if r["candidate"] != "shipped"), key=lambda r: r["return"])
     winner = best if current is None or best["return"] > current["return"] else current
+    winner["shipped"] = True
+    os.makedirs(results_dir, exist_ok=True)
+    with open(os.path.join(results_dir, f"ship_{variant}.csv"), "w", newline="") as f:  # the record first
+        writer = csv.DictWriter(f, fieldnames=SHIP_COLUMNS)
+        writer.writeheader()
+        writer.writerows(rows)
     if winner is best:
         script = race.read_checkpoint(best["checkpoint"])[0]
         os.makedirs(os.path.dirname(os.path.abspath(shipped)), exist_ok=True)
@@ -464,13 +470,8 @@ def ship(variant: str, runs_dir: str, shipped: str, results_dir: str = RESULTS) 
         if size > SHIP_MAX_BYTES:
             os.remove(shipped + ".new")
             raise ValueError(f"{best['checkpoint']} exports to {size / 1e6:.1f} MB, over the {SHIP_MAX_BYTES / 1e6:g}"
-                             f" MB a shipped agent may take")  # fmt: skip
+                             f" MB a shipped agent may take; ship_{variant}.csv names it, {shipped} is unchanged")
         os.replace(shipped + ".new", shipped)
-    winner["shipped"] = True
-    with open(os.path.join(results_dir, f"ship_{variant}.csv"), "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=SHIP_COLUMNS)
-        writer.writeheader()
-        writer.writerows(rows)
     lines = [f"{variant}: {POLICY_NAMES[SHIP_POLICY]} on tracks {track_block(*SHIP_TRACKS)}", "",
              "| candidate | return | progress | \\|steer\\| | shipped |", "|---|---|---|---|---|"]  # fmt: skip
     lines += [f"| {r['candidate']} | {r['return']:.1f} | {r['progress']:.2f} | {r['abs_steer']:.2f} | "

@@ -413,11 +413,13 @@ class Args:
     report tracks in <peer>_peer.csv and <peer>_peer_curve.csv (no evaluation)"""
     protocol_ship: bool = False
     """mode: only choose the shipped agent of --variant: the final policies of the protocol's seeds (under
-    --runs-dir) and pretrained/<variant>_cpu.pt with the mean action on the screening tracks 10200..10219; the best
-    seed is exported over the shipped file if it drives better there (ship_<variant>.csv in --results-dir)"""
+    --runs-dir: every seed 21..25, --seed is not read) and pretrained/<variant>_cpu.pt with the mean action on the
+    screening tracks 10200..10219; the best seed is exported over the shipped file if it drives better there
+    (ship_<variant>.csv in --results-dir)"""
     results_dir: str = RESULTS
-    """--final, --final-report, --protocol-row, --protocol-report: where learning_final.csv and .md (and the peers'
-    CSVs) are (the 8,000-update protocol's, once replaced: benchmarks/results/history)"""
+    """--final, --final-report, --protocol-row, --protocol-report, --protocol-ship: where learning_final.csv and .md
+    (and the peers' CSVs, ship_<variant>.csv) are (the 8,000-update protocol's, once replaced:
+    benchmarks/results/history)"""
     screen: Annotated[int | None, tyro.conf.arg(metavar="UPDATES")] = None
     """mode: only compare the ablation given by its flags with the default run of the same variant and seed (in
     --reference-runs-dir), each at the policy it kept at UPDATES updates, sampled and mean action on the 20

@@ -77,7 +77,7 @@ def report(sweep) -> str:
     for config, run, done, hours, finished in sweeps.trial_status(sweep):
         name = f"{config['tag']}_{config['variant']}_seed{config['seed']}"
         if not finished:
-            waiting.append(f"{name} ({done} updates, {hours:.2f} CPU-hours of {sweeps.budget_text(sweep)})")
+            waiting.append(f"{name} ({sweeps.progress_text(sweep, run, done, hours)})")
             continue
         updates = done if sweep.cpu_hours > 0 else sweep.updates  # a budget: latest.pt, where the budget ran out
         try:

@@ -55,7 +55,7 @@ class Sweep:
     seeds: tuple[int, ...] = (11, 12)
     """seeds of every flag set"""
     updates: int = 3100
-    """updates of every trial (the screened policy is the trial's latest.pt there)"""
+    """updates of every trial (the screened policy is the trial's latest.pt there); with --cpu-hours, ignored"""
     cpu_hours: float = 0.0
     """if > 0: a CPU-time budget per trial (process CPU-hours on --torch-threads threads) that ends it instead of
     --updates, to compare flag sets that change the cost of an update at equal CPU time"""
@@ -204,11 +204,22 @@ def budget_text(sweep: Sweep) -> str:
     return f"{sweep.cpu_hours:g} CPU-hours" if sweep.cpu_hours > 0 else f"{sweep.updates} updates"
 
 
+def progress_text(sweep: Sweep, run: str | None, done: int, hours: float) -> str:
+    """How far a trial got, against its budget: 'not started', '1500 of 3100 updates, 0.512 CPU-hours' or
+    '0.512 of 1.1 CPU-hours, 1500 updates'."""
+    if run is None:
+        return "not started"
+    if sweep.cpu_hours > 0:
+        return f"{hours:.3f} of {sweep.cpu_hours:g} CPU-hours, {done} updates"
+    return f"{done} of {sweep.updates} updates, {hours:.3f} CPU-hours"
+
+
 def status_text(sweep: Sweep) -> str:
+    """One line per trial: 'done (...)' once finished (a shell may count the ': done' lines), else progress_text."""
     lines = [f"sweep {sweep.name} ({os.path.join(sweep.storage, sweep.name)}), {budget_text(sweep)} per trial:"]
     for config, run, done, hours, finished in trial_status(sweep):
         name = f"{config['tag']}_{config['variant']}_seed{config['seed']}"
-        state = "not started" if run is None else f"{done} updates, {hours:.2f} CPU-hours"
+        state = progress_text(sweep, run, done, hours)
         lines.append(f"  {name}: {'done (' + state + ')' if finished else state}")
     return "\n".join(lines)
 

@@ -82,7 +82,7 @@ def test_another_grid_under_the_same_name_or_an_unknown_flag_is_refused(finished
         sweeps.check(dataclasses.replace(finished, name="other", grid=("default", "default")))
 
 
-def test_a_cpu_budget_ends_each_trial_and_the_report_reads_its_last_policy(finished, monkeypatch):
+def test_a_cpu_budget_ends_each_trial_and_the_report_reads_its_last_policy(finished, monkeypatch, capsys):
     """--cpu-hours: a budget of 1e-6 CPU-hours (3.6 ms) is spent by the first race, so the trial stops at its first
     check (however many updates that is on this machine), far short of --updates 50, and the report measures the
     latest.pt it stopped at. A sweep.json written before the budget existed reads as no budget."""
@@ -95,10 +95,10 @@ def test_a_cpu_budget_ends_each_trial_and_the_report_reads_its_last_policy(finis
     finally:
         ray.shutdown()
     [(config, run, done, hours, ended)] = sweeps.trial_status(budget)
-    assert ended and done < 50 and hours > 1e-6
-    assert f": done ({done} updates, {hours:.2f} CPU-hours)" in sweeps.status_text(budget)
+    assert ended and done < 50 and hours >= budget.cpu_hours
+    assert f": done ({hours:.3f} of 1e-06 CPU-hours, {done} updates)" in sweeps.status_text(budget)
     unfinished = sweeps.status_text(dataclasses.replace(budget, cpu_hours=0.0))  # (the same trial: short of 50)
-    assert unfinished.endswith(f": {done} updates, {hours:.2f} CPU-hours")
+    assert unfinished.endswith(f": {done} of 50 updates, {hours:.3f} CPU-hours") and ": done" not in unfinished
     monkeypatch.setattr(readings, "measure", lambda path, run_dir, updates, *a: {
         p: {"updates_measured": updates} for p in readings.POLICIES})  # fmt: skip
     monkeypatch.setattr(readings, "COLUMNS", (*readings.COLUMNS, "updates_measured"))
@@ -114,7 +114,13 @@ def test_a_cpu_budget_ends_each_trial_and_the_report_reads_its_last_policy(finis
     del saved["cpu_hours"]
     with open(path, "w") as f:
         json.dump(saved, f)
+    old = dataclasses.replace(budget, cpu_hours=0.0)  # the sweep as a command line of before the budget gives it
     assert sweeps.saved_fields(budget)["cpu_hours"] == 0.0
+    sweeps.check(old)  # continued with the same command: not refused
+    with pytest.raises(SystemExit, match="other cpu_hours"):
+        sweeps.check(budget)
+    sweeps.main(dataclasses.replace(old, status=True))
+    assert "budget), 50 updates per trial:" in capsys.readouterr().out
 
 
 def test_tags_name_flag_sets_and_stay_short():
