@@ -379,11 +379,69 @@ def sample_efficiency(rows: list[dict], curves: dict[str, list[dict]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def figure_data(rows: list[dict], peers: dict[str, list[dict]], curves: dict[str, list[dict]]) -> dict:
+    """What learning_final.png draws. ``finals``: per group (groups: each variant with each policy, then each peer)
+    its final returns over seeds, and their mean with Student's t 95% interval (stats.t_interval: with 5 seeds a
+    side no bootstrap). ``steps``: per group its mean env steps and mean return; per peer with a curve its
+    snapshots' (N, mean return) (curve_means)."""
+    from stats import t_interval
+
+    finals, steps = {}, {}
+    for name, policy, mine, keys in groups(rows, peers):
+        returns = column(mine, keys[0])
+        mean, ci = t_interval(returns) if returns.size > 1 else (float(returns.mean()), (np.nan, np.nan))
+        label = f"{name.upper() if name in VARIANTS else name}, {policy}"
+        finals[label] = {"returns": returns.tolist(), "mean": float(mean), "ci": tuple(map(float, ci))}
+        steps[label] = (float(column(mine, "env_steps").mean()), float(returns.mean()))
+    snapshots = {PEER_NAMES[peer]: [(n, m) for n, (m, _) in curve_means(curve).items()]
+                 for peer, curve in curves.items() if curve}  # fmt: skip
+    return {"finals": finals, "steps": steps, "snapshots": snapshots}
+
+
+def plot_protocol(data: dict, path: str) -> None:
+    """learning_final.png: left, every group's final returns (a dot per seed) with their mean and t interval and the
+    bar's lines; right, return against env steps (log): each group's mean at its mean env steps, the peers'
+    snapshots as curves."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (left, right) = plt.subplots(1, 2, figsize=(14, 4.5))
+    labels = list(data["finals"])
+    for y, label in enumerate(labels):
+        final = data["finals"][label]
+        left.scatter(final["returns"], [y] * len(final["returns"]), color="gray", alpha=0.6, s=18)
+        if np.all(np.isfinite(final["ci"])):
+            left.plot(final["ci"], [y, y], color="black", linewidth=2)
+        left.scatter([final["mean"]], [y], color="black", marker="|", s=300)
+    left.axvline(PROTOCOL_BAR_RETURN, color="red", linestyle="-.", alpha=0.6, label="bar: mean action mean")
+    left.axvline(PROTOCOL_BAR_SAMPLED_RETURN, color="orange", linestyle=":", label="bar: sampled mean")
+    left.set_yticks(range(len(labels)), labels)
+    left.invert_yaxis()
+    left.set_xlabel(f"final return, tracks {track_block(*REPORT_TRACKS)} (dots: seeds; mean, t 95% CI)")
+    left.grid(alpha=0.3, axis="x")
+    left.legend(fontsize="small", loc="lower left")
+    for k, (peer, points) in enumerate(data["snapshots"].items()):
+        right.plot(*zip(*points), marker="o", color=f"C{k}", label=f"{peer} snapshots (deterministic)")
+    for k, (label, (env_steps, mean)) in enumerate(data["steps"].items(), start=len(PROTOCOL_PEERS)):
+        right.scatter([env_steps], [mean], marker="*", s=120, color=f"C{k}", label=f"{label} (final)")
+    right.set_xscale("log")
+    right.set_xlabel(f"env steps (log; finals at {PROTOCOL_CPU_HOURS:g} CPU-hours, snapshots along the peers' runs)")
+    right.set_ylabel("mean return over seeds")
+    right.grid(alpha=0.3)
+    right.legend(fontsize="x-small")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
 def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
     """(Re)write learning_final.md from the final protocol's learning_final.csv (refused if it holds the old
     protocol's columns) and its peers' rows and snapshots on the report tracks (``<peer>_peer.csv`` and
     ``<peer>_peer_curve.csv``, when present): the mean and IQM per variant and policy and per peer, the bar, every
-    run's row, the comparisons and the peers' sample efficiency. Returns the text."""
+    run's row, the comparisons and the peers' sample efficiency; and its figure, learning_final.png (plot_protocol).
+    Returns the text."""
     rows = read_rows(os.path.join(results_dir, "learning_final.csv"), PROTOCOL_COLUMNS, PROTOCOL_ADVICE)
     peers = {peer: read_peer_rows(protocol_peer_path(peer, results_dir)) for peer in PROTOCOL_PEERS}
     peers = {peer: theirs for peer, theirs in peers.items() if theirs}
@@ -400,6 +458,7 @@ def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
     if not rows:
         text = header + "No run measured yet.\n"
     else:
+        plot_protocol(figure_data(rows, peers, curves), os.path.join(results_dir, "learning_final.png"))
         text = (
             header + protocol_summary(rows, peers, reps) + "\nThe bar, per variant over its seeds:\n\n"
             + protocol_bar_table(rows) + "\nEvery run:\n\n" + protocol_seeds(rows, peers)

@@ -306,6 +306,19 @@ def test_the_sample_efficiency_table_gives_the_first_snapshot_whose_mean_reaches
         "| SB3 PPO | 100.0 (2) | 300.0 (2) | 650.0 (2) | 820.0 (2) | 960.0 (1) |\n"
         "| RecurrentPPO | 20.0 (2) | 300.0 (2) | 400.0 (2) |  |  |\n"
     )
+    # the figure: what it draws, and the file
+    assert (results / "learning_final.png").stat().st_size > 10_000
+    rows = learning.read_rows(path, final_protocol.PROTOCOL_COLUMNS, final_protocol.PROTOCOL_ADVICE)
+    curves = {peer: final_protocol.read_peer_rows(str(results / f"{peer}_peer_curve.csv"), ppo_peer.CURVE_COLUMNS)
+              for peer in final_protocol.PROTOCOL_PEERS}  # fmt: skip
+    data = final_protocol.figure_data(rows, {}, curves)  # (no peer has final rows here)
+    welch = sps.ttest_1samp([650.0, 750.0], 0).confidence_interval(0.95)  # Student's t over the two lstm seeds
+    assert data["finals"]["LSTM, mean action"] == {"returns": [650.0, 750.0], "mean": 700.0,
+                                                   "ci": pytest.approx((welch.low, welch.high))}  # fmt: skip
+    assert data["finals"]["GRU, sampled"]["returns"] == [300.0] and np.isnan(data["finals"]["GRU, sampled"]["ci"][0])
+    assert data["steps"]["LSTM, sampled"] == (55_000.0, 950.0)
+    assert data["steps"]["GRU, mean action"] == (61_234.0, 980.0)
+    assert data["snapshots"]["RecurrentPPO"] == [(50_000, 20.0), (100_000, 300.0), (250_000, 400.0)]
 
 
 def test_the_shipped_agent_is_replaced_only_by_a_better_seed_on_the_screening_tracks(tmp_path, monkeypatch):
