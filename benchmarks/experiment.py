@@ -274,11 +274,16 @@ def updates_of(path: str, script) -> int:
     return int(script.load_checkpoint(path)["agents"][0]["num_updates"])
 
 
+def cpu_hours_of(checkpoint: dict) -> float:
+    """The process CPU-hours a run had spent over all its sittings when it saved `checkpoint` (its "extra")."""
+    return float((checkpoint.get("extra") or {}).get("cpu_seconds", 0.0)) / 3600
+
+
 def spent_budget(path: str, script, args) -> bool:
     """Whether the run of checkpoint `path` has used its --cpu-hours-limit (no limit: never)."""
     if args.cpu_hours_limit <= 0:
         return False
-    return float(script.load_checkpoint(path)["extra"].get("cpu_seconds", 0.0)) >= 3600 * args.cpu_hours_limit
+    return cpu_hours_of(script.load_checkpoint(path)) >= args.cpu_hours_limit
 
 
 def latest_metrics(run: str) -> dict:

@@ -102,7 +102,9 @@ def protocol_run(variant: str, seed: int, runs_dir: str) -> str:
 def protocol_cpu_hours(run: str, checkpoint: dict) -> float:
     """The CPU-hours the run of `checkpoint` (its latest.pt) has spent over all its sittings; a run short of
     PROTOCOL_CPU_HOURS is refused (ValueError naming the run, its CPU-hours and updates): no final policy yet."""
-    hours = float((checkpoint.get("extra") or {}).get("cpu_seconds", 0.0)) / 3600
+    from experiment import cpu_hours_of
+
+    hours = cpu_hours_of(checkpoint)
     if hours < PROTOCOL_CPU_HOURS:
         updates = int(checkpoint["agents"][0]["num_updates"])
         raise ValueError(f"{run} has spent {hours:.2f} of its {PROTOCOL_CPU_HOURS} CPU-hours ({updates} updates): "

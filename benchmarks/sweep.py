@@ -5,7 +5,7 @@
     python benchmarks/sweep.py --name entropy --status                # how far each trial got (nothing runs)
     python benchmarks/sweep.py --name entropy --report                # readings of the finished trials
     python benchmarks/sweep.py --name entropy --address auto ...      # on a Ray cluster (shared --storage)
-    python benchmarks/sweep.py --name cheap --grid imagination_starts=40 action_repeat=4 --cpu-hours 1.1
+    python benchmarks/sweep.py --name cheap --grid imagination_starts=80 action_repeat=4 --cpu-hours 1.05
                                                                       # equal CPU time, not equal updates
 
 Each (flag set, variant, seed) is one Ray Tune trial: the single-stage run of ``benchmarks/experiment.py`` (the same
@@ -194,7 +194,7 @@ def trial_status(sweep: Sweep) -> list[tuple[dict, str | None, int, float, bool]
         if run:
             checkpoint = script.load_checkpoint(os.path.join(run, "checkpoints", "latest.pt"))
             done = int(checkpoint["agents"][0]["num_updates"])
-            hours = float(checkpoint["extra"].get("cpu_seconds", 0.0)) / 3600
+            hours = experiment.cpu_hours_of(checkpoint)
         finished = hours >= sweep.cpu_hours if sweep.cpu_hours > 0 else done >= sweep.updates
         rows.append((config, run, done, hours, run is not None and finished))
     return rows

@@ -377,3 +377,21 @@ def test_the_shipped_agent_is_replaced_only_by_a_better_seed_on_the_screening_tr
     monkeypatch.setattr(evaluate, "evaluate_checkpoint", refuse_to_drive)
     with pytest.raises(ValueError, match=f"{short}.*not a final policy yet"):
         final_protocol.ship("lstm", str(tmp_path / "short"), str(shipped), results)
+
+
+def test_the_cpu_hours_of_a_checkpoint_are_its_cpu_seconds_over_3600_and_a_budget_is_spent_at_them(tmp_path):
+    """experiment.cpu_hours_of is what the protocol, the sweeps' --cpu-hours and a trial's end read."""
+    import experiment
+
+    assert experiment.cpu_hours_of({"extra": {"cpu_seconds": 7200.0}}) == 2.0
+    assert experiment.cpu_hours_of({"extra": None}) == 0.0 == experiment.cpu_hours_of({})  # before it was recorded
+    path = str(tmp_path / "latest.pt")
+    torch.save({"extra": {"cpu_seconds": 3600.0 * 3.1}}, path)
+
+    class Script:
+        load_checkpoint = staticmethod(lambda p: torch.load(p, weights_only=True))
+
+    def spent(limit):
+        return experiment.spent_budget(path, Script, type("A", (), {"cpu_hours_limit": limit}))
+
+    assert spent(3.1) and spent(3.0) and not spent(3.2) and not spent(0.0)  # 0: no limit
