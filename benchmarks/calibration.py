@@ -12,6 +12,7 @@ import os
 
 import numpy as np
 
+from common import TRACKS, replace_rows
 from learning import RESULTS
 
 
@@ -49,7 +50,8 @@ def horizon_task_returns(rewards: np.ndarray, terminated: np.ndarray, gamma: flo
     return returns
 
 
-def calibrate_checkpoint(path: str, first_track: int = 10_100, tracks: int = 5, horizon: int | None = None) -> dict:
+def calibrate_checkpoint(path: str, first_track: int = TRACKS["fresh"][0], tracks: int = 5, horizon: int | None = None
+                         ) -> dict:
     """Is the agent's value of real states, and its imagination from them, optimistic? The saved agent (a training
     checkpoint: it needs its critic and reward head) drives its sampled policy, as trained, on tracks
     ``first_track ..``; on every frame t of those real episodes (its posterior state, as imagination starts from):
@@ -141,14 +143,9 @@ def calibrate_checkpoint(path: str, first_track: int = 10_100, tracks: int = 5, 
 
 
 def write_calibration_row(row: dict, path: str = os.path.join(RESULTS, "calibration.csv")) -> None:
-    """Add `row` to calibration.csv, replacing an earlier row of the same checkpoint, tracks and horizon."""
-    key = ("checkpoint", "tracks", "horizon")
-    rows = []
-    if os.path.exists(path):
-        with open(path, newline="") as f:
-            rows = [r for r in csv.DictReader(f) if tuple(str(r[k]) for k in key) != tuple(str(row[k]) for k in key)]
-    rows.append(row)
-    with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=CALIBRATION_COLUMNS)
-        writer.writeheader()
-        writer.writerows(rows)
+    """Add `row` to calibration.csv, replacing an earlier row of the same checkpoint, tracks and horizon (kept in
+    the order they were measured; locked and replaced atomically: common.replace_rows)."""
+    def key(r: dict) -> tuple:
+        return tuple(str(r[k]) for k in ("checkpoint", "tracks", "horizon"))
+
+    replace_rows(path, [row], CALIBRATION_COLUMNS, key, order=lambda r: ())

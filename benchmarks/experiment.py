@@ -55,6 +55,7 @@ import tyro
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import common  # noqa: E402  (the blocks of tracks)
 import learning  # noqa: E402  (the single stage is the learning benchmark's run)
 RESULTS = os.path.join(ROOT, "benchmarks", "results")
 TOURNAMENT_SEED = 7_777  # held-out tracks of the tournaments (training races use the pair's seed)
@@ -696,7 +697,7 @@ def aggregate(spec: Spec) -> str:
     controls keeps the ghost_vs_control.csv in spec.results and says how its ghost agents made again compare."""
     kept = None if spec.controls else kept_ghost_rows(spec)
     os.makedirs(spec.results, exist_ok=True)
-    plain, first = dataclasses.asdict(spec), 10_100
+    plain, first = dataclasses.asdict(spec), common.TRACKS["fresh"][0]
     single_returns: dict[str, list[float]] = {}
     ghost_rows, left_out = [], []
     for variant in spec.variants:

@@ -33,8 +33,8 @@ learning_final.csv, learning_final.md and the peers' files):
     python benchmarks/experiment.py --stages single --single-cpu-hours 3.1 --seeds 21 22 23 24 25 \\
         --storage runs/final                                               # the runs
     python benchmarks/learning.py --runs-dir runs/final/trials --variant lstm --seed 21 --protocol-row   # a row
-    python benchmarks/ppo_peer.py --seed 14 --cpu-hours 3.1 --first-track 10300 --tracks 30  # a peer's row
-    python benchmarks/ppo_peer.py --seed 14 --curve --first-track 10300 --tracks 30  # its snapshots (and RecurrentPPO)
+    python benchmarks/ppo_peer.py --seed 14 --cpu-hours 3.1  # a peer's row (its default tracks: REPORT_TRACKS)
+    python benchmarks/ppo_peer.py --seed 14 --curve           # its snapshots there (and --algo recurrent-ppo)
     python benchmarks/learning.py --protocol-report                        # learning_final.md alone, from the CSVs
 """
 
@@ -48,7 +48,8 @@ from learning import (
     OLD_PROTOCOL_HOME, RESULTS, VARIANTS, eval_curve, eval_summary, read_rows, replace_row, training_hours,
 )  # fmt: skip
 from ppo_peer import COLUMNS as PEER_CSV_COLUMNS
-from ppo_peer import CURVE_COLUMNS, track_block
+from common import TRACKS, track_block
+from ppo_peer import CURVE_COLUMNS
 from ppo_peer import read_rows as read_peer_csv
 
 # --- The protocol ----------------------------------------------------------------------------
@@ -59,7 +60,7 @@ from ppo_peer import read_rows as read_peer_csv
 # its rows, now in benchmarks/results/history/.)
 PROTOCOL_CPU_HOURS = 3.1
 PROTOCOL_SEEDS = (21, 22, 23, 24, 25)  # per variant
-REPORT_TRACKS = (10_300, 30)  # first seed and count of the report tracks
+REPORT_TRACKS = TRACKS["report"]  # first seed and count of the report tracks
 PROTOCOL_POLICIES = ("stochastic", "mean-action")  # sampled (as trained) and the actor's mean
 # The bar, per variant over its seeds. Mean action: mean return, every seed's return, mean progress, mean |steer|;
 # sampled: mean return.
@@ -477,7 +478,7 @@ def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
 # drives best on the screening tracks, never the report tracks, with the evaluation policy (the mean action, the
 # scripts' --eval-policy), if it beats the shipped agent on the same tracks; acting-only (evaluate.py --export),
 # loadable with weights_only=True, at most SHIP_MAX_BYTES.
-SHIP_TRACKS = (10_200, 20)
+SHIP_TRACKS = TRACKS["screening"]  # the shipped agents are chosen on the screening tracks
 SHIP_POLICY = "mean-action"
 SHIP_MAX_BYTES = 10_000_000
 SHIP_COLUMNS = ("variant", "candidate", "checkpoint", "return", "progress", "abs_steer", "shipped")

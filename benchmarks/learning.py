@@ -78,6 +78,7 @@ import tyro
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import common  # noqa: E402  (the blocks of tracks, the results' CSV rows)
 
 # --- The protocol ----------------------------------------------------------------------------
 RESULTS = os.path.join(ROOT, "benchmarks", "results")
@@ -88,7 +89,7 @@ RUNS = os.path.join(ROOT, "runs", "learning")
 BAR_RETURN, BAR_PROGRESS, BAR_SEED_RETURN, BAR_STEER, BAR_HOLD = 600.0, 0.65, 350.0, 0.3, 150.0
 VARIANTS = ("lstm", "gru")
 FINAL_UPDATES = 8000  # the 8,000-update protocol (replaced by final_protocol.py's): every run's updates
-FRESH_TRACKS = (10_100, 20)  # first seed and count of the fresh tracks the final policy is measured on
+FRESH_TRACKS = common.TRACKS["fresh"]  # first seed and count of the fresh tracks the final policy is measured on
 # What the benchmark adds to the scripts' CPU preset (--preset cpu): one car; decisions evaluated on the 10 held-out
 # tracks every 5 races, each evaluated policy kept; the run ends at --updates; one thread, two runs on two cores.
 LEARNING_CONFIG = {
@@ -230,7 +231,8 @@ def eval_curve(run_dir: str) -> list[dict]:
 
 # --- A saved policy on a block of tracks; the final rows -------------------------------------
 def evaluate_checkpoint(
-    path: str, first_track: int = 10_000, tracks: int = 10, policy: str = "stochastic", train_tracks: int = 0
+    path: str, first_track: int = common.TRACKS["eval"][0], tracks: int = common.TRACKS["eval"][1],
+    policy: str = "stochastic", train_tracks: int = 0,
 ) -> dict:
     """A saved agent (any variant, any stage; agent 0 of a multi-agent checkpoint) driving alone with `policy` on
     tracks ``first_track .. first_track + tracks - 1``, or (``train_tracks`` > 0) on the last ``train_tracks``
@@ -346,13 +348,9 @@ def read_rows(path: str, columns: tuple[str, ...], advice: str) -> list[dict]:
 
 
 def replace_row(row: dict, path: str, columns: tuple[str, ...], key, advice: str) -> None:
-    """Add `row` to the CSV at `path` (header `columns`, else refused: read_rows), replacing an earlier row of the
-    same key(row); rows sorted by key."""
-    rows = [r for r in read_rows(path, columns, advice) if key(r) != key(row)] + [row]
-    with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=columns)
-        writer.writeheader()
-        writer.writerows(sorted(rows, key=key))
+    """Add `row` to the CSV at `path` (header `columns`, else refused as read_rows does), replacing an earlier row of
+    the same key(row); rows sorted by key; locked and replaced atomically (common.replace_rows)."""
+    common.replace_rows(path, [row], columns, key, other_header=advice)
 
 
 FINAL_ADVICE = f"it holds another protocol's rows; give --results-dir {OLD_PROTOCOL_HOME} (the 8,000-update protocol's)"
@@ -435,7 +433,7 @@ class Args:
     policy on --tracks tracks from --first-track); a row of benchmarks/results/calibration.csv"""
     horizon: int | None = None
     """--calibrate: imagination horizon (default: the agent's own)"""
-    first_track: int = 10_100
+    first_track: int = common.TRACKS["fresh"][0]
     """--calibrate: seed of the first track"""
     tracks: int = 5
     """--calibrate: number of tracks"""

@@ -3,11 +3,10 @@ the single-car race, at equal CPU time.
 
     python benchmarks/ppo_peer.py --seed 11 --cpu-hours 3.1                  # train PPO (resumable), then evaluate
     python benchmarks/ppo_peer.py --seed 11 --cpu-hours 3.1 --evaluate-only  # only the evaluation of the saved model
-    python benchmarks/ppo_peer.py --algo recurrent-ppo --seed 11 --cpu-hours 3.1           # the same with the LSTM
-    python benchmarks/ppo_peer.py --algo recurrent-ppo --seed 11 --curve                    # evaluate its snapshots
-    python benchmarks/ppo_peer.py --seed 11 --evaluate-only --first-track 10300 --tracks 30    # the report tracks
-    python benchmarks/ppo_peer.py --seed 14 --cpu-hours 3.1 --first-track 10300 --tracks 30    # (final_protocol.py)
-    python benchmarks/ppo_peer.py --seed 14 --curve --first-track 10300 --tracks 30            # its snapshots there
+    python benchmarks/ppo_peer.py --seed 11 --curve                          # evaluate its snapshots
+    python benchmarks/ppo_peer.py --algo recurrent-ppo --seed 11 --cpu-hours 3.1   # the same with the LSTM policy
+    python benchmarks/ppo_peer.py --seed 11 --evaluate-only --first-track 10100 --tracks 20   # the 8,000-update
+                                                                                  # protocol's tracks (history/)
 
 PPO (``--algo ppo``) trains on ``dlc/SingleCarRacing-v0`` with rl-baselines3-zoo's CarRacing-v3 hyperparameters
 (hyperparams/ppo.yml), untuned: frame skip 2 (rewards summed), 64x64 grayscale, 2 stacked frames, 8 envs, rewards
@@ -26,13 +25,14 @@ writes a row per snapshot (its N, the env steps it had taken, its tracks) to
 ``benchmarks/results/<variant>_peer_curve.csv``.
 
 A model is evaluated with its deterministic policy (an LSTM's state carried from step to step and reset at each
-race's start) on tracks ``--first-track`` .. + ``--tracks`` - 1: by default the Dreamer runs' 20 fresh tracks
-10100..10119; the final protocol's are the 30 tracks 10300..10329. The row goes to
+race's start) on tracks ``--first-track`` .. + ``--tracks`` - 1: by default the final protocol's 30 report tracks
+10300..10329 (final_protocol.py), which choose nothing; the 8,000-update protocol's were 10100..10119. The row goes to
 ``benchmarks/results/ppo_peer.csv`` (``recurrent_ppo_peer.csv``) with its ``tracks`` (``10300..10329``): one row
 per seed and tracks, so a seed's rows on the fresh and the report tracks stand side by side (read_rows, write_rows).
 A row of a file written before that column was measured on the old default tracks and is read as 10100..10119
-(UNNAMED_TRACKS). For PPO on the default tracks (learning_final.csv's), ``learning_final.md`` beside it is
-rewritten with PPO over its seeds (its rows of those tracks) and each Dreamer variant minus PPO.
+(UNNAMED_TRACKS). For PPO on 10100..10119 beside a ``learning_final.csv`` of the 8,000-update protocol,
+``learning_final.md`` is rewritten with PPO over its seeds (its rows of those tracks) and each Dreamer variant minus
+PPO; the final protocol's report takes the peers' rows with ``learning.py --protocol-report``.
 """
 
 from __future__ import annotations
@@ -50,10 +50,14 @@ import numpy as np
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import common  # noqa: E402  (the blocks of tracks, the results' CSV rows)
+from common import track_block  # noqa: E402
+
 RESULTS = os.path.join(ROOT, "benchmarks", "results")
 RUNS = os.path.join(ROOT, "runs", "ppo_peer")
-FRESH_TRACKS = (10_100, 20)  # the default evaluation: the Dreamer runs' fresh tracks (first, count)
-FINAL_TRACKS = (10_300, 30)  # the final protocol's tracks
+FRESH_TRACKS = common.TRACKS["fresh"]  # the 8,000-update protocol's tracks (learning_final.csv of history/)
+FINAL_TRACKS = common.TRACKS["report"]  # the CPU-budget protocol's tracks (final_protocol.py): the default
 SNAPSHOT_STEPS = (50_000, 100_000, 250_000, 500_000, 1_000_000)  # env steps (frame skip included)
 COLUMNS = (
     "variant", "seed", "updates", "env_steps", "cpu_hours", "final_return", "final_progress", "final_mean_abs_steer",
@@ -292,11 +296,6 @@ def evaluate(model, first_track: int, tracks: int) -> dict:
     return {"return": float(np.mean(returns)), "progress": float(np.mean(progress)), "abs_steer": float(np.mean(steer))}
 
 
-def track_block(first: int, count: int) -> str:
-    """A block of tracks as the rows name it: ``10300..10329``."""
-    return f"{first}..{first + count - 1}"
-
-
 UNNAMED_TRACKS = track_block(*FRESH_TRACKS)  # the tracks of a row without a ``tracks`` (the default before it)
 
 
@@ -312,14 +311,13 @@ def read_rows(path: str) -> list[dict]:
 
 def write_rows(rows: list[dict], path: str, columns: tuple[str, ...]) -> None:
     """Add `rows`, replacing the earlier rows of the same seed and tracks only (rows of the seed on other tracks
-    stay; read_rows names the tracks of an old row); sorted by seed, tracks (and env steps)."""
-    keys = {(int(row["seed"]), row["tracks"]) for row in rows}
-    kept = [r for r in read_rows(path) if (int(r["seed"]), r["tracks"]) not in keys]
-    with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=columns)
-        writer.writeheader()
-        order = sorted([*kept, *rows], key=lambda r: (int(r["seed"]), r["tracks"], int(r.get("env_steps") or 0)))
-        writer.writerows(order)
+    stay; an old row's tracks are named as read_rows names them); sorted by seed, tracks (and env steps). Locked
+    and replaced atomically (common.replace_rows): two seeds' measurements may finish side by side."""
+    common.replace_rows(
+        path, rows, columns, key=lambda r: (int(r["seed"]), r["tracks"]),
+        order=lambda r: (int(r["seed"]), r["tracks"], int(r.get("env_steps") or 0)),
+        defaults={"tracks": UNNAMED_TRACKS},
+    )  # fmt: skip
 
 
 def write_row(row: dict, path: str = os.path.join(RESULTS, "ppo_peer.csv")) -> None:
@@ -362,8 +360,8 @@ def main(argv=None) -> dict | list[dict]:
         help="PPO steps the run takes at most and PPO's learning rate decays over (default: the zoo's n_timesteps)",
     )  # fmt: skip
     parser.add_argument("--torch-threads", type=int, default=1)
-    parser.add_argument("--first-track", type=int, default=FRESH_TRACKS[0], help="first evaluation track")
-    parser.add_argument("--tracks", type=int, default=FRESH_TRACKS[1], help="evaluation tracks from --first-track")
+    parser.add_argument("--first-track", type=int, default=FINAL_TRACKS[0], help="first evaluation track")
+    parser.add_argument("--tracks", type=int, default=FINAL_TRACKS[1], help="evaluation tracks from --first-track")
     parser.add_argument(
         "--snapshot-steps", type=int, nargs="+", default=list(SNAPSHOT_STEPS),
         help="env steps at which the model is kept as model_<steps>.zip",
@@ -408,13 +406,26 @@ def main(argv=None) -> dict | list[dict]:
     write_row(row, results)
     print(row)
     results_dir = os.path.dirname(os.path.abspath(results))
-    on_its_tracks = (args.first_track, args.tracks) == FRESH_TRACKS  # the tracks of learning_final.csv
-    if args.algo == "ppo" and on_its_tracks and os.path.exists(os.path.join(results_dir, "learning_final.csv")):
-        sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # (the Dreamer runs' final protocol is in)
+    on_its_tracks = (args.first_track, args.tracks) == FRESH_TRACKS  # the 8,000-update protocol's
+    if args.algo == "ppo" and on_its_tracks and holds_old_protocol(results_dir):
         import learning_report
 
         print(learning_report.write_final_report(results_dir, peer_path=results))  # with PPO and the differences
+    elif (args.first_track, args.tracks) == FINAL_TRACKS:
+        print("python benchmarks/learning.py --protocol-report  # learning_final.md with this row")
     return row
+
+
+def holds_old_protocol(results_dir: str) -> bool:
+    """Does `results_dir`'s learning_final.csv hold the 8,000-update protocol's rows (its header), whose report a PPO
+    row of the fresh tracks joins? The CPU-budget protocol's file has other columns and its own report."""
+    import learning
+
+    path = os.path.join(results_dir, "learning_final.csv")
+    if not os.path.exists(path):
+        return False
+    with open(path, newline="") as f:
+        return tuple(next(csv.reader(f), ())) == learning.FINAL_COLUMNS
 
 
 if __name__ == "__main__":

@@ -16,6 +16,7 @@ import os
 
 import numpy as np
 
+from common import TRACKS, replace_rows
 from learning import RESULTS, RUNS, VARIANTS, evaluate_checkpoint, experiment_name, find_run
 from learning_report import DIAGNOSTICS, progress_rows
 
@@ -23,7 +24,7 @@ from learning_report import DIAGNOSTICS, progress_rows
 # --- Screens ---------------------------------------------------------------------------------
 # A screen: an ablation against the default at the same point of training (same variant, seed and updates), on
 # tracks of its own, so that what screening picks is not then reported on the tracks it was picked on.
-SCREEN_TRACKS = (10_200, 20)
+SCREEN_TRACKS = TRACKS["screening"]
 SCREEN_POLICIES = ("stochastic", "mean-action")  # the policy as trained, and the steering it means
 SCREEN_WINDOW = 500  # the diagnostics of a screen row: means over the updates (u - SCREEN_WINDOW, u]
 SCREEN_DIAGNOSTICS = {  # column of screens.csv: its DIAGNOSTICS name
@@ -98,7 +99,6 @@ def write_screen_rows(rows: list[dict], path: str = os.path.join(RESULTS, "scree
     """Add `rows` to the screens' CSV and return the whole table as markdown, the default run of each (variant,
     seed, updates) first. A row of the same run, updates, policy and tracks is replaced (a run measured again).
     Screens may run side by side: the file is locked for the read and the write, and replaced atomically."""
-    import fcntl
 
     def key(r: dict) -> tuple:
         return r["run"], int(r["updates"]), r["policy"], r["tracks"]
@@ -107,19 +107,7 @@ def write_screen_rows(rows: list[dict], path: str = os.path.join(RESULTS, "scree
         default_last = r["exp_name"] != experiment_name(r["variant"])
         return r["variant"], int(r["seed"]), int(r["updates"]), default_last, r["exp_name"], *key(r)
 
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    with open(path + ".lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        kept, new = [], set(map(key, rows))
-        if os.path.exists(path):
-            with open(path, newline="") as f:
-                kept = [r for r in csv.DictReader(f) if key(r) not in new]
-        table = sorted(kept + rows, key=order)
-        with open(path + ".tmp", "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=SCREEN_COLUMNS)
-            writer.writeheader()
-            writer.writerows(table)
-        os.replace(path + ".tmp", path)
+    table = replace_rows(path, rows, SCREEN_COLUMNS, key, order)
     shown = [c for c in SCREEN_COLUMNS if c not in ("run", "checkpoint")]
     lines = ["| " + " | ".join(shown) + " |", "|" + "---|" * len(shown)]
     lines += ["| " + " | ".join(str(r[c]) for c in shown) + " |" for r in table]

@@ -39,6 +39,7 @@ import tyro
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import common  # noqa: E402  (the blocks of tracks)
 import experiment  # noqa: E402  (the trials are the experiment's single-stage trials)
 
 SCREEN_RESULTS = os.path.join(ROOT, "benchmarks", "results", "screening")
@@ -75,9 +76,9 @@ class Sweep:
     """only print how far each trial got (no Ray, nothing trained)"""
     report: bool = False
     """only measure the finished trials and write the readings (no Ray)"""
-    first_track: int = 10_200
+    first_track: int = common.TRACKS["screening"][0]
     """--report: first track seed of the screening tracks"""
-    tracks: int = 20
+    tracks: int = common.TRACKS["screening"][1]
     """--report: number of screening tracks"""
     results: str = SCREEN_RESULTS
     """--report: directory of sweep_<name>.csv and .md"""

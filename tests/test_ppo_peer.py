@@ -135,9 +135,9 @@ def test_a_recurrent_run_resumes_writes_its_row_and_its_curve(tmp_path, monkeypa
     curve_argv = ["--algo", "recurrent-ppo", "--seed", "3", "--curve", "--runs-dir", str(tmp_path), "--results",
                   str(tmp_path / "recurrent_ppo_peer.csv")]  # fmt: skip
     for _ in range(2):  # a second time replaces the seed's rows on those tracks
-        ppo_peer.main([*curve_argv, "--first-track", "10300", "--tracks", "30"])
-    ppo_peer.main(curve_argv)  # the default tracks: rows beside them
-    assert seen[:2] == [(64, 10_300, 30), (192, 10_300, 30)] and seen[4:] == [(64, 10_100, 20), (192, 10_100, 20)]
+        ppo_peer.main([*curve_argv, "--first-track", "10100", "--tracks", "20"])
+    ppo_peer.main(curve_argv)  # the default tracks (the report tracks): rows beside them
+    assert seen[:2] == [(64, 10_100, 20), (192, 10_100, 20)] and seen[4:] == [(64, 10_300, 30), (192, 10_300, 30)]
     with open(tmp_path / "recurrent_ppo_peer_curve.csv") as f:
         curve = list(csv.DictReader(f))
     assert tuple(curve[0]) == ppo_peer.CURVE_COLUMNS
@@ -200,12 +200,21 @@ def test_the_evaluation_tracks_are_parameters(tmp_path, monkeypatch):
     monkeypatch.setattr(ppo_peer, "evaluate", lambda model, first, n: seen.append((first, n))
                         or {"return": 1.0, "progress": 0.5, "abs_steer": 0.25})  # fmt: skip
     argv = ["--seed", "3", "--evaluate-only", "--runs-dir", str(tmp_path), "--results", str(tmp_path / "p.csv")]
-    ppo_peer.main(argv)
-    ppo_peer.main([*argv, "--first-track", "10300", "--tracks", "30"])
-    assert seen == [ppo_peer.FRESH_TRACKS, ppo_peer.FINAL_TRACKS] == [(10_100, 20), (10_300, 30)]
+    ppo_peer.main(argv)  # the default: the final protocol's report tracks
+    # the 8,000-update protocol's tracks, beside a learning_final.csv of the final protocol: its report (not the old
+    # one, which would refuse the file's columns) is learning.py --protocol-report's
+    import final_protocol
+    import learning
+
+    (tmp_path / "learning_final.csv").write_text(",".join(final_protocol.PROTOCOL_COLUMNS) + "\n")
+    ppo_peer.main([*argv, "--first-track", "10100", "--tracks", "20"])
+    assert seen == [ppo_peer.FINAL_TRACKS, ppo_peer.FRESH_TRACKS] == [(10_300, 30), (10_100, 20)]
     assert [(r["seed"], r["tracks"]) for r in ppo_peer.read_rows(str(tmp_path / "p.csv"))] == [
         ("3", "10100..10119"), ("3", "10300..10329")
     ]  # the seed's row on each block of tracks
+    assert not (tmp_path / "learning_final.md").exists() and not ppo_peer.holds_old_protocol(str(tmp_path))
+    (tmp_path / "learning_final.csv").write_text(",".join(learning.FINAL_COLUMNS) + "\n")
+    assert ppo_peer.holds_old_protocol(str(tmp_path))
 
 
 def test_a_row_replaces_only_the_row_of_its_seed_and_tracks_and_old_rows_are_the_fresh_tracks(tmp_path):

@@ -1,0 +1,71 @@
+"""What the benchmarks share: the blocks of tracks, with what each may decide, and the one way a results CSV is
+rewritten (as Stable-Baselines3's ``common/``: small pieces the scripts of ``benchmarks/`` import).
+
+A track is an env seed; a block is ``(first, count)``, tracks ``first .. first + count - 1``. A result is reported on
+a block that chose nothing: the block a choice was made on measures that choice with a bias in its favour.
+"""
+
+from __future__ import annotations
+
+import csv
+import fcntl
+import os
+from typing import Callable, Iterable
+
+TRACKS = {
+    # every run's own evaluations during training (--eval-every): they choose its best.pt
+    "eval": (10_000, 10),
+    # the 8,000-update protocol's report (learning_final.csv of benchmarks/results/history/), the experiment's ghost
+    # and control measurements, calibration
+    "fresh": (10_100, 20),
+    # screens (benchmarks/sweep.py, learning.py --screen) and the choice of the shipped agents
+    "screening": (10_200, 20),
+    # the CPU-budget protocol's report (benchmarks/final_protocol.py) and its peers: never used for a choice
+    "report": (10_300, 30),
+}
+
+
+def track_block(first: int, count: int) -> str:
+    """A block of tracks as the results name it: ``track_block(10_300, 30) == "10300..10329"``."""
+    return f"{first}..{first + count - 1}"
+
+
+def replace_rows(
+    path: str,
+    rows: Iterable[dict],
+    columns: tuple[str, ...],
+    key: Callable[[dict], tuple],
+    order: Callable[[dict], tuple] | None = None,
+    other_header: str | None = None,
+    defaults: dict[str, str] | None = None,
+) -> list[dict]:
+    """Add `rows` to the CSV at `path` (header `columns`), replacing its rows of the same ``key(row)``, and return the
+    table as written (sorted by `order`, default `key`). Measurements may finish side by side: the file is locked
+    (``<path>.lock``) from the read to the write and replaced atomically, so neither a row nor the file is lost.
+
+    With `other_header` (advice for the user), a file whose header is not `columns` is refused with a ValueError
+    naming the file and its columns and ending in that advice, and left as it is: rows of two protocols must not be
+    read as one table. Without it, the kept rows are read by name; a column a kept row lacks or leaves empty takes its
+    value in `defaults` (else it stays empty), before `key` sees the row."""
+    rows = list(rows)
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    with open(path + ".lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        kept = []
+        if os.path.exists(path):
+            with open(path, newline="") as f:
+                reader = csv.DictReader(f)
+                header = tuple(reader.fieldnames or ())
+                if other_header is not None and header and header != tuple(columns):
+                    raise ValueError(f"{path} has the columns {','.join(header)}, not {','.join(columns)}: "
+                                     f"{other_header}")  # fmt: skip
+                new = set(map(key, rows))
+                filled = ({**r, **{k: v for k, v in (defaults or {}).items() if not r.get(k)}} for r in reader)
+                kept = [r for r in filled if key(r) not in new]
+        table = sorted(kept + rows, key=order or key)
+        with open(path + ".tmp", "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=columns, restval="", extrasaction="ignore")
+            writer.writeheader()
+            writer.writerows(table)
+        os.replace(path + ".tmp", path)
+    return table

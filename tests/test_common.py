@@ -1,0 +1,77 @@
+"""benchmarks/common.py: the blocks of tracks do not overlap, and a results CSV rewritten by replace_rows keeps every
+row of its own and of writers beside it, and refuses a file of other columns."""
+
+import csv
+import multiprocessing
+import os
+import sys
+
+import pytest
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
+import common  # noqa: E402
+
+COLUMNS = ("seed", "tracks", "value")
+
+
+def read(path) -> list[tuple]:
+    with open(path, newline="") as f:
+        return [(r["seed"], r["tracks"], r["value"]) for r in csv.DictReader(f)]
+
+
+def key(r: dict) -> tuple:
+    return int(r["seed"]), r["tracks"]
+
+
+def test_the_blocks_of_tracks_are_disjoint_and_named_as_the_results_name_them():
+    seen = [set(range(first, first + count)) for first, count in common.TRACKS.values()]
+    assert sum(map(len, seen)) == len(set().union(*seen))  # no track serves two purposes
+    assert common.track_block(*common.TRACKS["report"]) == "10300..10329"
+    assert common.track_block(*common.TRACKS["eval"]) == "10000..10009"
+
+
+def test_a_row_replaces_the_row_of_its_key_and_the_table_is_sorted(tmp_path):
+    path = str(tmp_path / "rows.csv")
+    common.replace_rows(path, [{"seed": 12, "tracks": "a", "value": 1}, {"seed": 3, "tracks": "a", "value": 2}],
+                        COLUMNS, key)  # fmt: skip
+    table = common.replace_rows(path, [{"seed": 12, "tracks": "a", "value": 5}], COLUMNS, key)
+    assert read(path) == [("3", "a", "2"), ("12", "a", "5")]  # 3 before 12: the key's order, not the text's
+    assert [int(r["seed"]) for r in table] == [3, 12]
+    assert not os.path.exists(path + ".tmp")
+
+
+def test_a_file_of_other_columns_is_refused_and_left_as_it_is(tmp_path):
+    path = tmp_path / "learning_final.csv"
+    path.write_text("exp_name,seed\nlearning_lstm,11\n")
+    before = path.read_bytes()
+    with pytest.raises(ValueError, match=r"learning_final.csv has the columns exp_name,seed, not seed,tracks,value: "
+                                         r"move it away"):  # fmt: skip
+        common.replace_rows(str(path), [{"seed": 1, "tracks": "a", "value": 0}], COLUMNS, key,
+                            other_header="move it away")  # fmt: skip
+    assert path.read_bytes() == before
+
+
+def test_an_old_row_without_a_column_takes_its_default_before_the_key_sees_it(tmp_path):
+    path = tmp_path / "peer.csv"  # written before the tracks column
+    path.write_text("seed,value\n11,657.7\n")
+    common.replace_rows(str(path), [{"seed": 11, "tracks": "new", "value": 700}], COLUMNS, key,
+                        defaults={"tracks": "old"})  # fmt: skip
+    assert read(path) == [("11", "new", "700"), ("11", "old", "657.7")]  # beside it, not over it
+    common.replace_rows(str(path), [{"seed": 11, "tracks": "old", "value": 660}], COLUMNS, key)
+    assert read(path) == [("11", "new", "700"), ("11", "old", "660")]
+
+
+def write_many(path: str, seed: int, n: int) -> None:
+    for i in range(n):
+        common.replace_rows(path, [{"seed": seed, "tracks": str(i), "value": i}], COLUMNS, key)
+
+
+def test_writers_side_by_side_lose_no_row(tmp_path):
+    path = str(tmp_path / "rows.csv")
+    processes = [multiprocessing.get_context("fork").Process(target=write_many, args=(path, s, 40)) for s in (1, 2)]
+    for p in processes:
+        p.start()
+    for p in processes:
+        p.join()
+    assert all(p.exitcode == 0 for p in processes)
+    assert sorted(read(path)) == sorted((str(s), str(i), str(i)) for s in (1, 2) for i in range(40))
