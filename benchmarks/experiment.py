@@ -926,7 +926,7 @@ def fresh_return(spec: Spec, path: str, first: int) -> float:
     stat = os.stat(path)
     key = f"{os.path.abspath(path)}|{stat.st_size}|{stat.st_mtime_ns}|{spec.eval_policy}|{first}|{spec.fresh_tracks}"
     if key not in cache:
-        cache[key] = learning.evaluate_checkpoint(path, first, spec.fresh_tracks, spec.eval_policy)["eval_return"]
+        cache[key] = learning.policy_summary(path, first, spec.fresh_tracks, spec.eval_policy)["eval_return"]
         os.makedirs(spec.storage, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=spec.storage, suffix=".tmp")  # two writers never share a temporary file
         with os.fdopen(fd, "w") as f:

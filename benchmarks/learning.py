@@ -230,11 +230,12 @@ def eval_curve(run_dir: str) -> list[dict]:
 
 
 # --- A saved policy on a block of tracks; the final rows -------------------------------------
-def evaluate_checkpoint(
+def policy_summary(
     path: str, first_track: int = common.TRACKS["eval"][0], tracks: int = common.TRACKS["eval"][1],
     policy: str = "stochastic", train_tracks: int = 0,
 ) -> dict:
-    """A saved agent (any variant, any stage; agent 0 of a multi-agent checkpoint) driving alone with `policy` on
+    """One policy's summary (evaluate.py's evaluate_checkpoint drives and reads; this keeps one policy's means): a
+    saved agent (any variant, any stage; agent 0 of a multi-agent checkpoint) driving alone with `policy` on
     tracks ``first_track .. first_track + tracks - 1``, or (``train_tracks`` > 0) on the last ``train_tracks``
     tracks it trained on, with the env settings it was trained with (final dead zone): mean return, progress and
     |steer| (near 1: bang-bang steering), and the per-track values. The training runs' own evaluation is this on
@@ -304,9 +305,9 @@ def final_row(
         raise ValueError(f"{run} has made {done} of its {updates} updates (--updates): not a final policy yet")
     curve = eval_curve(run)
     latest = os.path.join(run, "checkpoints", "latest.pt")
-    final = evaluate_checkpoint(latest, *FRESH_TRACKS, policy)
-    best = evaluate_checkpoint(os.path.join(run, "checkpoints", "best.pt"), *FRESH_TRACKS, policy)
-    mean_action = evaluate_checkpoint(latest, *FRESH_TRACKS, "mean-action")
+    final = policy_summary(latest, *FRESH_TRACKS, policy)
+    best = policy_summary(os.path.join(run, "checkpoints", "best.pt"), *FRESH_TRACKS, policy)
+    mean_action = policy_summary(latest, *FRESH_TRACKS, "mean-action")
     best_eval, last3_eval = eval_summary(curve)
     return {
         "exp_name": exp_name or experiment_name(variant), "variant": variant, "seed": seed, "updates": final["updates"],

@@ -17,7 +17,7 @@ import os
 import numpy as np
 
 from common import TRACKS, replace_rows
-from learning import RESULTS, RUNS, VARIANTS, evaluate_checkpoint, experiment_name, find_run
+from learning import RESULTS, RUNS, VARIANTS, experiment_name, find_run, policy_summary
 from learning_report import DIAGNOSTICS, progress_rows
 
 
@@ -85,7 +85,7 @@ def screen_rows(
             values = [float(row[tags[diag]]) for row in window if row.get(tags[diag])]
             means[column] = round(float(np.mean(values)), 3) if values else float("nan")
         for policy in SCREEN_POLICIES:
-            result = evaluate_checkpoint(path, *tracks, policy)
+            result = policy_summary(path, *tracks, policy)
             rows.append({
                 "exp_name": name, "variant": variant, "seed": seed, "updates": updates, "policy": policy,
                 "return": round(result["eval_return"], 2), "progress": round(result["eval_progress"], 4),
@@ -151,8 +151,8 @@ def policy_rule_rows(
             rows.append(earlier)  # this run's final policy, measured before
             continue
         latest = os.path.join(run, "checkpoints", "latest.pt")
-        sampled = evaluate_checkpoint(latest, *tracks, "stochastic")
-        mean_action = evaluate_checkpoint(latest, *tracks, "mean-action")
+        sampled = policy_summary(latest, *tracks, "stochastic")
+        mean_action = policy_summary(latest, *tracks, "mean-action")
         if sampled["updates"] != updates:
             raise ValueError(f"{latest} has {sampled['updates']} updates, its row in {final_csv} {updates}")
         rows.append({

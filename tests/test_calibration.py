@@ -50,7 +50,7 @@ def test_calibrate_measures_the_real_episode_the_agent_drives(tmp_path):
     assert row["reward_sigma"] >= 0.1  # (the heads' minimum sigma)
     assert all(np.isfinite(row[k]) for k in ("value", "realised_return", "imagined_task_return", "real_task_return"))
     whole = calibration.calibrate_checkpoint(latest, 10_100, 1, horizon=row["starts"])
-    reference = learning.evaluate_checkpoint(latest, 10_100, 1, "stochastic")
+    reference = learning.policy_summary(latest, 10_100, 1, "stochastic")
     assert whole["horizon_starts"] == 1
     assert whole["real_task_return"] == pytest.approx(reference["eval_return"], abs=0.01)
     ckpt.export_policy(script, latest, str(tmp_path / "policy.pt"))

@@ -725,7 +725,7 @@ def test_the_aggregation_measures_each_checkpoint_once(tmp_path, monkeypatch):
         calls.append((p, first, tracks, policy))
         return {"eval_return": 100.0 + len(calls)}
 
-    monkeypatch.setattr(learning, "evaluate_checkpoint", evaluate)
+    monkeypatch.setattr(learning, "policy_summary", evaluate)
     assert experiment.fresh_return(spec, str(path), 10_100) == 101.0
     assert experiment.fresh_return(spec, str(path), 10_100) == 101.0  # read back, not measured again
     assert calls == [(str(path), 10_100, 3, "stochastic")]

@@ -378,8 +378,8 @@ def test_an_ablation_reaches_the_script_and_a_refused_value_names_its_flag(tmp_p
 
 
 @pytest.mark.parametrize("variant", ["lstm", "gru"])
-def test_evaluate_checkpoint_reproduces_the_runs_own_evaluation(tmp_path, variant):
-    """evaluate_checkpoint on the run's held-out tracks gives exactly the return and progress the run logged for
+def test_policy_summary_reproduces_the_runs_own_evaluation(tmp_path, variant):
+    """policy_summary on the run's held-out tracks gives exactly the return and progress the run logged for
     the agent it saved as best.pt (deterministic actions, the run's env settings)."""
     script = importlib.import_module(f"dreamer_{variant}")
     tiny = dict(
@@ -390,27 +390,27 @@ def test_evaluate_checkpoint_reproduces_the_runs_own_evaluation(tmp_path, varian
     )  # fmt: skip
     run_dir = script.main(script.Args(stage="single", runs_dir=str(tmp_path), **tiny))
     (logged,) = learning.eval_curve(run_dir)
-    result = learning.evaluate_checkpoint(os.path.join(run_dir, "checkpoints", "best.pt"), 10_000, 2, "deterministic")
+    result = learning.policy_summary(os.path.join(run_dir, "checkpoints", "best.pt"), 10_000, 2, "deterministic")
     assert result["variant"] == variant and result["tracks"] == "10000..10001"
     assert result["eval_return"] == pytest.approx(logged["eval_return"], abs=0.01)  # the CSV keeps 2 decimals
     assert result["eval_progress"] == pytest.approx(logged["eval_progress"], abs=1e-4)
     assert len(result["returns"]) == len(result["progress"]) == 2
-    on_training_tracks = learning.evaluate_checkpoint(os.path.join(run_dir, "checkpoints", "latest.pt"), train_tracks=1)
+    on_training_tracks = learning.policy_summary(os.path.join(run_dir, "checkpoints", "latest.pt"), train_tracks=1)
     assert on_training_tracks["tracks"] == "training races 1..1" and len(on_training_tracks["returns"]) == 1
-    sampled = learning.evaluate_checkpoint(os.path.join(run_dir, "checkpoints", "best.pt"), 10_000, 2)  # default
+    sampled = learning.policy_summary(os.path.join(run_dir, "checkpoints", "best.pt"), 10_000, 2)  # default
     assert sampled["policy"] == "stochastic" and sampled["returns"] != result["returns"]  # sampled actions differ
-    again = learning.evaluate_checkpoint(os.path.join(run_dir, "checkpoints", "best.pt"), 10_000, 2)
+    again = learning.policy_summary(os.path.join(run_dir, "checkpoints", "best.pt"), 10_000, 2)
     assert again["returns"] == sampled["returns"]  # seeded: the same command, the same numbers
 
 
-def test_evaluate_checkpoint_refuses_bad_input_naming_it(tmp_path):
+def test_policy_summary_refuses_bad_input_naming_it(tmp_path):
     with pytest.raises(ValueError, match=r"^tracks must be >= 1, got 0$"):
-        learning.evaluate_checkpoint(str(tmp_path / "best.pt"), 10_000, 0)
+        learning.policy_summary(str(tmp_path / "best.pt"), 10_000, 0)
     with pytest.raises(ValueError, match=r"best\.pt: no such checkpoint file$"):
-        learning.evaluate_checkpoint(str(tmp_path / "best.pt"))
+        learning.policy_summary(str(tmp_path / "best.pt"))
     (tmp_path / "notes.pt").write_text("not a checkpoint")
     with pytest.raises(ValueError, match=r"notes\.pt: not a readable checkpoint"):
-        learning.evaluate_checkpoint(str(tmp_path / "notes.pt"))
+        learning.policy_summary(str(tmp_path / "notes.pt"))
 
 
 def test_training_curves_read_the_runs_races_and_keep_them_as_csv(dirs):
@@ -460,7 +460,7 @@ def test_final_row_counts_the_steps_and_hours_after_the_last_evaluation(tmp_path
     checkpoint = {"agents": [{"num_updates": 400}], "counters": {"global_step": 1234}}
     monkeypatch.setattr(race, "read_checkpoint", lambda path: (None, checkpoint))
     measured = {"eval_return": 1.0, "eval_progress": 0.5, "mean_abs_steer": 0.1, "updates": 400}
-    monkeypatch.setattr(learning, "evaluate_checkpoint", lambda *args: measured)
+    monkeypatch.setattr(learning, "policy_summary", lambda *args: measured)
     row = learning.final_row("lstm", 12, runs_dir=str(tmp_path), updates=400)
     assert row["env_steps"] == 1234  # not the last evaluation's 1000
     assert row["hours"] == pytest.approx((1000 + 1800) / 3600, abs=1e-4)  # 1000 s, then 1800 s; not the gap

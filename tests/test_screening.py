@@ -52,7 +52,7 @@ def screen_runs(tmp_path, monkeypatch):
         return {"eval_return": value, "eval_progress": 0.5, "mean_abs_steer": 0.2,
                 "tracks": f"{first_track}..{first_track + tracks - 1}"}  # fmt: skip
 
-    monkeypatch.setattr(screening, "evaluate_checkpoint", evaluate)
+    monkeypatch.setattr(screening, "policy_summary", evaluate)
     return tmp_path, reference, ablated
 
 
@@ -130,7 +130,7 @@ def rule_runs(tmp_path, monkeypatch):
         bonus = (10.0 * seed if "lstm" in path else -7.0) if policy == "mean-action" else 0.0
         return {"eval_return": seed + 100.0 + bonus, "updates": 8000}
 
-    monkeypatch.setattr(screening, "evaluate_checkpoint", evaluate)
+    monkeypatch.setattr(screening, "policy_summary", evaluate)
     return tmp_path, final, calls
 
 
