@@ -17,7 +17,8 @@ import pytest
 import tyro
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-PAGES = ["README.md", *sorted(os.path.relpath(p, ROOT) for p in glob.glob(os.path.join(ROOT, "docs", "*.md")))]
+PAGES = ["README.md", "benchmarks/README.md",
+         *sorted(os.path.relpath(p, ROOT) for p in glob.glob(os.path.join(ROOT, "docs", "*.md")))]
 LAB_PAGES = sorted(os.path.relpath(p, ROOT) for p in glob.glob(os.path.join(ROOT, "docs", "lab", "*.md")))
 SHELL_VARIABLES = {"$v": "lstm", "${v}": "lstm", "$seed": "1", "${seed}": "1"}  # the docs' loops, one iteration
 
