@@ -183,6 +183,26 @@ class Args:
     entropy_coef: float = 1.0
     """alpha: weight of -log pi in the lambda-return (the paper's entropy regulariser; 1.0 in the paper authors'
     configurations. Algorithm 1's "alpha = 0.0006" is the model's and critic's learning rate, not this)"""
+    lambda_: Annotated[float, tyro.conf.arg(name="lambda")] = 0.95
+    """lambda of the lambda-return"""
+    gamma: float = 0.99
+    """discount factor"""
+    tau: float = 0.005
+    """soft-update rate of the target networks, after every optimiser step"""
+    free_bits: float = 1.0
+    """free nats per step of each KL term: max(free_bits, KL)"""
+    kl_dyn_scale: float = 1.0
+    """beta_dyn: weight of L_dyn = max(free_bits, KL(sg(posterior) || prior))"""
+    kl_rep_scale: float = 1.0
+    """beta_rep: weight of L_rep = max(free_bits, KL(posterior || sg(prior)))"""
+    decoder_min_log_sigma: float = -5.0
+    """floor of the decoder's learned log sigma (paper: learned; 0 gives Dreamer's unit-variance pixel loss)"""
+    grad_clip: float = 100.0
+    """global gradient-norm clip of every optimiser"""
+    target_critic: bool = True
+    """bootstrap the lambda-returns with a slow target critic (soft-updated with tau) instead of the critic itself"""
+
+    # --- options beyond the paper: off by default (the paper's form); docs/deviations.md lists each with its screen
     entropy_target: float | None = None
     """adapt alpha so that the policy's entropy (-log pi, as in the lambda-return) per action dimension tends to this
     many nats: SAC's automatic temperature (Haarnoja et al., 2018), alpha starting at --entropy-coef. None: alpha
@@ -204,24 +224,6 @@ class Args:
     head_sigma: float = 0.0
     """sigma of the reward and critic Gaussians: 0 learns it (softplus + 0.1, the paper); a positive value fixes it
     (1: the paper authors' code, a squared error, so that a rare -100 moves the mean instead of widening sigma)"""
-    lambda_: Annotated[float, tyro.conf.arg(name="lambda")] = 0.95
-    """lambda of the lambda-return"""
-    gamma: float = 0.99
-    """discount factor"""
-    tau: float = 0.005
-    """soft-update rate of the target networks, after every optimiser step"""
-    free_bits: float = 1.0
-    """free nats per step of each KL term: max(free_bits, KL)"""
-    kl_dyn_scale: float = 1.0
-    """beta_dyn: weight of L_dyn = max(free_bits, KL(sg(posterior) || prior))"""
-    kl_rep_scale: float = 1.0
-    """beta_rep: weight of L_rep = max(free_bits, KL(posterior || sg(prior)))"""
-    decoder_min_log_sigma: float = -5.0
-    """floor of the decoder's learned log sigma (paper: learned; 0 gives Dreamer's unit-variance pixel loss)"""
-    grad_clip: float = 100.0
-    """global gradient-norm clip of every optimiser"""
-    target_critic: bool = True
-    """bootstrap the lambda-returns with a slow target critic (soft-updated with tau) instead of the critic itself"""
 
     # --- network sizes (paper appendix; --preset cpu uses smaller ones)
     image_size: Literal[96, 64] = 96
@@ -937,25 +939,7 @@ class Agent:
             continues = torch.sigmoid(wm.cont(features[1:]).float().squeeze(-1))  # c_1..c_H
             values = bootstrap(features[1:])[0]  # V(s_1..s_H)
             weights = discount_weights(continues, args.gamma, start_cont)
-            gamma, lam, zero, alpha = args.gamma, args.lambda_, torch.zeros_like(rewards), self.alpha()
-            # the bonus -alpha log pi_t comes with r_{t+1}; --action-penalty beta reweighs its extreme-action part:
-            # -alpha log pi + (alpha - beta) term = -alpha log N(a) - beta term (added where lambda_returns is linear)
-            beta, extra = args.action_penalty, None
-            if beta is not None:
-                extra = (alpha - beta) * extreme_action_term(samples)
-            if args.return_norm:  # scale the task part only (lambda_returns is linear in r, V and log pi)
-                task = lambda_returns(rewards, continues, values, torch.zeros_like(log_pi), gamma, lam, 0.0)
-                entropy = lambda_returns(zero if extra is None else extra, continues, zero, log_pi, gamma, lam, alpha)
-                with torch.no_grad():  # (a non-finite batch leaves the scale alone)
-                    spread = return_range(task)
-                    moved = self.return_scale.lerp(spread, RETURN_NORM_RATE)
-                    self.return_scale.copy_(torch.where(spread.isfinite(), moved, self.return_scale))
-                returns = task + entropy  # what the critic learns
-                objective = task / self.return_scale.clamp(min=1.0) + entropy
-            else:
-                bonus_rewards = rewards if extra is None else rewards + extra
-                returns = lambda_returns(bonus_rewards, continues, values, log_pi, gamma, lam, alpha)
-                objective = returns
+            returns, objective = self.returns_and_objective(rewards, continues, values, log_pi, samples)
             actor_loss = -(weights * objective).mean()
         wm.train()
         self.actor.train()
@@ -972,6 +956,30 @@ class Agent:
             apart = 0 if args.action_penalty is None else extreme_action_term(samples.detach()).mean()
             metrics["alpha_entropy"] = -log_pi.detach().mean() + apart
         return actor_loss, critic_loss, metrics
+
+    def returns_and_objective(self, rewards, continues, values, log_pi, samples):
+        """The lambda-returns the critic learns, and the actor's objective (paper 3.9): the lambda-return of the
+        imagined rewards with the entropy bonus -alpha log pi_t, which comes with r_{t+1}. The two are the same
+        tensor unless --return-norm scales the objective's task part."""
+        args, alpha = self.args, self.alpha()
+        gamma, lam = args.gamma, args.lambda_
+        # --action-penalty beta reweighs log pi's extreme-action part: -alpha log pi + (alpha - beta) term
+        # = -alpha log N(a) - beta term, added to the rewards (lambda_returns is linear in r, V and log pi)
+        extra = None if args.action_penalty is None else (alpha - args.action_penalty) * extreme_action_term(samples)
+        if not args.return_norm:  # the paper's
+            returns = lambda_returns(rewards if extra is None else rewards + extra, continues, values, log_pi, gamma,
+                                     lam, alpha)  # fmt: skip
+            return returns, returns
+        # --return-norm (DreamerV3): the task part over max(1, S), S an EMA of its 95th - 5th percentile range; the
+        # entropy part unscaled
+        zero = torch.zeros_like(rewards)
+        task = lambda_returns(rewards, continues, values, torch.zeros_like(log_pi), gamma, lam, 0.0)
+        entropy = lambda_returns(zero if extra is None else extra, continues, zero, log_pi, gamma, lam, alpha)
+        with torch.no_grad():  # (a non-finite batch leaves the scale alone)
+            spread = return_range(task)
+            moved = self.return_scale.lerp(spread, RETURN_NORM_RATE)
+            self.return_scale.copy_(torch.where(spread.isfinite(), moved, self.return_scale))
+        return task + entropy, task / self.return_scale.clamp(min=1.0) + entropy
 
     def _step(self, optimizer: torch.optim.Optimizer, loss: torch.Tensor, params) -> bool:
         """Backward, clip, step. A non-finite loss or gradient norm skips the step (the parameters and the
@@ -1360,14 +1368,16 @@ def main(args: Args, overrides=()) -> str:
             log_race(run, race.cars, track_seed, env_sps)
             if args.env_id == "multi_car_racing":
                 run.envs.env_method("set_dead_zone", next_dead_zone(args, run.counters["episode"]))
-            # --- train: after every race that ended, each agent updates on its own replay
+            # --- train: after every race that ended, each agent updates on its own replay (once the prefill races
+            # are done; a ghost stage first races each of its ghost tracks once: Run.learning_starts)
             if run.learns_now():
                 for j, (agent, replay) in enumerate(zip(run.agents, run.replays)):
                     updates_per_s = train_agent(agent, replay, args, run.logger, f"car_{j}/", progress_callback(run, j))
                     log_updates(run, j, updates_per_s)
                     if run.fault is not None:
                         break
-            after_training(run, race.cars, env_sps)  # video, evaluation and best.pt, replay save, latest.pt, logs
+            # video every --video-every races, evaluation every --eval-every (best.pt), replay save, latest.pt, logs
+            after_training(run, race.cars, env_sps)
             if run.finished():
                 break
         if k_races == 1 and not run.finished():
