@@ -538,4 +538,7 @@ def ship(variant: str, runs_dir: str, shipped: str, results_dir: str = RESULTS) 
              "| candidate | return | progress | \\|steer\\| | shipped |", "|---|---|---|---|---|"]  # fmt: skip
     lines += [f"| {r['candidate']} | {r['return']:.1f} | {r['progress']:.2f} | {r['abs_steer']:.2f} | "
               f"{'yes' if r['shipped'] else ''} |" for r in rows]  # fmt: skip
+    if winner is best:  # the pages that describe the shipped agents
+        lines += ["", f"{shipped} is now {best['candidate']}'s final policy: update what README.md and docs/races.md "
+                  "say of the shipped agents"]  # fmt: skip
     return "\n".join(lines) + "\n"

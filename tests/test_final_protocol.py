@@ -358,10 +358,11 @@ def test_the_shipped_agent_is_replaced_only_by_a_better_seed_on_the_screening_tr
         ("shipped", 500.0, "False"), ("seed 21", 400.0, "False"), ("seed 22", 450.0, "False"),
         ("seed 23", 520.0, "True"), ("seed 24", 510.0, "False"), ("seed 25", 300.0, "False")]  # fmt: skip
     assert "| seed 23 | 520.0 | 0.50 | 0.20 | yes |" in text
+    assert f"{shipped} is now seed 23's final policy: update what README.md and docs/races.md say" in text
 
     returns[str(shipped)] = 600.0  # now the shipped agent drives better: nothing is exported
     shipped.write_bytes(b"the agent shipped before")
-    final_protocol.ship("lstm", trials, str(shipped), results)
+    assert "update what" not in final_protocol.ship("lstm", trials, str(shipped), results)
     assert exported == [seed23] and shipped.read_bytes() == b"the agent shipped before"
 
     returns[str(shipped)] = 100.0  # an export over the limit is refused and removed
