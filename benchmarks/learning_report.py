@@ -35,11 +35,18 @@ def baselines(
 ) -> dict:
     """Random actions and the pursuit driver on the tracks ``eval_seed ..`` (by default the 10 held-out tracks of
     the evaluations; ``FRESH_TRACKS`` for the final policies' reference), with the env settings of training.
-    Computed once, then read from ``results_dir/filename``."""
-    path = os.path.join(results_dir, filename)
+    Computed once, then read from ``results_dir/filename``, which names its tracks (a file of other tracks is
+    refused; one written before it named them is read as it is)."""
+    from common import track_block
+
+    path, tracks = os.path.join(results_dir, filename), track_block(eval_seed, episodes)
     if os.path.exists(path):
         with open(path) as f:
-            return json.load(f)
+            saved = json.load(f)
+        if saved.setdefault("tracks", tracks) != tracks:
+            raise ValueError(f"{path} holds the references on tracks {saved['tracks']}, not {tracks}: give another "
+                             "filename")  # fmt: skip
+        return {name: value for name, value in saved.items() if name != "tracks"}
     from envs import MultiCarRacing
     from envs.pursuit import PursuitDriver
 
@@ -61,7 +68,7 @@ def baselines(
         results[name] = {"eval_return": float(np.mean(returns)), "eval_progress": float(np.mean(progress))}
     os.makedirs(results_dir, exist_ok=True)
     with open(path, "w") as f:
-        json.dump(results, f, indent=2)
+        json.dump({**results, "tracks": tracks}, f, indent=2)
     return results
 
 

@@ -472,6 +472,9 @@ def test_references_on_other_tracks_are_measured_once_and_kept_apart(tmp_path):
     assert base["pursuit@70"]["eval_progress"] > 0.95 and base["pursuit@70"]["eval_return"] > 800
     assert base["random"]["eval_progress"] < 0.2 and base["random"]["eval_return"] < 0
     assert not (tmp_path / "baselines.json").exists()  # the held-out tracks' reference is another file
+    with pytest.raises(ValueError, match=r"baselines_fresh.json holds the references on tracks 10100..10100, not "
+                                         r"10100..10119: give another filename"):  # fmt: skip
+        learning_report.baselines(10_100, 20, results_dir=str(tmp_path), filename="baselines_fresh.json")
     with open(tmp_path / "baselines_fresh.json", "w") as f:  # read back, not recomputed
         json.dump({"random": {"eval_return": -1.0, "eval_progress": 0.01},
                    "pursuit@70": {"eval_return": 2.0, "eval_progress": 1.0}}, f)  # fmt: skip
