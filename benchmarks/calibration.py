@@ -7,7 +7,6 @@ and its world model's imagined return are set against what the real episode retu
 
 from __future__ import annotations
 
-import csv
 import os
 
 import numpy as np

@@ -18,6 +18,7 @@ from conftest import TINY
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
 import experiment  # noqa: E402
+import experiment_report  # noqa: E402
 import race  # noqa: E402
 import stats  # noqa: E402
 
@@ -73,7 +74,7 @@ def test_every_stage_runs_to_completion_and_writes_the_tables(finished):
     with open(os.path.join(spec.results, "head_to_head.csv")) as f:
         reader = csv.DictReader(f)
         rows = list(reader)
-    assert tuple(reader.fieldnames) == experiment.HEAD_COLUMNS
+    assert tuple(reader.fieldnames) == experiment_report.HEAD_COLUMNS
     assert [int(r["races_trained"]) for r in rows] == [0, 1, 2] and all(r["seed_pair"] == "3,3" for r in rows)
     for r in rows:
         wins, races = int(r["lstm_wins"]), int(r["eval_races"])
@@ -84,7 +85,7 @@ def test_every_stage_runs_to_completion_and_writes_the_tables(finished):
     with open(os.path.join(spec.results, "ghost_vs_control.csv")) as f:
         reader = csv.DictReader(f)
         ghost = list(reader)
-    assert tuple(reader.fieldnames) == experiment.GHOST_COLUMNS
+    assert tuple(reader.fieldnames) == experiment_report.GHOST_COLUMNS
     assert [(r["variant"], int(r["updates"])) for r in ghost] == [("lstm", 1), ("gru", 1)]
     summary = open(os.path.join(spec.results, "experiment.md")).read()
     assert "P(LSTM win rate > GRU win rate)" in summary
@@ -218,7 +219,7 @@ def test_the_evaluation_policy_may_change_until_the_race_stage_has_begun(tmp_pat
 
 
 def test_the_summary_matches_hand_computed_numbers():
-    summary = experiment.summarize({"lstm": [100.0, 200.0, 300.0], "gru": [1.0, 2.0, 3.0, 10.0]},
+    summary = experiment_report.summarize({"lstm": [100.0, 200.0, 300.0], "gru": [1.0, 2.0, 3.0, 10.0]},
                                    {"lstm": [0.6, 0.7], "gru": [0.4, 0.3]}, reps=300)  # fmt: skip
     lines = summary.splitlines()
     assert lines[2].startswith("| lstm | 3 | 200.0 [") and "| 200.0 [" in lines[2]  # IQM of 3 = mean
@@ -231,11 +232,11 @@ def test_the_summary_matches_hand_computed_numbers():
             assert lowest <= low < float(point) < high <= highest
     # the LSTM wins both pairs: P = 1, and every bootstrap of the pairs gives 1
     assert "the share of 2 seed pair(s)" in lines[-1] and lines[-1].endswith(": 1.00 [1.00, 1.00]")
-    tie = experiment.summarize({}, {"lstm": [0.5], "gru": [0.5]}, reps=100)
+    tie = experiment_report.summarize({}, {"lstm": [0.5], "gru": [0.5]}, reps=100)
     assert tie.splitlines()[-1].endswith(": 0.50 [0.50, 0.50]")  # a tie counts one half
     # paired, not rliable's independent samples: the LSTM wins 2 pairs of 3 -> 2/3 (comparing every LSTM rate
     # with every GRU rate would give 4/9); a bootstrap of 3 pairs can draw 0, 1, 2 or 3 wins: [0, 1]
-    three = experiment.summarize({}, {"lstm": [0.55, 0.35, 0.60], "gru": [0.45, 0.65, 0.40]}, reps=2000)
+    three = experiment_report.summarize({}, {"lstm": [0.55, 0.35, 0.60], "gru": [0.45, 0.65, 0.40]}, reps=2000)
     assert three.splitlines()[-1].endswith(": 0.67 [0.00, 1.00]")
     with pytest.raises(ValueError, match="two non-empty arrays of one length, got 1 and 2"):
         stats.paired_probability_of_improvement([0.5], [0.5, 0.4])  # rates of different pairs cannot be paired
@@ -361,7 +362,7 @@ def test_the_claims_table_answers_each_claim_from_hand_made_results():
                                                ("15,15", 0.8, 25, (30, 60))]:  # fmt: skip
         head += [tournament(pair, 0, 90, 10, 0.8, (progress0, 0.6)), tournament(pair, 50, at50, 30, 0.1),
                  tournament(pair, 150, lstm, gru, 0.2)]  # fmt: skip
-    table = experiment.claims_table(single, ghost, head, race_episodes=150).splitlines()
+    table = experiment_report.claims_table(single, ghost, head, race_episodes=150).splitlines()
     assert table[0].split(" | ")[2:] == ["estimate", "test (one-sided p of the claim)", "verdict |"]
     solo, versus, lstm_perturbed, gru_perturbed, recovery, ghost_row = (line.split(" | ") for line in table[2:8])
     # solo: 750 - 200 = +550; the LSTM's four are the top four of seven in 1 of the C(7, 4) = 35 splits. Welch:
@@ -393,7 +394,7 @@ def test_the_claims_table_answers_each_claim_from_hand_made_results():
     two = [tournament("11,11", 0, 90, 10, 0.8, (0.8, 0.7)), tournament("11,11", 50, 20, 70, 0.13, (0.5, 0.6)),
            tournament("11,11", 150, 30, 60, 0.22), tournament("12,12", 0, 90, 10, 0.8, (0.6, 0.6)),
            tournament("12,12", 50, 40, 50, 0.31), tournament("12,12", 150, 20, 70, 0.13)]  # fmt: skip
-    table = experiment.claims_table({}, [], two, race_episodes=150).splitlines()
+    table = experiment_report.claims_table({}, [], two, race_episodes=150).splitlines()
     versus, lstm_perturbed, gru_perturbed, recovery = (line.split(" | ") for line in table[2:6])
     assert versus[4] == "not supported (the estimate is negative; the opposite's p = 0.250) |"
     # LSTM drops 0.3 and 0.1: 0.2 +- t_1 * 0.1 = 0.2 +- 12.706 * 0.1414 / sqrt(2)
@@ -406,7 +407,7 @@ def test_the_claims_table_answers_each_claim_from_hand_made_results():
 def test_a_claim_on_one_run_is_not_judged_and_one_agent_gaining_is_not_both_perturbed():
     head = [tournament("11,11", 0, 50, 50, progress=(0.4, 0.9)),
             tournament("11,11", 50, 60, 40, progress=(0.6, 0.5))]
-    table = experiment.claims_table({"lstm": [600.0], "gru": [100.0]}, [], head, race_episodes=50)
+    table = experiment_report.claims_table({"lstm": [600.0], "gru": [100.0]}, [], head, race_episodes=50)
     solo, versus, lstm_perturbed, gru_perturbed, recovery = (line.split(" | ") for line in table.splitlines()[2:7])
     for row in (solo, versus, lstm_perturbed, gru_perturbed, recovery):  # one pair, one seed: no spread, no interval
         assert row[4].startswith("too few runs to judge (n = 1)") and ", no interval, n=1" in row[3]
@@ -441,12 +442,16 @@ def test_the_aggregation_counts_finished_trials_only_and_replaces_old_tables(tmp
                 ("ghost", "gru", 11): 9000, ("control", "gru", 11): 9000, ("ghost", "gru", 12): 7500,
                 ("control", "gru", 12): 9000}  # fmt: skip
     returns = {"single": 100.0, "ghost": 300.0, "control": 200.0}
-    monkeypatch.setattr(experiment, "trial_progress", lambda spec, kind, variant, seed: (
+    monkeypatch.setattr(experiment_report, "trial_progress", lambda spec, kind, variant, seed: (
         f"/runs/{kind}_{variant}_{seed}" if (kind, variant, seed) in progress else None,
         progress.get((kind, variant, seed), 0), 8000 if kind == "single" else 9000))  # fmt: skip
-    monkeypatch.setattr(experiment, "updates_of", lambda path, script: 7000)  # every best.pt at 7,000 updates
-    monkeypatch.setattr(experiment, "fresh_return", lambda spec, path, first: returns[path.split("/")[2].split("_")[0]]
-                        + (1.0 if path.endswith("best.pt") else 0.0) + (10.0 if "_gru_" in path else 0.0))  # fmt: skip
+    monkeypatch.setattr(experiment_report, "updates_of", lambda path, script: 7000)  # every best.pt at 7,000 updates
+
+    def fresh_return(spec, path, first):
+        stage = path.split("/")[2].split("_")[0]
+        return returns[stage] + (1.0 if path.endswith("best.pt") else 0.0) + (10.0 if "_gru_" in path else 0.0)
+
+    monkeypatch.setattr(experiment_report, "fresh_return", fresh_return)
     os.makedirs(spec.results)
     for name in ("ghost_vs_control.csv", "head_to_head.csv"):
         with open(os.path.join(spec.results, name), "w") as f:
@@ -455,7 +460,7 @@ def test_the_aggregation_counts_finished_trials_only_and_replaces_old_tables(tmp
                                             f"tournament_{races:05d}")  # fmt: skip
     results_json(pair(11, 0), 5, 5), results_json(pair(11, 50), 2, 8), results_json(pair(11, 100), 7, 3)
     results_json(pair(12, 0), 5, 5), results_json(pair(12, 50), 9, 0)  # (pair 12 stops at 50 of 100 races)
-    summary = experiment.aggregate(spec)
+    summary = experiment_report.aggregate(spec)
     with open(os.path.join(spec.results, "ghost_vs_control.csv")) as f:
         ghost = list(csv.DictReader(f))
     assert [(r["variant"], r["seed"], r["updates_at_start"], r["updates"]) for r in ghost] == [
@@ -473,13 +478,14 @@ def test_the_aggregation_counts_finished_trials_only_and_replaces_old_tables(tmp
             "(7500 of 9000 updates); race pair 12,12 (tournaments up to 50 of 100 races).") in summary
     progress.pop(("ghost", "gru", 12))  # trials not started yet are named too: a ghost trial, a race pair
     shutil.rmtree(experiment.trial_dir(plain, "race", "lstm_gru", 12))
-    assert "ghost_gru_seed12 (not started); race pair 12,12 (not started)." in experiment.aggregate(spec)
+    assert "ghost_gru_seed12 (not started); race pair 12,12 (not started)." in experiment_report.aggregate(spec)
     progress.pop(("single", "gru", 12))
-    assert "single_gru_seed12 (not started)" in experiment.aggregate(spec)
+    assert "single_gru_seed12 (not started)" in experiment_report.aggregate(spec)
     shutil.rmtree(experiment.trial_dir(plain, "race", "lstm_gru", 11))
     progress.clear()  # nothing finished any more: the headers alone, no earlier rows
-    experiment.aggregate(spec)
-    tables = {"ghost_vs_control.csv": experiment.GHOST_COLUMNS, "head_to_head.csv": experiment.HEAD_COLUMNS}
+    experiment_report.aggregate(spec)
+    tables = {"ghost_vs_control.csv": experiment_report.GHOST_COLUMNS,
+              "head_to_head.csv": experiment_report.HEAD_COLUMNS}
     for name, columns in tables.items():
         with open(os.path.join(spec.results, name)) as f:
             assert f.read().splitlines() == [",".join(columns)]
@@ -489,7 +495,7 @@ def test_the_aggregation_reads_the_experiment_as_it_was_run(tmp_path, monkeypatc
     spec = experiment.Spec(seeds=(11, 12, 13), stages=("single",), storage=str(tmp_path))
     experiment.check_spec(spec)
     seen = []
-    monkeypatch.setattr(experiment, "aggregate", lambda spec: seen.append(spec.seeds) or "")
+    monkeypatch.setattr(experiment_report, "aggregate", lambda spec: seen.append(spec.seeds) or "")
     experiment.main(dataclasses.replace(spec, seeds=(11,), aggregate_only=True))  # the flags' seeds would leave out 2
     assert seen == [(11, 12, 13)]
 
@@ -592,11 +598,11 @@ def test_a_second_policy_races_each_tournament_again_once_with_its_own_checkpoin
     assert {flag(c, "--policy") for c in first.values()} == {"mean-action"}
     directory = experiment.trial_dir(plain, "race", "lstm_gru", 3)
     held = lambda n: experiment.tournament_metrics(os.path.join(directory, f"tournament_{n:05d}"), n)  # noqa: E731
-    head_rows = [experiment.head_row(3, held(n)) for n in (0, 2, 4)]
+    head_rows = [experiment_report.head_row(3, held(n)) for n in (0, 2, 4)]
     spec = dataclasses.replace(experiment.Spec(**plain), second_policy="stochastic", results=str(tmp_path / "res"))
     os.makedirs(spec.results)
     calls.clear()
-    text = experiment.second_policy_claims(spec, head_rows)
+    text = experiment_report.second_policy_claims(spec, head_rows)
     again = {out(c): c for c in calls}
     assert sorted(again) == [f"tournament_{n:05d}_stochastic.tmp" for n in (0, 2, 4)]
     for n in (0, 2, 4):
@@ -616,7 +622,7 @@ def test_a_second_policy_races_each_tournament_again_once_with_its_own_checkpoin
     assert "| the LSTM-Dreamer beats the GRU-Dreamer head to head |" in text
     assert experiment.race_progress(plain, 3) == "race_lstm_gru_seed3 (4 of 4 races; tournaments after 0, 2, 4 races)"
     calls.clear()
-    experiment.second_policy_claims(spec, head_rows)
+    experiment_report.second_policy_claims(spec, head_rows)
     assert calls == []  # each raced once
     with open(os.path.join(directory, "tournament_00002", "results.json")) as f:
         held = json.load(f)
@@ -624,7 +630,7 @@ def test_a_second_policy_races_each_tournament_again_once_with_its_own_checkpoin
     with open(os.path.join(directory, "tournament_00002", "results.json"), "w") as f:
         json.dump(held, f)
     with pytest.raises(ValueError, match="tournament_00002_stochastic raced"):
-        experiment.second_policy_claims(spec, head_rows)  # not the agents of the tournament it repeats
+        experiment_report.second_policy_claims(spec, head_rows)  # not the agents of the tournament it repeats
 
 
 def test_the_training_races_outcomes_are_read_back_from_the_logged_win_rates(tmp_path):
@@ -655,12 +661,12 @@ def test_the_training_races_outcomes_are_read_back_from_the_logged_win_rates(tmp
     sitting("races_00030", range(1, 25))
     sitting("races_00030", range(25, 31))  # the next sitting continues after race 24
     sitting("races_00060", range(31, 61))  # a window that fills after 20 races and slides
-    assert experiment.training_race_wins(spec, 3) == truth
+    assert experiment_report.training_race_wins(spec, 3) == truth
     blocks = [[truth[k] for k in range(a, a + 30) if k in truth] for a in (1, 31)]
     assert any((1, 1) in b for b in blocks)
     heats = [f", {b.count((1, 1))} dead heats" if (1, 1) in b else "" for b in blocks]
     expected = [f"{b.count((1, 0))}-{b.count((0, 1))} ({b.count((0, 0))}{h})" for b, h in zip(blocks, heats)]
-    text = experiment.training_wins_text(spec, [3])
+    text = experiment_report.training_wins_text(spec, [3])
     assert f"3,3: {', '.join(expected)}." in text
     assert "The logs lack the outcome of 3,3: 1 of races 1..30." in text
 
@@ -726,12 +732,13 @@ def test_the_aggregation_measures_each_checkpoint_once(tmp_path, monkeypatch):
         return {"eval_return": 100.0 + len(calls)}
 
     monkeypatch.setattr(learning, "policy_summary", evaluate)
-    assert experiment.fresh_return(spec, str(path), 10_100) == 101.0
-    assert experiment.fresh_return(spec, str(path), 10_100) == 101.0  # read back, not measured again
+    assert experiment_report.fresh_return(spec, str(path), 10_100) == 101.0
+    assert experiment_report.fresh_return(spec, str(path), 10_100) == 101.0  # read back, not measured again
     assert calls == [(str(path), 10_100, 3, "stochastic")]
-    assert experiment.fresh_return(dataclasses.replace(spec, eval_policy="mean-action"), str(path), 10_100) == 102.0
+    mean_action = dataclasses.replace(spec, eval_policy="mean-action")
+    assert experiment_report.fresh_return(mean_action, str(path), 10_100) == 102.0
     path.write_bytes(b"a resumed run's new checkpoint")  # the same path, another file: measured again
-    assert experiment.fresh_return(spec, str(path), 10_100) == 103.0 and len(calls) == 3
+    assert experiment_report.fresh_return(spec, str(path), 10_100) == 103.0 and len(calls) == 3
 
 
 def test_a_race_stage_whose_races_do_not_fill_its_tournaments_or_swap_its_starts_is_refused(tmp_path):
@@ -862,10 +869,10 @@ def test_an_experiment_without_controls_keeps_the_measured_table_and_compares_it
                            results=str(tmp_path / "results"))  # fmt: skip
     progress = {("single", v, s): 8000 for v in ("lstm", "gru") for s in (11, 12)}
     progress |= {("ghost", "lstm", 11): 9000, ("ghost", "gru", 11): 9000, ("ghost", "lstm", 12): 8500}
-    monkeypatch.setattr(experiment, "trial_progress", lambda spec, kind, variant, seed: (
+    monkeypatch.setattr(experiment_report, "trial_progress", lambda spec, kind, variant, seed: (
         f"/runs/{kind}_{variant}_{seed}" if (kind, variant, seed) in progress else None,
         progress.get((kind, variant, seed), 0), 8000 if kind == "single" else 9000))  # fmt: skip
-    monkeypatch.setattr(experiment, "updates_of", lambda path, script: 7000)
+    monkeypatch.setattr(experiment_report, "updates_of", lambda path, script: 7000)
     measured = []
 
     def fresh_return(spec, path, first):
@@ -874,15 +881,15 @@ def test_an_experiment_without_controls_keeps_the_measured_table_and_compares_it
                 "/runs/single_gru_11/checkpoints/best.pt": 576.1,
                 "/runs/ghost_gru_11/checkpoints/latest.pt": 634.75}.get(path, 500.0)  # fmt: skip
 
-    monkeypatch.setattr(experiment, "fresh_return", fresh_return)
+    monkeypatch.setattr(experiment_report, "fresh_return", fresh_return)
     with pytest.raises(SystemExit, match=r"without controls .*ghost_vs_control.csv does not exist"):
-        experiment.aggregate(spec)
+        experiment_report.aggregate(spec)
     assert measured == [] and not os.path.exists(spec.results)  # refused before measuring or writing anything
     os.makedirs(spec.results)
     table = GHOST_TABLE
     with open(os.path.join(spec.results, "ghost_vs_control.csv"), "w") as f:
         f.write(table)
-    summary = experiment.aggregate(spec)
+    summary = experiment_report.aggregate(spec)
     with open(os.path.join(spec.results, "ghost_vs_control.csv")) as f:
         assert f.read() == table  # kept as measured
     ghost_row = next(line for line in summary.splitlines() if line.startswith("| racing a ghost"))
