@@ -15,8 +15,8 @@ from typing import Callable, Iterable
 TRACKS = {
     # every run's own evaluations during training (--eval-every): they choose its best.pt
     "eval": (10_000, 10),
-    # the 8,000-update protocol's report (learning_final.csv of benchmarks/results/history/), the experiment's ghost
-    # and control measurements, calibration
+    # the 8,000-update protocol's report (its learning_final.csv, to move to benchmarks/results/history/ when the
+    # CPU-budget protocol's rows come), the experiment's ghost and control measurements, calibration
     "fresh": (10_100, 20),
     # screens (benchmarks/sweep.py, learning.py --screen) and the choice of the shipped agents
     "screening": (10_200, 20),
@@ -46,7 +46,8 @@ def replace_rows(
     With `other_header` (advice for the user), a file whose header is not `columns` is refused with a ValueError
     naming the file and its columns and ending in that advice, and left as it is: rows of two protocols must not be
     read as one table. Without it, the kept rows are read by name; a column a kept row lacks or leaves empty takes its
-    value in `defaults` (else it stays empty), before `key` sees the row."""
+    value in `defaults` (else it stays empty), before `key` sees the row. A row with a field outside `columns` is
+    refused (csv's ValueError), the file left as it is."""
     rows = list(rows)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     with open(path + ".lock", "w") as lock:
@@ -63,9 +64,13 @@ def replace_rows(
                 filled = ({**r, **{k: v for k, v in (defaults or {}).items() if not r.get(k)}} for r in reader)
                 kept = [r for r in filled if key(r) not in new]
         table = sorted(kept + rows, key=order or key)
-        with open(path + ".tmp", "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=columns, restval="", extrasaction="ignore")
-            writer.writeheader()
-            writer.writerows(table)
+        try:
+            with open(path + ".tmp", "w", newline="") as f:
+                writer = csv.DictWriter(f, fieldnames=columns)  # a field outside `columns` raises a ValueError
+                writer.writeheader()
+                writer.writerows(table)
+        except BaseException:
+            os.remove(path + ".tmp")
+            raise
         os.replace(path + ".tmp", path)
     return table

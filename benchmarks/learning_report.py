@@ -420,7 +420,7 @@ def peer_summary(
     rows of the fresh tracks count (ppo_peer.read_rows: a row without a ``tracks`` column was measured there); the
     variants' defaults only (an ablation is not the method); "" while ppo_peer.csv has no such row."""
     from ppo_peer import read_rows as read_peer_rows
-    from ppo_peer import track_block
+    from common import track_block
     from stats import MIN_RUNS, describe, interval_estimates, two_group_claim
 
     peer = [r for r in read_peer_rows(peer_path) if r["tracks"] == track_block(*FRESH_TRACKS)]

@@ -6,7 +6,7 @@ the single-car race, at equal CPU time.
     python benchmarks/ppo_peer.py --seed 11 --curve                          # evaluate its snapshots
     python benchmarks/ppo_peer.py --algo recurrent-ppo --seed 11 --cpu-hours 3.1   # the same with the LSTM policy
     python benchmarks/ppo_peer.py --seed 11 --evaluate-only --first-track 10100 --tracks 20   # the 8,000-update
-                                                                                  # protocol's tracks (history/)
+                                                                                  # protocol's tracks
 
 PPO (``--algo ppo``) trains on ``dlc/SingleCarRacing-v0`` with rl-baselines3-zoo's CarRacing-v3 hyperparameters
 (hyperparams/ppo.yml), untuned: frame skip 2 (rewards summed), 64x64 grayscale, 2 stacked frames, 8 envs, rewards
@@ -56,7 +56,7 @@ from common import track_block  # noqa: E402
 
 RESULTS = os.path.join(ROOT, "benchmarks", "results")
 RUNS = os.path.join(ROOT, "runs", "ppo_peer")
-FRESH_TRACKS = common.TRACKS["fresh"]  # the 8,000-update protocol's tracks (learning_final.csv of history/)
+FRESH_TRACKS = common.TRACKS["fresh"]  # the 8,000-update protocol's tracks
 FINAL_TRACKS = common.TRACKS["report"]  # the CPU-budget protocol's tracks (final_protocol.py): the default
 SNAPSHOT_STEPS = (50_000, 100_000, 250_000, 500_000, 1_000_000)  # env steps (frame skip included)
 COLUMNS = (
@@ -412,7 +412,7 @@ def main(argv=None) -> dict | list[dict]:
 
         print(learning_report.write_final_report(results_dir, peer_path=results))  # with PPO and the differences
     elif (args.first_track, args.tracks) == FINAL_TRACKS:
-        print("python benchmarks/learning.py --protocol-report  # learning_final.md with this row")
+        print(f"python benchmarks/learning.py --protocol-report --results-dir {results_dir}  # the report with it")
     return row
 
 

@@ -51,6 +51,14 @@ def test_a_file_of_other_columns_is_refused_and_left_as_it_is(tmp_path):
     assert path.read_bytes() == before
 
 
+def test_a_row_with_a_field_outside_the_columns_is_refused_and_the_file_left_as_it_is(tmp_path):
+    path = str(tmp_path / "rows.csv")
+    common.replace_rows(path, [{"seed": 1, "tracks": "a", "value": 0}], COLUMNS, key)
+    with pytest.raises(ValueError, match="fields not in fieldnames"):
+        common.replace_rows(path, [{"seed": 2, "tracks": "a", "value": 0, "typo": 1}], COLUMNS, key)
+    assert read(path) == [("1", "a", "0")] and not os.path.exists(path + ".tmp")
+
+
 def test_an_old_row_without_a_column_takes_its_default_before_the_key_sees_it(tmp_path):
     path = tmp_path / "peer.csv"  # written before the tracks column
     path.write_text("seed,value\n11,657.7\n")
