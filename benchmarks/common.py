@@ -30,6 +30,13 @@ def track_block(first: int, count: int) -> str:
     return f"{first}..{first + count - 1}"
 
 
+def check_header(path: str, header, columns: tuple[str, ...], advice: str) -> None:
+    """Refuse (a one-line ValueError naming the file and ending in `advice`) a CSV whose header is not `columns`; an
+    empty file (no header) passes."""
+    if header and tuple(header) != tuple(columns):
+        raise ValueError(f"{path} has the columns {','.join(header)}, not {','.join(columns)}: {advice}")
+
+
 def replace_rows(
     path: str,
     rows: Iterable[dict],
@@ -56,10 +63,8 @@ def replace_rows(
         if os.path.exists(path):
             with open(path, newline="") as f:
                 reader = csv.DictReader(f)
-                header = tuple(reader.fieldnames or ())
-                if other_header is not None and header and header != tuple(columns):
-                    raise ValueError(f"{path} has the columns {','.join(header)}, not {','.join(columns)}: "
-                                     f"{other_header}")  # fmt: skip
+                if other_header is not None:
+                    check_header(path, reader.fieldnames, columns, other_header)
                 new = set(map(key, rows))
                 filled = ({**r, **{k: v for k, v in (defaults or {}).items() if not r.get(k)}} for r in reader)
                 kept = [r for r in filled if key(r) not in new]

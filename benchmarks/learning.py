@@ -343,8 +343,7 @@ def read_rows(path: str, columns: tuple[str, ...], advice: str) -> list[dict]:
         return []
     with open(path, newline="") as f:
         reader = csv.DictReader(f)
-        if reader.fieldnames is not None and tuple(reader.fieldnames) != tuple(columns):
-            raise ValueError(f"{path} has the columns {','.join(reader.fieldnames)}, not {','.join(columns)}: {advice}")
+        common.check_header(path, reader.fieldnames, columns, advice)
         return list(reader)
 
 
