@@ -6,8 +6,9 @@
 
 The agent (any variant: the checkpoint names its script; agent ``--agent`` of a multi-agent checkpoint) drives alone,
 with the env settings it was trained with at the end of its dead-zone schedule, one race per track. Per policy it
-prints the mean over the tracks of what the script's ``drive_races`` reads: return, progress (fraction of tiles),
-|steer| (near 1: bang-bang steering), gas, brake share, speed, laps finished within the time limit, eliminations.
+prints the mean over the tracks of what ``drive_races`` (utils/collector.py) reads: return, progress (fraction of
+tiles), |steer| (near 1: bang-bang steering), gas, brake share, speed, laps finished within the time limit,
+eliminations.
 ``--json`` also writes every track's values. A sampled policy's random stream starts from the first track's seed,
 so the same command gives the same numbers.
 """
@@ -52,6 +53,7 @@ def evaluate_checkpoint(path: str, first_track: int = 10_000, tracks: int = 10, 
 
     from race import read_checkpoint  # one reader of checkpoints: clear one-line errors naming the file
     from utils import make_vec_env
+    from utils.collector import drive_races
 
     if tracks < 1:
         raise ValueError(f"tracks must be >= 1, got {tracks}")
@@ -63,7 +65,7 @@ def evaluate_checkpoint(path: str, first_track: int = 10_000, tracks: int = 10, 
     try:
         for policy in policies:
             torch.manual_seed(first_track)  # a sampled policy: the same command gives the same numbers
-            readings = script.drive_races([agent], args, envs, policy, tracks_of)
+            readings = drive_races([agent], args, envs, policy, tracks_of)
             out[policy] = {key: [float(v) for v in value[:, 0]] for key, value in readings.items()}
     finally:
         envs.close()

@@ -9,7 +9,7 @@ agent is built and loaded by that script's own functions; an acting-only export 
 checkpoint. A path may end in ``:k`` to pick agent ``k`` of a multi-agent checkpoint (default 0).
 
 Races run on seeded tracks: track ``j`` is raced once per car with the start grid rotated, so every car starts from
-every grid slot equally often, driven by the scripts' own collector (``Races``, as in training and evaluation).
+every grid slot equally often, driven by the collector of training and evaluation (``Races``, utils/collector.py).
 Each Dreamer racer decides at the rate it was trained at: a new action every
 ``action_repeat`` env steps of its own, held in between (its recorded transitions sum the rewards of the held
 steps), with ``--policy`` (default: the mean action from a sampled latent; ``--train`` always samples; torch is
@@ -45,6 +45,7 @@ from envs import MultiCarRacing, race_winners
 from envs.pursuit import PursuitDriver, lane_of
 import utils.run as run_tools
 from utils import checkpoint as saved
+from utils.collector import Races
 
 VARIANT_SCRIPTS = {"lstm": "dreamer_lstm", "gru": "dreamer_gru"}
 WILSON_Z = 1.959963984540054  # two-sided 95%
@@ -172,21 +173,20 @@ class RaceResult:
     returns: list[float]
     winners: list[bool]
     frames: list[np.ndarray]
-    episodes: list  # per racer: its car's episode (the script's CarEpisode, frames at the script's image size)
+    episodes: list  # per racer: its car's episode (a CarEpisode, frames at the image size of the collector's Args)
 
 
-def collector(racers: list):
-    """The dreamer script whose `Races` drives the races (the first Dreamer racer's; scripted drivers alone: the
-    LSTM's) and its Args for the env settings and recorded frames."""
+def collector_args(racers: list):
+    """The Args the collector (utils/collector.py) drives the races with, for the env settings and recorded frames:
+    the first Dreamer racer's (scripted drivers alone: the LSTM script's defaults)."""
     dreamers = [r for r in racers if isinstance(r, DreamerRacer)]
-    script = dreamers[0].module if dreamers else importlib.import_module(VARIANT_SCRIPTS["lstm"])
-    return script, (dreamers[0].args if dreamers else script.Args())
+    return dreamers[0].args if dreamers else importlib.import_module(VARIANT_SCRIPTS["lstm"]).Args()
 
 
 def run_race(envs, racers: list, seed: int, grid: list[int], record_video=False) -> RaceResult:
-    """One race on track `seed` with start grid `grid`, driven by the script's collector (`Races`): each Dreamer
+    """One race on track `seed` with start grid `grid`, driven by the shared collector (`Races`): each Dreamer
     racer decides every action_repeat env steps of its own car with its policy, the pursuit driver every step."""
-    script, args = collector(racers)
+    args = collector_args(racers)
     env = envs.get_attr("unwrapped")[0]  # (the env itself: the race runs in this process)
     for racer, agent in zip(racers, env.possible_agents):
         if isinstance(racer, PursuitRacer):
@@ -196,7 +196,7 @@ def run_race(envs, racers: list, seed: int, grid: list[int], record_video=False)
     obs = envs.reset()
     frames = [envs.get_images()[0]] if record_video else None
     drivers = [r.agent if isinstance(r, DreamerRacer) else r for r in racers]
-    races = script.Races(drivers, args, envs, obs, [r.action_repeat for r in racers])
+    races = Races(drivers, args, envs, obs, [r.action_repeat for r in racers])
     [race], _ = races.drive([r.policy for r in racers], frames)
     final_infos = [car.final_info for car in race.cars]
     returns = [float(r) for r in race.readings["return"]]

@@ -72,6 +72,7 @@ def calibrate_checkpoint(path: str, first_track: int = TRACKS["fresh"][0], track
 
     from race import read_checkpoint
     from utils import make_vec_env
+    from utils.collector import drive_races
 
     script, checkpoint = read_checkpoint(path)
     agent = script.agent_from_checkpoint(path, 0)
@@ -83,7 +84,7 @@ def calibrate_checkpoint(path: str, first_track: int = TRACKS["fresh"][0], track
     torch.manual_seed(first_track)
     records = []
     try:  # the sampled policy, as trained, recorded as training stores a car's episode
-        script.drive_races([agent], args, envs, "stochastic", range(first_track, first_track + tracks), records)
+        drive_races([agent], args, envs, "stochastic", range(first_track, first_track + tracks), records)
     finally:
         envs.close()
     episodes = [cars[0].arrays() for cars in records]

@@ -57,6 +57,7 @@ def rss_bytes() -> int:
 def main(args: Args) -> dict:
     script = importlib.import_module(args.script)
     from utils import make_vec_env
+    from utils.collector import CarEpisode, preprocess_frames
 
     if args.malloc_fix:
         script.keep_freed_memory()
@@ -87,9 +88,9 @@ def main(args: Args) -> dict:
         )
 
     obs = envs.reset()
-    frames = script.preprocess_frames(obs, config.image_size)
+    frames = preprocess_frames(obs, config.image_size)
     states, is_first = [None, None], np.ones(2, dtype=bool)
-    episodes = [script.CarEpisode(frames[i]) for i in range(2)]
+    episodes = [CarEpisode(frames[i]) for i in range(2)]
     races = 0
     started = time.time()
     report(0, started)
@@ -98,12 +99,12 @@ def main(args: Args) -> dict:
         for i, agent in enumerate(agents):
             actions[i : i + 1], states[i] = agent.act(frames[i : i + 1], states[i], is_first[i : i + 1])
         obs, rewards, dones, infos = envs.step(actions)
-        frames = script.preprocess_frames(obs, config.image_size)
+        frames = preprocess_frames(obs, config.image_size)
         for i, info in enumerate(infos):
             if not info["alive"]:
                 continue
             if dones[i]:
-                last = script.preprocess_frames(info["terminal_observation"][None], config.image_size)[0]
+                last = preprocess_frames(info["terminal_observation"][None], config.image_size)[0]
                 episodes[i].add(last, actions[i], rewards[i], terminated=not info["TimeLimit.truncated"])
                 replays[i].add_episode(*episodes[i].arrays())
             else:
@@ -111,7 +112,7 @@ def main(args: Args) -> dict:
         is_first = np.array([info["is_first"] for info in infos], dtype=bool)
         if is_first.any():
             races += 1
-            episodes = [script.CarEpisode(frames[i]) for i in range(2)]
+            episodes = [CarEpisode(frames[i]) for i in range(2)]
         if step % args.report_every == 0 or step == args.steps:
             report(step, started)
     envs.close()

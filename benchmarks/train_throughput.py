@@ -142,6 +142,7 @@ def time_update(script, overrides: dict, repeats: int, warmup: int) -> dict:
 def env_throughput(script, overrides: dict, steps: int) -> tuple[float, float]:
     """Env steps/s of one two-car race: both agents acting, and random actions."""
     from utils import make_vec_env
+    from utils.collector import preprocess_frames
 
     args = script.Args(**overrides)
     agents = [script.Agent(args) for _ in range(2)]
@@ -151,7 +152,7 @@ def env_throughput(script, overrides: dict, steps: int) -> tuple[float, float]:
         obs, states, is_first = envs.reset(), [None, None], np.ones(2, bool)
         t = time.perf_counter()
         for _ in range(steps):
-            frames = script.preprocess_frames(obs, args.image_size)
+            frames = preprocess_frames(obs, args.image_size)
             actions = np.random.uniform(-1, 1, (2, 2)).astype(np.float32)
             if act:
                 for i, agent in enumerate(agents):

@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 import torch
 import utils.checkpoint as ckpt
+import utils.collector as collector
 import utils.run as run_tools
 import tyro
 from conftest import SCRIPTS, TINY, assert_same
@@ -913,7 +914,7 @@ def test_evaluation_averages_steer_over_the_decisions_of_cars_still_racing(scrip
     args = tiny_args(script, num_agents=2, eval_episodes=1, eval_seed=3, max_steps=400, action_repeat=2)
     envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
     drivers = [_ScriptedSteer(1.0), _ScriptedSteer(-0.25)]
-    readings = script.drive_races(drivers, args, envs)
+    readings = collector.drive_races(drivers, args, envs)
     envs.close()
     returns, progress, abs_steer = readings["return"], readings["progress"], readings["abs_steer"]
     assert returns.shape == progress.shape == abs_steer.shape == (1, 2)
@@ -942,7 +943,7 @@ def test_drive_races_reads_gas_brakes_speed_and_how_each_race_ended(script):
 
     args = tiny_args(script, num_agents=2, eval_episodes=1, eval_seed=3, max_steps=400, action_repeat=2)
     envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
-    readings = script.drive_races([_ScriptedPedal(1.0, 1.0), _ScriptedPedal(0.0, -1.0)], args, envs)
+    readings = collector.drive_races([_ScriptedPedal(1.0, 1.0), _ScriptedPedal(0.0, -1.0)], args, envs)
     envs.close()
     assert all(value.shape == (1, 2) for value in readings.values())
     assert readings["gas"][0].tolist() == [1.0, 0.0] and readings["brake_share"][0].tolist() == [0.0, 1.0]
@@ -1000,7 +1001,7 @@ def test_each_car_decides_every_repeat_steps_of_its_own_and_its_transitions_sum_
     actions = [np.array([1.0, 1.0], np.float32), np.array([0.0, 0.3], np.float32)]
     agents = [_ConstantDriver(actions[0]), _ConstantDriver(actions[1])]
     envs = make_vec_env(args.env_id, 1, 3, **script_env(args))
-    [race], steps = script.Races(agents, args, envs, envs.reset(), repeats=[3, 2]).drive(["stochastic"] * 2)
+    [race], steps = collector.Races(agents, args, envs, envs.reset(), repeats=[3, 2]).drive(["stochastic"] * 2)
     envs.close()
     reference = _env_rewards(args, 3, actions)
     assert len(reference[0]) < len(reference[1]) == steps  # car_0 went out first, car_1 raced to the end
@@ -1021,7 +1022,7 @@ def test_races_side_by_side_keep_each_cars_state_when_they_fall_out_of_step(scri
     args = tiny_args(script, num_agents=1, max_steps=200)
     agent = _ConstantDriver([0.6, 0.4])
     envs = make_vec_env(args.env_id, 2, 11, **script_env(args))
-    races = script.Races([agent], args, envs, envs.reset(), repeats=[3])
+    races = collector.Races([agent], args, envs, envs.reset(), repeats=[3])
     first, _ = races.drive(["stochastic"])
     second, _ = races.drive(["stochastic"])
     envs.close()

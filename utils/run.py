@@ -2,7 +2,7 @@
 
 The scripts hold the method (networks, losses, replay, the agent's update and Algorithm 1's loop); this module holds
 what every run needs around it. A *method* is a dreamer script's module; what is used of it: ``VARIANT``, ``Args``,
-``PRESETS``, ``Agent``, ``Replay``, ``LOG_SIGMA_RANGE``, ``env_kwargs``, ``dead_zone_at`` and ``drive_races``.
+``PRESETS``, ``Agent``, ``Replay``, ``LOG_SIGMA_RANGE``, ``env_kwargs`` and ``dead_zone_at``.
 
 * ``setup_run`` checks everything, then builds the ``Run`` (a new one, or a saved one exactly as it stopped): seeds,
   device, envs, agents, replays, logger (TensorBoard, progress.csv), ``config.json``;
@@ -47,6 +47,7 @@ from utils.checkpoint import (
     save_replay,
     set_rng_state,
 )
+from utils.collector import drive_races
 
 # Arguments that fix the networks' shapes (a --checkpoint brings its own; a resumed run cannot change them),
 # and what a run is (a resumed run cannot change those either).
@@ -563,7 +564,7 @@ def evaluate_and_keep_best(run: Run) -> None:
     args, counters, method = run.args, run.counters, run.method
     if run.eval_envs is None:
         run.eval_envs = make_vec_env(args.env_id, 1, None, **method.env_kwargs(args, args.dead_zone_end))
-    readings = method.drive_races(run.agents, args, run.eval_envs)
+    readings = drive_races(run.agents, args, run.eval_envs)
     returns, progress, abs_steer = readings["return"], readings["progress"], readings["abs_steer"]
     for j in range(len(run.agents)):
         run.logger.record(f"car_{j}/eval/episodic_return", float(returns[:, j].mean()))
