@@ -44,13 +44,11 @@ import os
 
 import numpy as np
 
+from common import TRACKS, track_block
 from learning import (
     OLD_PROTOCOL_HOME, RESULTS, VARIANTS, eval_curve, eval_summary, read_rows, replace_row, training_hours,
 )  # fmt: skip
-from ppo_peer import COLUMNS as PEER_CSV_COLUMNS
-from common import TRACKS, track_block
-from ppo_peer import CURVE_COLUMNS
-from ppo_peer import read_rows as read_peer_csv
+from ppo_peer import COLUMNS as PEER_CSV_COLUMNS, CURVE_COLUMNS, read_rows as read_peer_csv
 
 # --- The protocol ----------------------------------------------------------------------------
 # Each run is a single-stage trial of benchmarks/experiment.py trained until it has spent PROTOCOL_CPU_HOURS of
