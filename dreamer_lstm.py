@@ -226,6 +226,11 @@ class Args:
     head_sigma: float = 0.0
     """sigma of the reward and critic Gaussians: 0 learns it (softplus + 0.1, the paper); a positive value fixes it
     (1: the paper authors' code, a squared error, so that a rare -100 moves the mean instead of widening sigma)"""
+    action_noise_corr: float = 0.0
+    """rho: correlation of the sampled policy's noise from one decision to the next while it drives (an AR(1)
+    process, eps_t = rho eps_{t-1} + sqrt(1 - rho^2) xi_t, each eps_t N(0, 1): temporally correlated exploration,
+    Lillicrap et al.'s Ornstein-Uhlenbeck noise in discrete time). 0: independent (the paper). Imagination always
+    samples independently; the noise only changes which real data the world model learns from"""
 
     # --- network sizes (paper appendix; --preset cpu uses smaller ones)
     image_size: Literal[96, 64] = 96
@@ -587,15 +592,15 @@ class Actor(nn.Module):
         mean, raw_std = self.net(features).float().chunk(2, dim=-1)
         return torch.tanh(mean), soft_bounded(raw_std, *ACTOR_STD_BOUNDS)
 
-    def sample(self, features: torch.Tensor, deterministic: bool = False):
-        """a = tanh(mu) + sigma eps by rsample, and log pi(a) = sum_d [log N(a_d; tanh mu_d, sigma_d)
-        - log(1 - tanh(a_d)^2 + 1e-6)] (paper 3.9: the second term penalises extreme actions). Returns the
-        action clipped to [-1, 1] (what the env and the world model receive) and log pi (None if deterministic:
-        the mean action)."""
+    def sample(self, features: torch.Tensor, deterministic: bool = False, noise: torch.Tensor | None = None):
+        """a = tanh(mu) + sigma eps by rsample (eps ~ N(0, I), or `noise` if given), and log pi(a) = sum_d
+        [log N(a_d; tanh mu_d, sigma_d) - log(1 - tanh(a_d)^2 + 1e-6)] (paper 3.9: the second term penalises
+        extreme actions). Returns the action clipped to [-1, 1] (what the env and the world model receive) and
+        log pi (None if deterministic: the mean action)."""
         mean, std = self(features)
         if deterministic:
             return mean, None
-        action = mean + std * torch.randn_like(std)
+        action = mean + std * (torch.randn_like(std) if noise is None else noise)
         return action.clamp(-1.0, 1.0), policy_log_prob(action, mean, std)
 
 
@@ -1039,11 +1044,13 @@ class Agent:
 
     # --- acting --------------------------------------------------------------------------
     def initial_state(self, n: int):
-        """Recurrent state of n cars before their first frame: (cell state, z, previous action)."""
+        """Recurrent state of n cars before their first frame: (cell state, z, previous action, the sampled policy's
+        last noise: --action-noise-corr)."""
         with torch.no_grad():
             cell = tuple(s.clone() for s in self.world_model.cell.initial_state(n))
         z = torch.zeros(n, self.args.latent_size, device=self.device)
-        return cell, z, torch.zeros(n, self.action_dim, device=self.device)
+        zeros = torch.zeros(n, self.action_dim, device=self.device)
+        return cell, z, zeros, zeros.clone()
 
     @torch.no_grad()
     def act(self, obs: np.ndarray, state=None, is_first=None, policy: str = "stochastic"):
@@ -1062,13 +1069,18 @@ class Agent:
         is_first = np.zeros(n, dtype=bool) if is_first is None else np.asarray(is_first, dtype=bool)
         frames = torch.as_tensor(preprocess_frames(obs, self.args.image_size), device=self.device)
         self._set_training(False)  # BatchNorm uses its running statistics while acting
-        cell, z, prev_action = state
+        cell, z, prev_action, noise = state
         embed_part = self.world_model.representation.embed_part(self.world_model.encoder(frames))
         first = torch.as_tensor(is_first, device=self.device)
         sample_z = policy != "deterministic"
         cell, h, z, _, _ = self.world_model.observe_step(cell, z, prev_action, embed_part, first, sample_z)
-        action, _ = self.actor.sample(torch.cat([z, h], -1), deterministic=policy != "stochastic")
-        return action.cpu().numpy(), (cell, z, action)
+        if policy == "stochastic":  # the policy's noise: independent, or AR(1) across decisions (--action-noise-corr)
+            rho, fresh = self.args.action_noise_corr, torch.randn(n, self.action_dim, device=self.device)
+            if rho > 0:  # (a fresh draw where a race starts)
+                fresh = torch.where(first[:, None], fresh, rho * noise + math.sqrt(1.0 - rho * rho) * fresh)
+            noise = fresh
+        action, _ = self.actor.sample(torch.cat([z, h], -1), deterministic=policy != "stochastic", noise=noise)
+        return action.cpu().numpy(), (cell, z, action, noise)
 
     @torch.no_grad()
     def video(self, obs: np.ndarray, actions: np.ndarray, is_first: np.ndarray, context: int = 5) -> np.ndarray:

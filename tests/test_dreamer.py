@@ -274,6 +274,36 @@ def test_act_carries_state_and_resets_on_is_first(script):
     assert not np.allclose(a3, a2)
 
 
+
+@pytest.mark.parametrize("rho", [0.0, 0.9])
+def test_sampled_noise_is_an_ar1_process_restarted_with_each_race(script, rho):
+    """--action-noise-corr: the noise in the state, eps_t = rho eps_{t-1} + sqrt(1 - rho^2) xi_t, has unit variance
+    and lag-1 correlation rho over many cars and decisions; a car whose race restarts draws afresh (no correlation
+    with its last noise); the action is the actor's mean plus its sigma times that noise, clipped; the mean action
+    leaves the noise as it was."""
+    torch.manual_seed(0)
+    agent = script.Agent(tiny_args(script, action_noise_corr=rho))
+    n, steps = 256, 12
+    obs = np.random.default_rng(0).integers(0, 256, (n, 96, 96, 3), dtype=np.uint8)
+    _, state = agent.act(obs)
+    noises = [state[3]]
+    for _ in range(steps):
+        _, state = agent.act(obs, state)
+        noises.append(state[3])
+    eps = torch.stack(noises)  # (steps + 1, n, A)
+    assert eps.std().item() == pytest.approx(1.0, abs=0.05)
+    lag1 = torch.corrcoef(torch.stack([eps[:-1].flatten(), eps[1:].flatten()]))[0, 1].item()
+    assert lag1 == pytest.approx(rho, abs=0.05)
+    restart = np.arange(n) < n // 2
+    _, restarted = agent.act(obs, state, restart)
+    across = torch.corrcoef(torch.stack([state[3][: n // 2].flatten(), restarted[3][: n // 2].flatten()]))[0, 1]
+    assert abs(across.item()) < 0.15  # fresh draws
+    _, kept = agent.act(obs, restarted, policy="mean-action")
+    assert torch.equal(kept[3], restarted[3])
+    agent.actor.forward = lambda features: (torch.full((len(features), 2), 0.5), torch.full((len(features), 2), 0.4))
+    actions, after = agent.act(obs, restarted)
+    torch.testing.assert_close(torch.as_tensor(actions), (0.5 + 0.4 * after[3]).clamp(-1, 1))
+
 # ------------------------------------------------------------------------------------------
 # Returns, weights, KL, free bits, targets
 # ------------------------------------------------------------------------------------------

@@ -99,6 +99,7 @@ BAD_ARGUMENTS = [
     (["--gamma", "0"], "--gamma must lie in (0, 1], got 0.0"),
     (["--gamma", "1.01"], "--gamma must lie in (0, 1], got 1.01"),
     (["--lambda", "-0.5"], "--lambda must lie in [0, 1], got -0.5"),
+    (["--action-noise-corr", "1"], "--action-noise-corr must lie in [0, 1) (0: independent noise), got 1.0"),
     (["--entropy-coef", "-1"], "--entropy-coef must be >= 0, got -1.0"),
     (["--grad-clip", "inf"], "--grad-clip must be a finite number, got inf"),
     (["--replay-capacity", "40"], "--replay-capacity must be >= --seq-len (50), got 40"),

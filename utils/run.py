@@ -109,6 +109,7 @@ def validate_args(args, log_sigma_range: tuple[float, float]) -> None:
     require(0 <= args.lambda_ <= 1, "lambda_", "must lie in [0, 1]")
     require(0 <= args.reward_nll_beta <= 1, "reward_nll_beta", "must lie in [0, 1]")
     require(args.head_sigma >= 0, "head_sigma", "must be >= 0 (0: learned)")
+    require(0 <= args.action_noise_corr < 1, "action_noise_corr", "must lie in [0, 1) (0: independent noise)")
     require(args.entropy_lr > 0, "entropy_lr", "must be > 0")
     if args.action_penalty is not None:
         require(math.isfinite(args.action_penalty) and args.action_penalty >= 0, "action_penalty", "must be >= 0")

@@ -1,0 +1,185 @@
+"""Does the world model see what the pedal does? Real against imagined returns with the pedal held.
+
+    python benchmarks/pedal_response.py runs/<run>/checkpoints/latest.pt                  # tracks 10200..10202
+    python benchmarks/pedal_response.py <checkpoint> --pedals -1 0 0.3 1 --after 0 40 --tracks 5
+
+For one saved agent (a training checkpoint: it needs its reward and continue heads), on each track: the car drives
+``--after`` decisions with the agent's mean action; from there, for every pedal value ``p`` of ``--pedals``, it
+drives H more decisions (H: the agent's imagination horizon) steering with the actor's mean and the pedal held at
+``p``, and the world model imagines those H decisions from the agent's state at the same point (the actor's mean
+steering on the imagined states, the pedal ``p``; ``--samples`` imagined latent paths). Per start and pedal:
+
+* ``real``: the H-decision task return sum_{k<H} gamma^k r_{k+1} (a decision's reward sums its held env steps;
+  nothing after the car is out, as calibration.horizon_task_returns counts it);
+* ``imagined``: sum_k w_k r_k with the reward head's mean r_k and the weights w_k of training's discount_weights
+  (gamma and the continue head), averaged over the samples.
+
+A world model that has learned the pedal imagines braking from rest as standing still (a real return of about
+-0.1 per env step) and full gas as faster than coasting. One that imagines about the same return whatever the pedal
+gives the actor no gradient to use it: its pedal drifts to wherever the entropy and action terms put it, and the
+car cruises. The table ends with each start's range over the pedals, imagined against real.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import sys
+
+import numpy as np
+import tyro
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+
+
+@dataclasses.dataclass
+class Args:
+    checkpoint: tyro.conf.Positional[str]
+    """a training checkpoint (latest.pt or best.pt of a single-car run)"""
+    first_track: int = 10_200
+    """seed of the first track (10200..: the screening tracks)"""
+    tracks: int = 3
+    """number of tracks"""
+    pedals: tuple[float, ...] = (-1.0, 0.0, 0.3, 1.0)
+    """pedal values to hold, in [-1, 1] (u > 0 gas; u at or below the env's dead zone brakes; in between coasts)"""
+    after: tuple[int, ...] = (0, 40)
+    """decisions driven with the mean action before the pedal is held (0: from the race's first frame)"""
+    samples: int = 16
+    """imagined latent paths per start"""
+    json: str | None = None
+    """also write every track's values to this file"""
+
+
+def drive(agent, args, envs, track: int, after: int, pedal: float | None, horizon: int) -> tuple:
+    """One race on `track`: `after` decisions with the mean action, then (if `pedal` is given) `horizon` decisions
+    steering with the mean action and the pedal held. Returns the frames and actions of the first `after` + 1
+    decisions (as a replay stores them: the action that led to each frame, zero for the first) and the per-decision
+    rewards of the held part, with whether the car went out there (the rewards stop at that decision)."""
+    import torch
+
+    from utils.collector import preprocess_frames
+
+    torch.manual_seed(track)  # the same latent samples, so every pedal starts from the same state and place
+    envs.seed(track)
+    obs, state, first = envs.reset(), None, np.ones(1, dtype=bool)
+    frames, actions, rewards, out = [preprocess_frames(obs, args.image_size)[0]], [np.zeros(2, np.float32)], [], False
+    for t in range(after + (0 if pedal is None else horizon)):
+        action, state = agent.act(obs, state, first, "mean-action")
+        first[:] = False
+        if t >= after:
+            action = action.copy()
+            action[:, 1] = pedal
+        reward = 0.0
+        for _ in range(args.action_repeat):
+            obs, step_rewards, dones, _ = envs.step(action)
+            reward += float(step_rewards[0])
+            if dones[0]:
+                break
+        if t < after:
+            if dones[0]:
+                raise ValueError(f"track {track}: the car was out after {t + 1} decisions, before --after {after}")
+            frames.append(preprocess_frames(obs, args.image_size)[0])
+            actions.append(action[0].astype(np.float32))
+        else:
+            rewards.append(reward)
+            if dones[0]:
+                out = True
+                break
+    return np.stack(frames), np.stack(actions), np.array(rewards), out
+
+
+def imagine(script, agent, frames: np.ndarray, actions: np.ndarray, pedal: float, horizon: int, samples: int,
+            gamma: float) -> float:  # fmt: skip
+    """The world model's H-decision task return from the posterior state of the last of `frames` (observed with
+    `actions`), steering with the actor's mean on imagined states and the pedal held: mean over `samples` paths."""
+    import torch
+
+    wm, actor = agent.world_model, agent.actor
+    agent._set_training(False)  # running statistics, as when acting
+    with torch.no_grad():
+        is_first = torch.zeros(1, len(frames), dtype=torch.bool)
+        is_first[0, 0] = True
+        post = wm.observe(wm.encoder(torch.as_tensor(frames[None])), torch.as_tensor(actions[None]), is_first)
+        state = tuple(s[0, -1:].repeat(samples, 1) for s in post["states"])
+        h, z = post["h"][0, -1:].repeat(samples, 1), post["z"][0, -1:].repeat(samples, 1)
+        rewards, continues = [], []
+        for _ in range(horizon):
+            action, _ = actor(torch.cat([z, h], -1))
+            action = action.clone()
+            action[:, 1] = pedal
+            state, h, z = wm.imagine_step(state, z, action.clamp(-1.0, 1.0))
+            features = torch.cat([z, h], -1)
+            rewards.append(script.gaussian_params(wm.reward(features), script.HEAD_MIN_STD)[0].squeeze(-1))
+            continues.append(torch.sigmoid(wm.cont(features).float().squeeze(-1)))
+        weights = script.discount_weights(torch.stack(continues), gamma)
+        return float((weights * torch.stack(rewards)).sum(0).mean())
+
+
+def pedal_response(path: str, first_track: int = 10_200, tracks: int = 3, pedals=(-1.0, 0.0, 0.3, 1.0),
+                   after=(0, 40), samples: int = 16) -> list[dict]:  # fmt: skip
+    """Per track, start (`after`) and pedal: the real and the imagined H-decision task return (module docstring)."""
+    import torch
+
+    from race import read_checkpoint
+    from utils import make_vec_env
+
+    script, checkpoint = read_checkpoint(path)
+    agent = script.agent_from_checkpoint(path, 0)
+    if agent.acting_only:
+        raise ValueError(f"{path}: an acting-only export has no reward or continue head; give a training checkpoint")
+    if any(not -1.0 <= p <= 1.0 for p in pedals):
+        raise ValueError(f"--pedals must lie in [-1, 1], got {list(pedals)}")
+    if any(a < 0 for a in after):
+        raise ValueError(f"--after must be >= 0, got {list(after)}")
+    args = script.args_from_checkpoint(checkpoint, path, num_agents=1)
+    horizon, gamma = args.imagination_horizon, args.gamma
+    envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
+    rows = []
+    try:
+        for track in range(first_track, first_track + tracks):
+            for start in after:
+                frames, actions, _, _ = drive(agent, args, envs, track, start, None, horizon)
+                for pedal in pedals:
+                    _, _, rewards, out = drive(agent, args, envs, track, start, pedal, horizon)
+                    real = float(np.sum(rewards * gamma ** np.arange(len(rewards))))
+                    torch.manual_seed(track)
+                    imagined = imagine(script, agent, frames, actions, pedal, horizon, samples, gamma)
+                    rows.append({"track": track, "after": start, "pedal": pedal, "real": round(real, 2),
+                                 "imagined": round(imagined, 2), "out": out, "decisions": len(rewards)})  # fmt: skip
+    finally:
+        envs.close()
+    return rows
+
+
+def table(rows: list[dict], path: str) -> str:
+    """Markdown: mean real and imagined return per start and pedal over the tracks, then each start's range over
+    the pedals (max - min of the means), imagined against real."""
+    lines = [f"Pedal held for H decisions, {path} ({len({r['track'] for r in rows})} tracks):", "",
+             "| after | pedal | real | imagined | out |", "|---|---|---|---|---|"]  # fmt: skip
+    ranges = []
+    for start in sorted({r["after"] for r in rows}):
+        means = {}
+        for pedal in sorted({r["pedal"] for r in rows}):
+            mine = [r for r in rows if r["after"] == start and r["pedal"] == pedal]
+            means[pedal] = (np.mean([r["real"] for r in mine]), np.mean([r["imagined"] for r in mine]))
+            out = sum(r["out"] for r in mine)
+            lines.append(f"| {start} | {pedal:+.2f} | {means[pedal][0]:.2f} | {means[pedal][1]:.2f} | {out} |")
+        real, imagined = np.array(list(means.values())).T
+        ranges.append(f"after {start}: imagined range {np.ptp(imagined):.2f} against real {np.ptp(real):.2f}")
+    return "\n".join(lines + [""] + ranges) + "\n"
+
+
+def main(argv=None) -> list[dict]:
+    args = tyro.cli(Args, args=argv)
+    rows = pedal_response(args.checkpoint, args.first_track, args.tracks, args.pedals, args.after, args.samples)
+    print(table(rows, args.checkpoint), end="")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(rows, f, indent=1)
+    return rows
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,104 @@
+"""benchmarks/pedal_response.py: the real return of a held pedal against the env driven directly, the imagined one
+against its sum written out, and bad input."""
+
+import dataclasses
+import importlib
+import os
+import sys
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
+import pedal_response  # noqa: E402
+from conftest import TINY_RUN  # noqa: E402
+import utils.checkpoint as ckpt  # noqa: E402
+from utils import make_vec_env  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """A tiny trained single-car GRU agent, its Args (races of 200 env steps) and its checkpoint."""
+    script = importlib.import_module("dreamer_gru")
+    runs = tmp_path_factory.mktemp("runs")
+    run_dir = script.main(script.Args(stage="single", runs_dir=str(runs), action_repeat=2, **TINY_RUN))
+    latest = os.path.join(run_dir, "checkpoints", "latest.pt")
+    args = dataclasses.replace(script.args_from_checkpoint(torch.load(latest, weights_only=True), latest,
+                                                           num_agents=1), max_steps=200)  # fmt: skip
+    return script, script.agent_from_checkpoint(latest, 0), args, latest
+
+
+def test_a_held_pedal_drives_the_env_as_the_same_actions_do_directly(trained):
+    """From rest, a pedal at or below 0 leaves the car standing whatever the steering: its per-decision rewards are
+    those of the env stepped directly with no action, decision by decision (action_repeat env steps each). Full gas
+    moves the car onto new tiles; the first `after` decisions are kept as a replay stores them."""
+    script, agent, args, _ = trained
+    envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
+    try:
+        _, _, standing, out = pedal_response.drive(agent, args, envs, 10_200, 0, 0.0, 40)
+        envs.seed(10_200)
+        envs.reset()
+        direct = [sum(float(envs.step(np.zeros((1, 2), np.float32))[1][0]) for _ in range(args.action_repeat))
+                  for _ in range(40)]  # fmt: skip
+        np.testing.assert_allclose(standing, direct, atol=1e-6)
+        assert not out and len(standing) == 40
+        _, _, driving, _ = pedal_response.drive(agent, args, envs, 10_200, 0, 1.0, 40)
+        assert (driving > 0).sum() > (standing > 0).sum() + 2  # new tiles (1000/N each) before it leaves the road
+        frames, actions, _, _ = pedal_response.drive(agent, args, envs, 10_200, 5, None, 40)
+        assert frames.shape == (6, args.image_size, args.image_size, 3) and actions.shape == (6, 2)
+        assert not actions[0].any() and actions[1:].any()  # the action that led to each frame; none to the first
+    finally:
+        envs.close()
+
+
+class _Constant(nn.Module):
+    def __init__(self, values):
+        super().__init__()
+        self.values = torch.tensor(values)
+
+    def forward(self, x):
+        return self.values.expand(len(x), -1)
+
+
+def test_imagined_return_is_the_discounted_sum_of_the_heads_and_holds_the_pedal(trained, monkeypatch):
+    """With a reward head that predicts 2.0 and a continue head that is sure, the imagined return is
+    2 * sum_{k<H} gamma^k; and every imagined action carries the held pedal and the actor's mean steering."""
+    script, agent, args, _ = trained
+    frames = np.zeros((3, args.image_size, args.image_size, 3), np.uint8)
+    actions = np.zeros((3, 2), np.float32)
+    wm = agent.world_model
+    monkeypatch.setattr(wm, "reward", _Constant([2.0, 0.0]))
+    monkeypatch.setattr(wm, "cont", _Constant([50.0]))
+    seen, step = [], wm.imagine_step
+
+    def recording(state, z, action, sample=True):
+        seen.append(action.clone())
+        return step(state, z, action, sample)
+
+    monkeypatch.setattr(wm, "imagine_step", recording)
+    gamma, horizon = 0.9, 7
+    imagined = pedal_response.imagine(script, agent, frames, actions, -0.4, horizon, 4, gamma)
+    assert imagined == pytest.approx(2.0 * sum(gamma**k for k in range(horizon)), rel=1e-5)
+    assert len(seen) == horizon and all(torch.all(a[:, 1] == -0.4) for a in seen)
+    assert all(a.shape == (4, 2) and torch.all(a[:, 0].abs() < 1) for a in seen)  # the actor's tanh mean
+
+
+def test_bad_input_is_refused_naming_what_was_wrong(trained, tmp_path):
+    script, _, _, latest = trained
+    with pytest.raises(ValueError, match=r"--pedals must lie in \[-1, 1\], got \[0.0, 1.5\]"):
+        pedal_response.pedal_response(latest, pedals=(0.0, 1.5))
+    with pytest.raises(ValueError, match=r"--after must be >= 0"):
+        pedal_response.pedal_response(latest, after=(-1,))
+    ckpt.export_policy(script, latest, str(tmp_path / "policy.pt"))
+    with pytest.raises(ValueError, match=r"policy\.pt: an acting-only export has no reward or continue head"):
+        pedal_response.pedal_response(str(tmp_path / "policy.pt"))
+
+
+def test_the_table_gives_each_starts_range_over_the_pedals():
+    rows = [{"track": t, "after": 0, "pedal": p, "real": r, "imagined": i, "out": False, "decisions": 3}
+            for t in (1, 2) for p, r, i in ((-1.0, -1.0, 40.0), (1.0, 30.0 + t, 41.0))]  # fmt: skip
+    text = pedal_response.table(rows, "x.pt")
+    assert "| 0 | +1.00 | 31.50 | 41.00 | 0 |" in text
+    assert "after 0: imagined range 1.00 against real 32.50" in text
