@@ -153,22 +153,35 @@ def pedal_response(path: str, first_track: int = 10_200, tracks: int = 3, pedals
     return rows
 
 
+def means(rows: list[dict]) -> dict[int, dict[float, tuple[float, float]]]:
+    """Per start (`after`) and pedal, the mean (real, imagined) return over the tracks."""
+    out = {}
+    for start in sorted({r["after"] for r in rows}):
+        out[start] = {}
+        for pedal in sorted({r["pedal"] for r in rows}):
+            mine = [r for r in rows if r["after"] == start and r["pedal"] == pedal]
+            out[start][pedal] = tuple(float(np.mean([r[key] for r in mine])) for key in ("real", "imagined"))
+    return out
+
+
+def ranges(rows: list[dict]) -> dict[int, tuple[float, float]]:
+    """Per start, the range over the pedals (max - min) of the mean imagined and of the mean real return."""
+    return {start: (float(np.ptp([m[1] for m in by_pedal.values()])), float(np.ptp([m[0] for m in by_pedal.values()])))
+            for start, by_pedal in means(rows).items()}  # fmt: skip
+
+
 def table(rows: list[dict], path: str) -> str:
     """Markdown: mean real and imagined return per start and pedal over the tracks, then each start's range over
     the pedals (max - min of the means), imagined against real."""
     lines = [f"Pedal held for H decisions, {path} ({len({r['track'] for r in rows})} tracks):", "",
              "| after | pedal | real | imagined | out |", "|---|---|---|---|---|"]  # fmt: skip
-    ranges = []
-    for start in sorted({r["after"] for r in rows}):
-        means = {}
-        for pedal in sorted({r["pedal"] for r in rows}):
-            mine = [r for r in rows if r["after"] == start and r["pedal"] == pedal]
-            means[pedal] = (np.mean([r["real"] for r in mine]), np.mean([r["imagined"] for r in mine]))
-            out = sum(r["out"] for r in mine)
-            lines.append(f"| {start} | {pedal:+.2f} | {means[pedal][0]:.2f} | {means[pedal][1]:.2f} | {out} |")
-        real, imagined = np.array(list(means.values())).T
-        ranges.append(f"after {start}: imagined range {np.ptp(imagined):.2f} against real {np.ptp(real):.2f}")
-    return "\n".join(lines + [""] + ranges) + "\n"
+    for start, by_pedal in means(rows).items():
+        for pedal, (real, imagined) in by_pedal.items():
+            out = sum(r["out"] for r in rows if r["after"] == start and r["pedal"] == pedal)
+            lines.append(f"| {start} | {pedal:+.2f} | {real:.2f} | {imagined:.2f} | {out} |")
+    spans = [f"after {start}: imagined range {imagined:.2f} against real {real:.2f}"
+             for start, (imagined, real) in ranges(rows).items()]  # fmt: skip
+    return "\n".join(lines + [""] + spans) + "\n"
 
 
 def main(argv=None) -> list[dict]:

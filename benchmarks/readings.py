@@ -8,6 +8,9 @@ For one saved single-car agent, on a block of tracks (the screening tracks 10200
 * the model on those real episodes (sampled policy; ``calibration.calibrate_checkpoint``): the imagined H-step task
   return against the real one from the same states, and on the frames where a car was eliminated the reward head's
   mean (the real reward there is the -100 penalty);
+* the model's view of the pedal (``pedal_response.py``): after 40 decisions of the mean action on the block's first
+  3 tracks, the pedal held at -1, 0, 0.3 and 1 for H decisions; the range over the pedals of the mean imagined
+  return and of the mean real one (a model that sees the pedal imagines a range near the real one);
 * training, as logged over the run's last ``screening.SCREEN_WINDOW`` updates: the actor's sigma, the entropy
   (-log pi), the entropy weight alpha (--entropy-target) and the imagined lambda-return; and the run's CPU-hours.
 """
@@ -29,7 +32,10 @@ TRAINING = {  # column: the progress.csv tag averaged over the last SCREEN_WINDO
     "imagined_return": "car_0/losses/imagined_return",
 }  # fmt: skip
 MODEL = ("imagined_task_return", "real_task_return", "eliminations", "terminal_reward_predicted")
-COLUMNS = ("tag", "variant", "seed", "updates", "policy", *DRIVING, *TRAINING, *MODEL, "cpu_hours", "checkpoint")
+PEDAL = ("pedal_range_imagined", "pedal_range_real")
+PEDAL_AFTER, PEDAL_TRACKS = 40, 3  # pedal_response.py's start (decisions) and tracks (the block's first)
+COLUMNS = ("tag", "variant", "seed", "updates", "policy", *DRIVING, *TRAINING, *MODEL, *PEDAL, "cpu_hours",
+           "checkpoint")  # fmt: skip
 
 
 def driving(path: str, first_track: int, tracks: int) -> dict[str, dict[str, float]]:
@@ -53,10 +59,24 @@ def training(run_dir: str, updates: int) -> dict[str, float]:
     return out
 
 
+def pedal(path: str, first_track: int) -> dict[str, float]:
+    """The PEDAL readings (pedal_response.py); NaN when the car was out before PEDAL_AFTER decisions on a track."""
+    from pedal_response import pedal_response, ranges
+
+    try:
+        rows = pedal_response(path, first_track, PEDAL_TRACKS, after=(PEDAL_AFTER,))
+    except ValueError as e:
+        if "was out after" not in str(e):
+            raise
+        return dict.fromkeys(PEDAL, float("nan"))
+    imagined, real = ranges(rows)[PEDAL_AFTER]
+    return {"pedal_range_imagined": round(imagined, 2), "pedal_range_real": round(real, 2)}
+
+
 def measure(path: str, run_dir: str, updates: int, first_track: int, tracks: int) -> dict:
     """Every reading of the policy at `path` (kept by `run_dir` at `updates` updates): {policy: row fields}."""
     model = calibrate_checkpoint(path, first_track, tracks)
-    model = {key: model[key] for key in MODEL}
+    model = {**{key: model[key] for key in MODEL}, **pedal(path, first_track)}
     trained = training(run_dir, updates)
     return {policy: {**values, **trained, **model} for policy, values in driving(path, first_track, tracks).items()}
 
@@ -86,8 +106,12 @@ def report(sweep) -> str:
             waiting.append(f"{name} (no policy kept at {updates} updates: {e})")
             continue
         key = f"{os.path.relpath(path, sweep.storage)}@{sweep.first_track}+{sweep.tracks}"
-        if key not in cache:
-            cache[key] = measure(path, run, updates, sweep.first_track, sweep.tracks)
+        if key not in cache or PEDAL[0] not in cache[key][POLICIES[0]]:
+            if key not in cache:
+                cache[key] = measure(path, run, updates, sweep.first_track, sweep.tracks)
+            else:  # readings kept before the PEDAL columns: add them
+                extra = pedal(path, sweep.first_track)
+                cache[key] = {policy: {**values, **extra} for policy, values in cache[key].items()}
             with open(cache_path + ".tmp", "w") as f:
                 json.dump(cache, f, indent=1)
             os.replace(cache_path + ".tmp", cache_path)

@@ -139,8 +139,23 @@ def test_the_report_measures_each_finished_trial_once_with_both_policies(finishe
     ]
     assert all(0 <= float(r["gas"]) <= 1 and float(r["speed"]) >= 0 and r["actor_sigma"] for r in rows)
     assert "| tag | variant | seed | policy | return |" in text
+    assert all(r["pedal_range_real"] for r in rows)  # (a number, or nan: the tiny car out before 40 decisions)
     monkeypatch.setattr(readings, "measure", lambda *a: pytest.fail("measured again"))
     assert readings.report(finished) == text  # from readings.json
+    cache_path = os.path.join(finished.storage, finished.name, "readings.json")
+    with open(cache_path) as f:
+        cache = json.load(f)
+    for values in (v for per_policy in cache.values() for v in per_policy.values()):
+        del values["pedal_range_imagined"], values["pedal_range_real"]  # as kept before the PEDAL columns
+    with open(cache_path, "w") as f:
+        json.dump(cache, f)
+    calls = []
+    monkeypatch.setattr(readings, "pedal", lambda path, first: calls.append(path) or {
+        "pedal_range_imagined": 1.5, "pedal_range_real": 80.0})  # fmt: skip
+    readings.report(finished)
+    with open(os.path.join(finished.results, "sweep_tiny.csv")) as f:
+        assert {(r["pedal_range_imagined"], r["pedal_range_real"]) for r in csv.DictReader(f)} == {("1.5", "80.0")}
+    assert len(calls) == len(GRID)  # once per trial, for both policies
 
 
 def test_training_readings_average_the_last_window_of_updates(tmp_path):
