@@ -5,9 +5,10 @@
 
 For one saved agent (a training checkpoint: it needs its reward and continue heads), on each track: the car drives
 ``--after`` decisions with the agent's mean action; from there, for every pedal value ``p`` of ``--pedals``, it
-drives H more decisions (H: the agent's imagination horizon) steering with the actor's mean and the pedal held at
-``p``, and the world model imagines those H decisions from the agent's state at the same point (the actor's mean
-steering on the imagined states, the pedal ``p``; ``--samples`` imagined latent paths). Per start and pedal:
+drives H more decisions (H: the agent's imagination horizon, or ``--horizon``) steering with the actor's mean and
+the pedal held at ``p``, and the world model imagines those H decisions from the agent's state at the same point
+(the actor's mean steering on the imagined states, the pedal ``p``; ``--samples`` imagined latent paths). Per start
+and pedal:
 
 * ``real``: the H-decision task return sum_{k<H} gamma^k r_{k+1} (a decision's reward sums its held env steps;
   nothing after the car is out, as calibration.horizon_task_returns counts it);
@@ -48,6 +49,8 @@ class Args:
     """decisions driven with the mean action before the pedal is held (0: from the race's first frame)"""
     samples: int = 16
     """imagined latent paths per start"""
+    horizon: int | None = None
+    """decisions the pedal is held (default: the agent's imagination horizon H)"""
     json: str | None = None
     """also write every track's values to this file"""
 
@@ -118,8 +121,9 @@ def imagine(script, agent, frames: np.ndarray, actions: np.ndarray, pedal: float
 
 
 def pedal_response(path: str, first_track: int = 10_200, tracks: int = 3, pedals=(-1.0, 0.0, 0.3, 1.0),
-                   after=(0, 40), samples: int = 16) -> list[dict]:  # fmt: skip
-    """Per track, start (`after`) and pedal: the real and the imagined H-decision task return (module docstring)."""
+                   after=(0, 40), samples: int = 16, horizon: int | None = None) -> list[dict]:  # fmt: skip
+    """Per track, start (`after`) and pedal: the real and the imagined H-decision task return (module docstring;
+    `horizon` decisions instead of the agent's H if given)."""
     import torch
 
     from race import read_checkpoint
@@ -133,8 +137,10 @@ def pedal_response(path: str, first_track: int = 10_200, tracks: int = 3, pedals
         raise ValueError(f"--pedals must lie in [-1, 1], got {list(pedals)}")
     if any(a < 0 for a in after):
         raise ValueError(f"--after must be >= 0, got {list(after)}")
+    if horizon is not None and horizon < 1:
+        raise ValueError(f"--horizon must be >= 1, got {horizon}")
     args = script.args_from_checkpoint(checkpoint, path, num_agents=1)
-    horizon, gamma = args.imagination_horizon, args.gamma
+    horizon, gamma = horizon or args.imagination_horizon, args.gamma
     envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
     rows = []
     try:
@@ -186,7 +192,8 @@ def table(rows: list[dict], path: str) -> str:
 
 def main(argv=None) -> list[dict]:
     args = tyro.cli(Args, args=argv)
-    rows = pedal_response(args.checkpoint, args.first_track, args.tracks, args.pedals, args.after, args.samples)
+    rows = pedal_response(args.checkpoint, args.first_track, args.tracks, args.pedals, args.after, args.samples,
+                          args.horizon)  # fmt: skip
     print(table(rows, args.checkpoint), end="")
     if args.json:
         with open(args.json, "w") as f:

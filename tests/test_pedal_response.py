@@ -91,6 +91,8 @@ def test_bad_input_is_refused_naming_what_was_wrong(trained, tmp_path):
         pedal_response.pedal_response(latest, pedals=(0.0, 1.5))
     with pytest.raises(ValueError, match=r"--after must be >= 0"):
         pedal_response.pedal_response(latest, after=(-1,))
+    with pytest.raises(ValueError, match=r"--horizon must be >= 1, got 0"):
+        pedal_response.pedal_response(latest, horizon=0)
     ckpt.export_policy(script, latest, str(tmp_path / "policy.pt"))
     with pytest.raises(ValueError, match=r"policy\.pt: an acting-only export has no reward or continue head"):
         pedal_response.pedal_response(str(tmp_path / "policy.pt"))
