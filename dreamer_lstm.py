@@ -230,7 +230,8 @@ class Args:
     """rho: correlation of the sampled policy's noise from one decision to the next while it drives (an AR(1)
     process, eps_t = rho eps_{t-1} + sqrt(1 - rho^2) xi_t, each eps_t N(0, 1): temporally correlated exploration,
     Lillicrap et al.'s Ornstein-Uhlenbeck noise in discrete time). 0: independent (the paper). Imagination always
-    samples independently; the noise only changes which real data the world model learns from"""
+    samples independently, so in training it only changes which real data the world model learns from; a saved
+    agent's sampled policy (evaluate.py, race.py) keeps the correlation it was trained with"""
 
     # --- network sizes (paper appendix; --preset cpu uses smaller ones)
     image_size: Literal[96, 64] = 96
@@ -1056,7 +1057,8 @@ class Agent:
     def act(self, obs: np.ndarray, state=None, is_first=None, policy: str = "stochastic"):
         """Actions for the n cars this agent drives: obs (n, H, W, 3) uint8, is_first (n,) bool.
 
-        Returns actions (n, A) numpy in [-1, 1] and the new recurrent state. state=None starts every car
+        Returns actions (n, A) numpy in [-1, 1] and the new state (cell, z, action, the sampled policy's noise: an
+        AR(1) process across decisions with --action-noise-corr). state=None starts every car
         fresh; is_first restarts the marked cars (a new race) and defaults to none. `policy` (EVAL_POLICIES):
         "stochastic" samples z from the posterior and the action from the actor (training); "mean-action"
         samples z and takes the actor's mean; "deterministic" takes the posterior mean and the actor's mean.

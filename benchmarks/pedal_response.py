@@ -57,9 +57,9 @@ class Args:
 
 def drive(agent, args, envs, track: int, after: int, pedal: float | None, horizon: int) -> tuple:
     """One race on `track`: `after` decisions with the mean action, then (if `pedal` is given) `horizon` decisions
-    steering with the mean action and the pedal held. Returns the frames and actions of the first `after` + 1
-    decisions (as a replay stores them: the action that led to each frame, zero for the first) and the per-decision
-    rewards of the held part, with whether the car went out there (the rewards stop at that decision)."""
+    steering with the mean action and the pedal held. Returns the first frame and those of the first `after`
+    decisions with their actions (as a replay stores them: the action that led to each frame, zero for the first)
+    and the per-decision rewards of the held part, with whether the car went out there (they stop at that decision)."""
     import torch
 
     from utils.collector import preprocess_frames
@@ -71,9 +71,10 @@ def drive(agent, args, envs, track: int, after: int, pedal: float | None, horizo
     for t in range(after + (0 if pedal is None else horizon)):
         action, state = agent.act(obs, state, first, "mean-action")
         first[:] = False
-        if t >= after:
+        if t >= after:  # the held pedal, in the action and in the agent's memory of it (its previous action)
             action = action.copy()
             action[:, 1] = pedal
+            state = (state[0], state[1], torch.as_tensor(action), state[3])
         reward = 0.0
         for _ in range(args.action_repeat):
             obs, step_rewards, dones, _ = envs.step(action)

@@ -274,7 +274,6 @@ def test_act_carries_state_and_resets_on_is_first(script):
     assert not np.allclose(a3, a2)
 
 
-
 @pytest.mark.parametrize("rho", [0.0, 0.9])
 def test_sampled_noise_is_an_ar1_process_restarted_with_each_race(script, rho):
     """--action-noise-corr: the noise in the state, eps_t = rho eps_{t-1} + sqrt(1 - rho^2) xi_t, has unit variance
@@ -303,6 +302,7 @@ def test_sampled_noise_is_an_ar1_process_restarted_with_each_race(script, rho):
     agent.actor.forward = lambda features: (torch.full((len(features), 2), 0.5), torch.full((len(features), 2), 0.4))
     actions, after = agent.act(obs, restarted)
     torch.testing.assert_close(torch.as_tensor(actions), (0.5 + 0.4 * after[3]).clamp(-1, 1))
+
 
 # ------------------------------------------------------------------------------------------
 # Returns, weights, KL, free bits, targets

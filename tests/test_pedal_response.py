@@ -49,6 +49,18 @@ def test_a_held_pedal_drives_the_env_as_the_same_actions_do_directly(trained):
         frames, actions, _, _ = pedal_response.drive(agent, args, envs, 10_200, 5, None, 40)
         assert frames.shape == (6, args.image_size, args.image_size, 3) and actions.shape == (6, 2)
         assert not actions[0].any() and actions[1:].any()  # the action that led to each frame; none to the first
+        seen = []
+        act = agent.act
+        def recording(obs, state, *rest):
+            seen.append(None if state is None else state[2].clone())
+            return act(obs, state, *rest)
+
+        agent.act = recording
+        try:
+            pedal_response.drive(agent, args, envs, 10_200, 2, -0.7, 4)
+        finally:
+            del agent.act
+        assert all(float(prev[0, 1]) == pytest.approx(-0.7) for prev in seen[3:])  # its memory holds the held pedal
     finally:
         envs.close()
 
@@ -63,14 +75,15 @@ class _Constant(nn.Module):
 
 
 def test_imagined_return_is_the_discounted_sum_of_the_heads_and_holds_the_pedal(trained, monkeypatch):
-    """With a reward head that predicts 2.0 and a continue head that is sure, the imagined return is
-    2 * sum_{k<H} gamma^k; and every imagined action carries the held pedal and the actor's mean steering."""
+    """With a reward head that predicts 2.0 and a continue head at 0.5, the imagined return is
+    2 * sum_{k<H} (0.5 gamma)^k (training's discount_weights); every imagined action carries the held pedal and the
+    actor's mean steering."""
     script, agent, args, _ = trained
     frames = np.zeros((3, args.image_size, args.image_size, 3), np.uint8)
     actions = np.zeros((3, 2), np.float32)
     wm = agent.world_model
     monkeypatch.setattr(wm, "reward", _Constant([2.0, 0.0]))
-    monkeypatch.setattr(wm, "cont", _Constant([50.0]))
+    monkeypatch.setattr(wm, "cont", _Constant([0.0]))
     seen, step = [], wm.imagine_step
 
     def recording(state, z, action, sample=True):
@@ -80,7 +93,7 @@ def test_imagined_return_is_the_discounted_sum_of_the_heads_and_holds_the_pedal(
     monkeypatch.setattr(wm, "imagine_step", recording)
     gamma, horizon = 0.9, 7
     imagined = pedal_response.imagine(script, agent, frames, actions, -0.4, horizon, 4, gamma)
-    assert imagined == pytest.approx(2.0 * sum(gamma**k for k in range(horizon)), rel=1e-5)
+    assert imagined == pytest.approx(2.0 * sum((0.5 * gamma) ** k for k in range(horizon)), rel=1e-5)
     assert len(seen) == horizon and all(torch.all(a[:, 1] == -0.4) for a in seen)
     assert all(a.shape == (4, 2) and torch.all(a[:, 0].abs() < 1) for a in seen)  # the actor's tanh mean
 
