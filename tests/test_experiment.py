@@ -307,7 +307,7 @@ def test_a_whole_experiment_killed_mid_trial_resumes_on_the_same_command(tmp_pat
     driver = subprocess.Popen(command, cwd=experiment.ROOT, start_new_session=True,
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
     try:
-        done, deadline = 0, time.time() + 300
+        done, deadline = 0, time.time() + 900  # (a guard against a hang; a loaded machine needs minutes)
         while done < 2 and time.time() < deadline and driver.poll() is None:  # a few ghost updates in, short of 8
             time.sleep(0.5)
             try:
