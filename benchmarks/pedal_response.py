@@ -33,13 +33,20 @@ import tyro
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
+from common import TRACKS  # noqa: E402
+
+SCREENING = TRACKS["screening"][0]
+
+
+class CarOut(ValueError):
+    """The car was out before the pedal could be held (before --after decisions)."""
 
 
 @dataclasses.dataclass
 class Args:
     checkpoint: tyro.conf.Positional[str]
     """a training checkpoint (latest.pt or best.pt of a single-car run)"""
-    first_track: int = 10_200
+    first_track: int = SCREENING
     """seed of the first track (10200..: the screening tracks)"""
     tracks: int = 3
     """number of tracks"""
@@ -67,7 +74,8 @@ def drive(agent, args, envs, track: int, after: int, pedal: float | None, horizo
     torch.manual_seed(track)  # the same latent samples, so every pedal starts from the same state and place
     envs.seed(track)
     obs, state, first = envs.reset(), None, np.ones(1, dtype=bool)
-    frames, actions, rewards, out = [preprocess_frames(obs, args.image_size)[0]], [np.zeros(2, np.float32)], [], False
+    frames, actions = [preprocess_frames(obs, args.image_size)[0]], [np.zeros(agent.action_dim, np.float32)]
+    rewards, out = [], False
     for t in range(after + (0 if pedal is None else horizon)):
         action, state = agent.act(obs, state, first, "mean-action")
         first[:] = False
@@ -83,7 +91,7 @@ def drive(agent, args, envs, track: int, after: int, pedal: float | None, horizo
                 break
         if t < after:
             if dones[0]:
-                raise ValueError(f"track {track}: the car was out after {t + 1} decisions, before --after {after}")
+                raise CarOut(f"track {track}: the car was out after {t + 1} decisions, before --after {after}")
             frames.append(preprocess_frames(obs, args.image_size)[0])
             actions.append(action[0].astype(np.float32))
         else:
@@ -121,7 +129,7 @@ def imagine(script, agent, frames: np.ndarray, actions: np.ndarray, pedal: float
         return float((weights * torch.stack(rewards)).sum(0).mean())
 
 
-def pedal_response(path: str, first_track: int = 10_200, tracks: int = 3, pedals=(-1.0, 0.0, 0.3, 1.0),
+def pedal_response(path: str, first_track: int = SCREENING, tracks: int = 3, pedals=(-1.0, 0.0, 0.3, 1.0),
                    after=(0, 40), samples: int = 16, horizon: int | None = None) -> list[dict]:  # fmt: skip
     """Per track, start (`after`) and pedal: the real and the imagined H-decision task return (module docstring;
     `horizon` decisions instead of the agent's H if given)."""

@@ -61,13 +61,11 @@ def training(run_dir: str, updates: int) -> dict[str, float]:
 
 def pedal(path: str, first_track: int) -> dict[str, float]:
     """The PEDAL readings (pedal_response.py); NaN when the car was out before PEDAL_AFTER decisions on a track."""
-    from pedal_response import pedal_response, ranges
+    from pedal_response import CarOut, pedal_response, ranges
 
     try:
         rows = pedal_response(path, first_track, PEDAL_TRACKS, after=(PEDAL_AFTER,))
-    except ValueError as e:
-        if "was out after" not in str(e):
-            raise
+    except CarOut:
         return dict.fromkeys(PEDAL, float("nan"))
     imagined, real = ranges(rows)[PEDAL_AFTER]
     return {"pedal_range_imagined": round(imagined, 2), "pedal_range_real": round(real, 2)}

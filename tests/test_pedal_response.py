@@ -61,6 +61,8 @@ def test_a_held_pedal_drives_the_env_as_the_same_actions_do_directly(trained):
         finally:
             del agent.act
         assert all(float(prev[0, 1]) == pytest.approx(-0.7) for prev in seen[3:])  # its memory holds the held pedal
+        with pytest.raises(pedal_response.CarOut, match=r"track 10200: the car was out after \d+ decisions, before"):
+            pedal_response.drive(agent, args, envs, 10_200, 150, None, 4)  # (200 env steps: at most 100 decisions)
     finally:
         envs.close()
 
