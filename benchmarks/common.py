@@ -15,10 +15,10 @@ from typing import Callable, Iterable
 TRACKS = {
     # every run's own evaluations during training (--eval-every): they choose its best.pt
     "eval": (10_000, 10),
-    # the 8,000-update protocol's report (its learning_final.csv, to move to benchmarks/results/history/ when the
-    # CPU-budget protocol's rows come), the experiment's ghost and control measurements, calibration
+    # the 8,000-update protocol's report (benchmarks/results/history/8000_updates/), the experiment's ghost and
+    # control measurements, calibration
     "fresh": (10_100, 20),
-    # screens (benchmarks/sweep.py, learning.py --screen) and the choice of the shipped agents
+    # screens (benchmarks/sweep.py) and the choice of the shipped agents
     "screening": (10_200, 20),
     # the CPU-budget protocol's report (benchmarks/final_protocol.py) and its peers: never used for a choice
     "report": (10_300, 30),

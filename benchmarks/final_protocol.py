@@ -1,7 +1,7 @@
 """The final protocol of the learning benchmark (CPU budget): how the LSTM- and GRU-Dreamer's final policies are
 measured, judged against the bar and compared with each other and with the PPO peers. It replaces the 8,000-update
-protocol of ``learning.py`` (``--final``, ``--final-report``), whose ``learning_final.csv`` and ``.md`` go to
-``benchmarks/results/history/`` first.
+protocol (``learning.py --final`` until commit 32c3b4c), whose ``learning_final.csv`` and ``.md`` are in
+``benchmarks/results/history/8000_updates/``.
 
 * The runs: per variant (lstm, gru) the seeds 21..25 (PROTOCOL_SEEDS), each a single-stage trial of
   ``benchmarks/experiment.py --stages single --single-cpu-hours 3.1``: trained until it has spent 3.1 CPU-hours of
@@ -53,9 +53,7 @@ from ppo_peer import COLUMNS as PEER_CSV_COLUMNS, CURVE_COLUMNS, read_rows as re
 # --- The protocol ----------------------------------------------------------------------------
 # Each run is a single-stage trial of benchmarks/experiment.py trained until it has spent PROTOCOL_CPU_HOURS of
 # process CPU time (``--single-cpu-hours 3.1``, the PPO peers' budget); its final policy is its latest.pt then,
-# whatever its updates, measured sampled and with its mean action on REPORT_TRACKS, which serve no choice. (The
-# 8,000-update protocol it replaces, learning.py's FINAL_UPDATES, FRESH_TRACKS and final_row, is kept to reproduce
-# its rows, now in benchmarks/results/history/.)
+# whatever its updates, measured sampled and with its mean action on REPORT_TRACKS, which serve no choice.
 PROTOCOL_CPU_HOURS = 3.1
 PROTOCOL_SEEDS = (21, 22, 23, 24, 25)  # per variant
 REPORT_TRACKS = TRACKS["report"]  # first seed and count of the report tracks
@@ -153,8 +151,7 @@ def protocol_row(variant: str, seed: int, runs_dir: str) -> dict:
 
 def write_protocol_row(row: dict, path: str = os.path.join(RESULTS, "learning_final.csv")) -> None:
     """Add a row of the final protocol to learning_final.csv, replacing an earlier row of the same variant and seed.
-    A file with other columns (the 8,000-update protocol's) is refused: its files go to benchmarks/results/history/
-    first (read_rows)."""
+    A file with other columns (the 8,000-update protocol's) is refused (read_rows)."""
     replace_row(row, path, PROTOCOL_COLUMNS, lambda r: (r["variant"], int(r["seed"])), PROTOCOL_ADVICE)
 
 

@@ -3,39 +3,24 @@
     python benchmarks/learning.py --runs-dir runs/final/trials --variant lstm --seed 21 --protocol-row   # a row
     python benchmarks/learning.py --protocol-report                        # the final protocol's learning_final.md
     python benchmarks/learning.py --runs-dir runs/final/trials --variant lstm --protocol-ship   # pretrained/lstm_cpu.pt
-    python benchmarks/learning.py --variant lstm --seed 11                 # a run of the old protocol (8,000 updates)
+    python benchmarks/learning.py --variant lstm --seed 11                 # a learning run (8,000 updates)
     python benchmarks/learning.py --variant lstm --seed 11 --resume        # continue it in a later sitting
-    python benchmarks/learning.py --variant lstm --seed 11 --final --results-dir benchmarks/results/history
     python benchmarks/learning.py --report                                 # curves + table only
     python benchmarks/learning.py --variant lstm --seed 11 --diagnose      # sigma, entropy, kl_dyn... per 500 updates
-    python benchmarks/learning.py --runs-dir runs/experiment/trials --variant gru --seed 12 --final
-    python benchmarks/learning.py --final-report                           # learning_final.md from the CSVs
     python benchmarks/learning.py --calibrate runs/learning/<run>/checkpoints/latest.pt   # optimistic critic/model?
-    python benchmarks/learning.py --variant lstm --seed 11 --return-norm --screen 3100 \\
-        --reference-runs-dir runs/experiment/trials                   # an ablation against the default run
-    python benchmarks/learning.py --runs-dir runs/experiment/trials --policy-rule   # sampled or mean action?
 
 Trains `dreamer_<variant>.py --preset cpu` on the single-car race (stage ``single``, one torch thread, so two runs
 share two cores) until ``--updates`` updates or ``--hours`` of wall time (resumable: a run may span sittings),
 evaluating every 5 races on the 10 held-out tracks (seeds 10000..10009) and keeping each evaluated policy
-(``checkpoints/eval_<race>.pt``). At most one mode flag (``--report``, ``--diagnose``, ``--final``,
-``--final-report``, ``--protocol-row``, ``--protocol-report``, ``--protocol-ship``, ``--screen``, ``--policy-rule``,
-``--calibrate``) replaces the training. It writes, under ``benchmarks/results/``:
+(``checkpoints/eval_<race>.pt``). At most one mode flag (``--report``, ``--diagnose``, ``--protocol-row``,
+``--protocol-report``, ``--protocol-ship``, ``--calibrate``) replaces the training. It writes, under
+``benchmarks/results/``:
 
 * ``learning_<variant>_seed<S>.csv``: evaluation return and progress against env steps, updates and hours;
 * ``baselines.json``: random actions and the pure-pursuit driver on the same 10 tracks;
-* ``baselines_fresh.json`` (with ``--final``): the same on the 20 fresh tracks 10100..10119;
 * ``learning.png`` and ``learning.md``: every curve, with the baselines;
-* with ``--screen``: rows of ``screening/screens.csv``, an ablation and the default run at the same update count;
-* with ``--policy-rule``: ``policy_rule.csv`` and ``.md``, the final policies sampled and with their mean action on
-  the screening tracks, and the evaluation policy the rule of docs/learning.md picks from them;
 * with ``--calibrate``: a row of ``calibration.csv``, the agent's value and imagined return of real states against
   what the real episodes returned from them;
-* with ``--final``: the run's row of ``learning_final.csv`` (its final and best policies on the 20 fresh tracks
-  10100..10119) and, in ``learning_final.md``, the IQM and mean over seeds with stratified-bootstrap intervals
-  (rliable, descriptive), the parts of the bar each variant fails, and the LSTM minus the GRU and each variant
-  minus the SB3 PPO peer (``ppo_peer.csv``, its rows of the fresh tracks), judged by the exact permutation test
-  and Welch's t interval (benchmarks/stats.py); ``--final-report`` rewrites ``learning_final.md`` alone;
 * with ``--protocol-row``: the final protocol's row of ``learning_final.csv`` and ``learning_final.md``;
   ``--protocol-report`` rewrites ``learning_final.md`` alone;
 * with ``--protocol-ship``: ``ship_<variant>.csv``, the protocol's final policies and the shipped agent on the
@@ -43,18 +28,16 @@ evaluating every 5 races on the 10 held-out tracks (seeds 10000..10009) and keep
 
 The final protocol (CPU budget: per variant the seeds 21..25, each a single-stage trial of ``benchmarks/experiment.py
 --single-cpu-hours 3.1``, measured on the report tracks 10300..10329; its bar and its peers' files) is
-``final_protocol.py``, which these two modes call. It replaces the 8,000-update protocol, whose files go to
-``benchmarks/results/history/``, where ``--results-dir`` points ``--final`` and ``--final-report``. That protocol's
-bar, per variant over 3 seeds: final-policy mean return >= 600 with every seed >= 350, mean progress >= 0.65, mean
-|steer| <= 0.3, and each run's last three evaluations within 150 of its best.
+``final_protocol.py``, which the ``--protocol-*`` modes call. It replaces the 8,000-update protocol (final policies
+on the fresh tracks 10100..10119; ``--final``, ``--final-report``, ``--screen`` and ``--policy-rule`` of this file
+until commit 32c3b4c), whose files are in ``benchmarks/results/history/8000_updates/``.
 
-This file is the 8,000-update protocol (its constants, the runs: names, settings, curves read from their event
-files; the measurement of a saved policy and the final rows), the helpers both protocols share (eval_curve,
-training_hours, eval_summary, read_rows, replace_row) and the command line. The rest lives beside it:
-``learning_report.py`` (curves, tables, figure, diagnostics, the 8,000-update protocol's ``learning_final.md``),
-``final_protocol.py``, ``screening.py`` (screens and the evaluation-policy rule) and ``calibration.py``. A saved
-agent on other tracks, or its acting-only export: ``evaluate.py`` at the top level (``python evaluate.py CHECKPOINT
---first-track 10100 --tracks 20``, ``python evaluate.py CHECKPOINT --export OUT``).
+This file holds the learning runs (names, settings, curves read from their event files), the measurement of a saved
+policy on a block of tracks, the helpers of the final protocol's rows (eval_curve, training_hours, eval_summary,
+read_rows, replace_row) and the command line. The rest lives beside it: ``learning_report.py`` (curves, table,
+figure, diagnostics), ``final_protocol.py`` and ``calibration.py``. A saved agent on other tracks, or its acting-only
+export: ``evaluate.py`` at the top level (``python evaluate.py CHECKPOINT --first-track 10100 --tracks 20``,
+``python evaluate.py CHECKPOINT --export OUT``).
 
 ``benchmarks/experiment.py`` trains these same runs as its single stage (under ``<storage>/trials/``);
 ``--runs-dir`` points every mode at them.
@@ -83,13 +66,8 @@ import common  # noqa: E402  (the blocks of tracks, the results' CSV rows)
 # --- The protocol ----------------------------------------------------------------------------
 RESULTS = os.path.join(ROOT, "benchmarks", "results")
 RUNS = os.path.join(ROOT, "runs", "learning")
-# The bar of the 8,000-update protocol, per variant over its seeds: final-policy mean return and progress (the
-# figure draws them), every seed's return, the mean |steer|; and each run holds: its last three evaluations average
-# within BAR_HOLD of its best.
-BAR_RETURN, BAR_PROGRESS, BAR_SEED_RETURN, BAR_STEER, BAR_HOLD = 600.0, 0.65, 350.0, 0.3, 150.0
 VARIANTS = ("lstm", "gru")
-FINAL_UPDATES = 8000  # the 8,000-update protocol (replaced by final_protocol.py's): every run's updates
-FRESH_TRACKS = common.TRACKS["fresh"]  # first seed and count of the fresh tracks the final policy is measured on
+FINAL_UPDATES = 8000  # a learning run's updates (the 8,000-update protocol's, replaced by final_protocol.py's)
 # What the benchmark adds to the scripts' CPU preset (--preset cpu): one car; decisions evaluated on the 10 held-out
 # tracks every 5 races, each evaluated policy kept; the run ends at --updates; one thread, two runs on two cores.
 LEARNING_CONFIG = {
@@ -102,24 +80,9 @@ LEARNING_CONFIG = {
 }
 
 
-# Ablations: a flag of the dreamer scripts changed from the preset, and its tag in the run's name.
-ABLATION_TAGS = {
-    "entropy_coef": "alpha", "decoder_min_log_sigma": "logsigmamin", "norm": "norm", "return_norm": "retnorm",
-    "dead_zone_start": "dzstart", "reward_nll_beta": "rbeta",
-}  # fmt: skip
-
-
-def experiment_name(variant: str, **ablation: float | str | bool | None) -> str:
-    """``learning_<variant>``, plus ``_<tag><value>`` per ablated flag (e.g. ``learning_lstm_alpha0.03``)."""
-    unknown = set(ablation) - set(ABLATION_TAGS)
-    if unknown:
-        raise ValueError(f"not an ablation flag: {', '.join(sorted(unknown))} (known: {', '.join(ABLATION_TAGS)})")
-    tags = [
-        f"_{tag}" if value is True else f"_{tag}{value:g}" if isinstance(value, float) else f"_{tag}{value}"
-        for name, tag in ABLATION_TAGS.items()
-        if (value := ablation.get(name)) is not None
-    ]
-    return f"learning_{variant}" + "".join(tags)
+def experiment_name(variant: str) -> str:
+    """The name of a learning run of `variant` (and of experiment.py's default single-stage trial)."""
+    return f"learning_{variant}"
 
 
 def learning_runs(runs_dir: str = RUNS, exp_name: str = "learning_*", seed: int | str = "*") -> list[str]:
@@ -135,24 +98,21 @@ def find_run(exp_name: str, seed: int, runs_dir: str = RUNS) -> str | None:
     return runs[-1] if runs else None
 
 
-def run_args(
-    variant: str, seed: int, hours: float, resume: bool, updates: int = FINAL_UPDATES, runs_dir: str = RUNS, **ablation
-):
+def run_args(variant: str, seed: int, hours: float, resume: bool, updates: int = FINAL_UPDATES, runs_dir: str = RUNS):
     """The dreamer script of ``variant``, the Args of this sitting and the fields they override: a new run at the
-    CPU preset plus LEARNING_CONFIG with the ablated flags changed, or (``resume``) the latest run of the same name
-    and seed, continued with its own settings (only the time limit and the update target are this sitting's)."""
+    CPU preset plus LEARNING_CONFIG, or (``resume``) the latest run of the same name and seed, continued with its
+    own settings (only the time limit and the update target are this sitting's)."""
     script = importlib.import_module(f"dreamer_{variant}")
-    exp_name = experiment_name(variant, **ablation)
+    exp_name = experiment_name(variant)
     existing = find_run(exp_name, seed, runs_dir)
     if resume and existing:
         args = script.Args(resume=existing, time_limit_hours=hours, total_updates=updates)
         return script, args, {"time_limit_hours", "total_updates"}
     if existing and not resume:
         print(f"note: {existing} exists; starting a new run (use --resume to continue it)")
-    ablated = {name: value for name, value in ablation.items() if value is not None}
     args = script.preset_args(
         "cpu", seed=seed, exp_name=exp_name, runs_dir=runs_dir, time_limit_hours=hours, total_updates=updates,
-        **LEARNING_CONFIG, **ablated,
+        **LEARNING_CONFIG,
     )  # fmt: skip
     return script, args, set()
 
@@ -229,17 +189,17 @@ def eval_curve(run_dir: str) -> list[dict]:
     return [row for i, row in enumerate(rows) if i == 0 or row["env_steps"] != rows[i - 1]["env_steps"]]
 
 
-# --- A saved policy on a block of tracks; the final rows -------------------------------------
+# --- A saved policy on a block of tracks -----------------------------------------------------
 def policy_summary(
     path: str, first_track: int = common.TRACKS["eval"][0], tracks: int = common.TRACKS["eval"][1],
-    policy: str = "stochastic", train_tracks: int = 0,
+    policy: str = "stochastic",
 ) -> dict:
     """One policy's summary (evaluate.py's evaluate_checkpoint drives and reads; this keeps one policy's means): a
     saved agent (any variant, any stage; agent 0 of a multi-agent checkpoint) driving alone with `policy` on
-    tracks ``first_track .. first_track + tracks - 1``, or (``train_tracks`` > 0) on the last ``train_tracks``
-    tracks it trained on, with the env settings it was trained with (final dead zone): mean return, progress and
-    |steer| (near 1: bang-bang steering), and the per-track values. The training runs' own evaluation is this on
-    10000..10009; another block of tracks measures a best.pt without the bias of having been picked there."""
+    tracks ``first_track .. first_track + tracks - 1``, with the env settings it was trained with (final dead
+    zone): mean return, progress and |steer| (near 1: bang-bang steering), and the per-track values. The training
+    runs' own evaluation is this on 10000..10009; another block of tracks measures a best.pt without the bias of
+    having been picked there."""
     if tracks < 1:
         raise ValueError(f"tracks must be >= 1, got {tracks}")
     from evaluate import evaluate_checkpoint as drive
@@ -250,23 +210,14 @@ def policy_summary(
     if policy not in script.EVAL_POLICIES:
         raise ValueError(f"policy must be one of {', '.join(script.EVAL_POLICIES)}, got {policy!r}")
     args = script.args_from_checkpoint(checkpoint, path, num_agents=1)
-    seeds = None
-    if train_tracks > 0:
-        if args.stage != "single" or args.num_races != 1:
-            raise ValueError(f"{path}: --train-tracks needs a single-stage run of one race at a time")
-        races = int(checkpoint["counters"]["episode"])
-        seeds = [script.race_seed(args.seed, e) for e in range(max(0, races - train_tracks), races)]
-        tracks_name = f"training races {max(0, races - train_tracks)}..{races - 1}"
-    else:
-        tracks_name = f"{first_track}..{first_track + tracks - 1}"
-    readings = drive(path, first_track, tracks, (policy,), seeds=seeds)[policy]
+    readings = drive(path, first_track, tracks, (policy,))[policy]
     returns, progress, abs_steer = (np.asarray(readings[key]) for key in ("return", "progress", "abs_steer"))
     result = {
         "checkpoint": path,
         "variant": variant,
         "updates": int(checkpoint["agents"][0]["num_updates"]),
         "policy": policy,
-        "tracks": tracks_name,
+        "tracks": f"{first_track}..{first_track + tracks - 1}",
         "eval_return": float(returns.mean()),
         "eval_progress": float(progress.mean()),
         "returns": [round(float(r), 2) for r in returns],
@@ -275,52 +226,6 @@ def policy_summary(
     if args.env_id == "multi_car_racing":  # action 0 is the steer there (highway-env: the acceleration)
         result["mean_abs_steer"] = float(abs_steer.mean())
     return result
-
-
-FINAL_COLUMNS = (
-    "exp_name", "variant", "seed", "updates", "env_steps", "hours",
-    "final_return", "final_progress", "final_mean_abs_steer",
-    "best_return", "best_progress", "mean_action_return", "mean_action_progress", "mean_action_abs_steer",
-    "best_eval_return", "last3_eval_return",
-)  # fmt: skip
-
-
-def final_row(
-    variant: str, seed: int, exp_name: str | None = None, policy: str = "stochastic", runs_dir: str = RUNS,
-    updates: int = FINAL_UPDATES,
-) -> dict:
-    """The 8,000-update protocol's row of one run: its last policy (latest.pt) and its best evaluation (best.pt), both
-    measured with `policy` on the fresh tracks FRESH_TRACKS; the last policy's mean action there too (how smoothly
-    the policy means to steer, without the sampling noise); the run's updates, env steps and training hours; and
-    its best and last-three-average evaluation returns (the 10 evaluation tracks), which say whether it holds.
-    A run that has not reached `updates` is refused: the protocol's result is the policy after all of them."""
-    run = find_run(exp_name or experiment_name(variant), seed, runs_dir)
-    if run is None:
-        raise ValueError(f"no run of {exp_name or experiment_name(variant)} seed {seed} in {runs_dir}")
-    import race
-
-    checkpoint = race.read_checkpoint(os.path.join(run, "checkpoints", "latest.pt"))[1]
-    done = int(checkpoint["agents"][0]["num_updates"])
-    if done < updates:
-        raise ValueError(f"{run} has made {done} of its {updates} updates (--updates): not a final policy yet")
-    curve = eval_curve(run)
-    latest = os.path.join(run, "checkpoints", "latest.pt")
-    final = policy_summary(latest, *FRESH_TRACKS, policy)
-    best = policy_summary(os.path.join(run, "checkpoints", "best.pt"), *FRESH_TRACKS, policy)
-    mean_action = policy_summary(latest, *FRESH_TRACKS, "mean-action")
-    best_eval, last3_eval = eval_summary(curve)
-    return {
-        "exp_name": exp_name or experiment_name(variant), "variant": variant, "seed": seed, "updates": final["updates"],
-        # the whole run's, to its last update (not its last evaluation's)
-        "env_steps": int(checkpoint["counters"]["global_step"]), "hours": training_hours(run),
-        "final_return": round(final["eval_return"], 2), "final_progress": round(final["eval_progress"], 4),
-        "final_mean_abs_steer": round(final["mean_abs_steer"], 4),
-        "best_return": round(best["eval_return"], 2), "best_progress": round(best["eval_progress"], 4),
-        "mean_action_return": round(mean_action["eval_return"], 2),
-        "mean_action_progress": round(mean_action["eval_progress"], 4),
-        "mean_action_abs_steer": round(mean_action["mean_abs_steer"], 4),
-        "best_eval_return": best_eval, "last3_eval_return": last3_eval,
-    }  # fmt: skip
 
 
 def eval_summary(curve: list[dict]) -> tuple[float, float]:
@@ -332,7 +237,7 @@ def eval_summary(curve: list[dict]) -> tuple[float, float]:
     return round(max(evals), 2), round(float(np.mean(evals[-3:])), 2)
 
 
-OLD_PROTOCOL_HOME = os.path.join("benchmarks", "results", "history")  # where a replaced protocol's files go
+OLD_PROTOCOL_HOME = os.path.join("benchmarks", "results", "history", "8000_updates")  # the replaced protocol's files
 
 
 def read_rows(path: str, columns: tuple[str, ...], advice: str) -> list[dict]:
@@ -353,15 +258,6 @@ def replace_row(row: dict, path: str, columns: tuple[str, ...], key, advice: str
     common.replace_rows(path, [row], columns, key, other_header=advice)
 
 
-FINAL_ADVICE = f"it holds another protocol's rows; give --results-dir {OLD_PROTOCOL_HOME} (the 8,000-update protocol's)"
-
-
-def write_final_row(row: dict, path: str = os.path.join(RESULTS, "learning_final.csv")) -> None:
-    """Add `row` to learning_final.csv, replacing an earlier row of the same experiment (an ablation is its own) and
-    seed. A file of another protocol's columns is refused (read_rows)."""
-    replace_row(row, path, FINAL_COLUMNS, lambda r: (r["exp_name"], int(r["seed"])), FINAL_ADVICE)
-
-
 # --- Command line ----------------------------------------------------------------------------
 @dataclasses.dataclass
 class Args:
@@ -372,35 +268,16 @@ class Args:
     hours: float = 3.0
     """wall-clock budget of this sitting"""
     updates: int = FINAL_UPDATES
-    """the run ends after this many updates (--final: the updates its final policy must have made)"""
+    """the run ends after this many updates"""
     resume: bool = False
     """continue the latest run of this variant and seed"""
     runs_dir: str = RUNS
     """where the runs are, at any depth (e.g. runs/experiment/trials: the experiment's single stage)"""
-    entropy_coef: float | None = None
-    """an ablation: this alpha instead of the preset's (the run is named learning_<variant>_alpha<coef>)"""
-    decoder_min_log_sigma: float | None = None
-    """an ablation: floor of the decoder's learned log sigma (run named ..._logsigmamin<value>)"""
-    norm: Literal["batch", "layer"] | None = None
-    """an ablation: this normalisation instead of BatchNorm (run named ..._norm<choice>)"""
-    return_norm: bool = False
-    """an ablation: DreamerV3's return normalisation (run named ..._retnorm)"""
-    reward_nll_beta: float | None = None
-    """an ablation: the reward head's beta-NLL with this beta instead of the Gaussian NLL (run named
-    ..._rbeta<beta>)"""
-    dead_zone_start: float | None = None
-    """an ablation: the dead zone's first value (-0.5, the final one: no schedule; run named ..._dzstart<v>)"""
     report: bool = False
     """mode: only write the curves and the table"""
     diagnose: bool = False
     """mode: only the run's diagnostics per 500 updates (returns, sigma, entropy, kl_dyn, reward NLL, imagined
     return, evaluations): printed and written to benchmarks/results/<experiment>_seed<S>_diagnostics.md"""
-    final: bool = False
-    """mode: only evaluate the run's final and best policies on the fresh tracks; its row in learning_final.csv (the
-    8,000-update protocol's)"""
-    final_report: bool = False
-    """mode: only rewrite learning_final.md from learning_final.csv and ppo_peer.csv's rows of the fresh tracks (no
-    evaluation)"""
     protocol_row: bool = False
     """mode: only measure the final protocol's run of --variant and --seed (21..25: the single-stage trial of
     experiment.py --single-cpu-hours 3.1 under --runs-dir <storage>/trials, refused before its budget is spent),
@@ -415,19 +292,8 @@ class Args:
     screening tracks 10200..10219; the best seed is exported over the shipped file if it drives better there
     (ship_<variant>.csv in --results-dir)"""
     results_dir: str = RESULTS
-    """--final, --final-report, --protocol-row, --protocol-report, --protocol-ship: where learning_final.csv and .md
-    (and the peers' CSVs, ship_<variant>.csv) are (the 8,000-update protocol's, once replaced:
-    benchmarks/results/history)"""
-    screen: Annotated[int | None, tyro.conf.arg(metavar="UPDATES")] = None
-    """mode: only compare the ablation given by its flags with the default run of the same variant and seed (in
-    --reference-runs-dir), each at the policy it kept at UPDATES updates, sampled and mean action on the 20
-    screening tracks 10200..10219, with their diagnostics: rows of benchmarks/results/screening/screens.csv"""
-    reference_runs_dir: str | None = None
-    """--screen: where the default run is (default: --runs-dir)"""
-    policy_rule: bool = False
-    """mode: only apply the rule for the evaluation policy: every final policy of learning_final.csv (default
-    method) sampled and with its mean action on the screening tracks 10200..10219; rows in
-    benchmarks/results/policy_rule.csv, the decision in policy_rule.md"""
+    """--protocol-row, --protocol-report, --protocol-ship: where learning_final.csv and .md (and the peers' CSVs,
+    ship_<variant>.csv) are"""
     calibrate: Annotated[str | None, tyro.conf.arg(metavar="CHECKPOINT")] = None
     """mode: only measure whether this agent's critic and imagination are optimistic on real episodes (its sampled
     policy on --tracks tracks from --first-track); a row of benchmarks/results/calibration.csv"""
@@ -439,9 +305,8 @@ class Args:
     """--calibrate: number of tracks"""
 
 
-MODES = ("report", "diagnose", "final", "final_report", "protocol_row", "protocol_report", "protocol_ship", "screen",
-         "policy_rule", "calibrate")  # Args' mode fields
-FINAL_MODES = ("final", "final_report", "protocol_row", "protocol_report", "protocol_ship")  # --results-dir's modes
+MODES = ("report", "diagnose", "protocol_row", "protocol_report", "protocol_ship", "calibrate")  # Args' mode fields
+PROTOCOL_MODES = ("protocol_row", "protocol_report", "protocol_ship")  # the modes of --results-dir
 
 
 def check(args: Args) -> None:
@@ -452,15 +317,9 @@ def check(args: Args) -> None:
         raise ValueError(f"{' and '.join(modes)} are separate modes: give one at most")
     if args.horizon is not None and args.calibrate is None:
         raise ValueError("--horizon is the imagination horizon of --calibrate; give --calibrate CHECKPOINT")
-    if args.reference_runs_dir is not None and args.screen is None:
-        raise ValueError("--reference-runs-dir is the default run's place for --screen; give --screen UPDATES")
-    if args.results_dir != RESULTS and not any(getattr(args, name) for name in FINAL_MODES):
-        raise ValueError("--results-dir is the place of learning_final.csv for --final, --final-report, "
-                         "--protocol-row, --protocol-report and --protocol-ship; give one of them")  # fmt: skip
-    ablated = [name for name, value in ablation(args).items() if value is not None]
-    if (args.protocol_row or args.protocol_report or args.protocol_ship) and ablated:
-        raise ValueError(f"the final protocol measures the default method, not an ablation "
-                         f"(--{', --'.join(n.replace('_', '-') for n in ablated)})")  # fmt: skip
+    if args.results_dir != RESULTS and not any(getattr(args, name) for name in PROTOCOL_MODES):
+        raise ValueError("--results-dir is the place of learning_final.csv for --protocol-row, --protocol-report "
+                         "and --protocol-ship; give one of them")  # fmt: skip
     if args.hours <= 0:
         raise ValueError(f"--hours must be > 0, got {args.hours}")
     if args.updates < 1:
@@ -469,35 +328,16 @@ def check(args: Args) -> None:
         raise ValueError(f"--tracks and --horizon must be >= 1, got {args.tracks} and {args.horizon}")
 
 
-def ablation(args: Args) -> dict:
-    """The ablated flags of `args` as experiment_name and run_args take them: {flag: value}, None for the preset's."""
-    return {name: getattr(args, name) for name in ABLATION_TAGS} | {"return_norm": args.return_norm or None}
-
-
 def run_mode(args: Args) -> bool:
     """Run the measuring mode `args` gives (any but --report), printing and writing what it makes; False if it gives
     none. Bad input (no such run, checkpoint or kept policy) raises ValueError naming it."""
-    name = experiment_name(args.variant, **ablation(args))
+    name = experiment_name(args.variant)
     if args.calibrate is not None:
         from calibration import calibrate_checkpoint, write_calibration_row
 
         row = calibrate_checkpoint(args.calibrate, args.first_track, args.tracks, args.horizon)
         write_calibration_row(row)
         print(json.dumps(row, indent=1))
-    elif args.screen is not None:
-        from screening import screen_rows, write_screen_rows
-
-        reference = args.reference_runs_dir or args.runs_dir
-        rows = screen_rows(args.variant, args.seed, args.screen, name, args.runs_dir, reference)
-        print(write_screen_rows(rows))
-    elif args.policy_rule:
-        from screening import policy_rule, policy_rule_rows, policy_rule_table
-
-        rows = policy_rule_rows(args.runs_dir)
-        table = policy_rule_table(rows, policy_rule(rows))
-        with open(os.path.join(RESULTS, "policy_rule.md"), "w") as f:
-            f.write(table)
-        print(table)
     elif args.diagnose:
         from learning_report import diagnostics, diagnostics_table
 
@@ -508,14 +348,6 @@ def run_mode(args: Args) -> bool:
         with open(os.path.join(RESULTS, f"{name}_seed{args.seed}_diagnostics.md"), "w") as f:
             f.write(f"{os.path.basename(run)}\n\n{table}")
         print(table)
-    elif args.final or args.final_report:
-        from learning_report import write_final_report
-
-        if args.final:
-            row = final_row(args.variant, args.seed, name, "stochastic", args.runs_dir, args.updates)
-            write_final_row(row, os.path.join(args.results_dir, "learning_final.csv"))
-            print(json.dumps(row, indent=1))
-        print(write_final_report(args.results_dir))
     elif args.protocol_ship:
         import final_protocol as protocol
 
@@ -526,7 +358,7 @@ def run_mode(args: Args) -> bool:
 
         if args.protocol_row:
             path = os.path.join(args.results_dir, "learning_final.csv")
-            read_rows(path, protocol.PROTOCOL_COLUMNS, protocol.PROTOCOL_ADVICE)  # the old protocol's: refused first
+            read_rows(path, protocol.PROTOCOL_COLUMNS, protocol.PROTOCOL_ADVICE)  # another protocol's: refused first
             row = protocol.protocol_row(args.variant, args.seed, args.runs_dir)
             protocol.write_protocol_row(row, path)
             print(json.dumps(row, indent=1))
@@ -537,13 +369,12 @@ def run_mode(args: Args) -> bool:
 
 
 def training_sitting(args: Args) -> tuple:
-    """This sitting's (script, its Args, the fields they override) of run_args, checked by the script's own rules:
-    an ablated value it refuses raises UsageError (a ValueError) naming the flag, before any work."""
+    """This sitting's (script, its Args, the fields they override) of run_args, checked by the script's own rules
+    (a value it refuses raises UsageError, a ValueError naming the flag) before any work."""
     from utils.run import validate_args
 
-    script, script_args, overrides = run_args(
-        args.variant, args.seed, args.hours, args.resume, args.updates, args.runs_dir, **ablation(args)
-    )
+    script, script_args, overrides = run_args(args.variant, args.seed, args.hours, args.resume, args.updates,
+                                              args.runs_dir)  # fmt: skip
     validate_args(script_args, script.LOG_SIGMA_RANGE)
     return script, script_args, overrides
 

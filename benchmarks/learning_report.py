@@ -6,11 +6,10 @@ compare.
   table of the default runs (``learning.png``, ``learning.md``) and of each ablation beside the default run of its
   variant and seed (``screening/ablations.png``, ``.md``), with the references (random actions and the pure-pursuit
   driver: ``baselines``);
-* diagnostics: a run's progress.csv per bucket of updates (``--diagnose``; the screens' training readings);
-* ``learning_final.md`` from ``learning_final.csv``: the bar per variant with rliable intervals, the LSTM against the
-  GRU, the references on the fresh tracks and the SB3 PPO peer (``--final``, ``--final-report``: the 8,000-update
-  protocol). The final protocol's (CPU budget: ``--protocol-row``, ``--protocol-report``) is written by
-  ``final_protocol.py``.
+* diagnostics: a run's progress.csv per bucket of updates (``--diagnose``; the screens' training readings).
+
+The final protocol's ``learning_final.md`` (``--protocol-row``, ``--protocol-report``) is written by
+``final_protocol.py``.
 """
 
 from __future__ import annotations
@@ -23,10 +22,11 @@ import re
 
 import numpy as np
 
-from learning import (
-    BAR_HOLD, BAR_PROGRESS, BAR_RETURN, BAR_SEED_RETURN, BAR_STEER, FINAL_ADVICE, FINAL_COLUMNS, FRESH_TRACKS, RESULTS,
-    RUNS, eval_curve, experiment_name, learning_runs, read_rows,
-)  # fmt: skip
+from learning import RESULTS, RUNS, eval_curve, learning_runs
+
+# The lines the figure and table draw: the 8,000-update protocol's bar on a learning run's mean evaluation return
+# and progress (docs/learning.md).
+BAR_RETURN, BAR_PROGRESS = 600.0, 0.65
 
 
 # --- Curves, their figure and table ----------------------------------------------------------
@@ -34,7 +34,7 @@ def baselines(
     eval_seed: int = 10_000, episodes: int = 10, results_dir: str = RESULTS, filename: str = "baselines.json"
 ) -> dict:
     """Random actions and the pursuit driver on the tracks ``eval_seed ..`` (by default the 10 held-out tracks of
-    the evaluations; ``FRESH_TRACKS`` for the final policies' reference), with the env settings of training.
+    the evaluations), with the env settings of training.
     Computed once, then read from ``results_dir/filename``, which names its tracks (a file of other tracks is
     refused; one written before it named them is read as it is)."""
     from common import track_block
@@ -306,164 +306,3 @@ def diagnostics_table(rows: list[dict]) -> str:
         cells = [v if isinstance(v, (str, int)) else "" if np.isnan(v) else f"{v:.2f}" for v in row.values()]
         lines.append("| " + " | ".join(str(c) for c in cells) + " |")
     return "\n".join(lines) + "\n"
-
-
-# --- The 8,000-update protocol's summary: learning_final.md ---------------------------------
-# learning_final.csv's columns of the final policy, by how it acts: sampled (as trained) or its mean action
-FINAL_POLICY_COLUMNS = {
-    "stochastic": ("final_return", "final_progress"), "mean-action": ("mean_action_return", "mean_action_progress"),
-}  # fmt: skip
-
-
-def bar_verdict(rows: list[dict], policy: str = "stochastic") -> dict[str, bool]:
-    """Each part of the bar for the rows of one variant (its seeds), the final policy acting with `policy`
-    (FINAL_POLICY_COLUMNS): mean final return >= BAR_RETURN, every seed
-    >= BAR_SEED_RETURN, mean progress >= BAR_PROGRESS, mean |steer| of the final policy's mean action <= BAR_STEER,
-    and every run holds (its last three evaluations average within BAR_HOLD of its best: the run's own evaluations,
-    with its --eval-policy, whatever `policy` is; sampled for the runs begun before the mean action's rule).
-
-    Smoothness is judged on the mean action, the steering the policy means: the sampled policy's |steer| carries
-    its exploration noise (sigma ~0.8 puts it near 0.6 even for a mean of 0), and the bang-bang agents this gauge
-    was made for (0.78-0.85) were measured on their mean action too. The sampled |steer| is reported beside it."""
-
-    def values(key: str) -> np.ndarray:
-        return np.array([float(r[key]) for r in rows])
-
-    returns, progress = FINAL_POLICY_COLUMNS[policy]
-    return {
-        "return": values(returns).mean() >= BAR_RETURN,
-        "every seed": values(returns).min() >= BAR_SEED_RETURN,
-        "progress": values(progress).mean() >= BAR_PROGRESS,
-        "steer": values("mean_action_abs_steer").mean() <= BAR_STEER,
-        "holds": bool(np.all(values("best_eval_return") - values("last3_eval_return") <= BAR_HOLD)),
-    }
-
-
-def final_summary(
-    path: str = os.path.join(RESULTS, "learning_final.csv"), reps: int = 2000, policy: str = "stochastic"
-) -> str:
-    """Markdown: per variant the IQM and mean of the final return, the final policy acting with `policy`, with
-    stratified-bootstrap 95% intervals (rliable), the bar's numbers, and which parts of the bar (bar_verdict)
-    fail."""
-    from stats import interval_estimates
-
-    rows = read_rows(path, FINAL_COLUMNS, FINAL_ADVICE)
-    return_key, progress_key = FINAL_POLICY_COLUMNS[policy]
-    lines = [
-        f"The final policy {'sampled, as trained' if policy == 'stochastic' else 'driving its mean action'}:",
-        "",
-        "| experiment | seeds | IQM final return [95% CI] | mean final return [95% CI] | min seed | mean progress "
-        "| mean \\|steer\\|: mean action (sampled) | runs that hold | bar |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
-    for variant in sorted({r["exp_name"] for r in rows}):  # each experiment (a variant, or an ablation of it)
-        mine = [r for r in rows if r["exp_name"] == variant]
-        returns = np.array([float(r[return_key]) for r in mine])
-        est = interval_estimates({variant: returns[:, None]}, reps=reps)[variant]
-        verdict = bar_verdict(mine, policy)
-        holds = sum(float(r["best_eval_return"]) - float(r["last3_eval_return"]) <= BAR_HOLD for r in mine)
-        failed = [part for part, ok in verdict.items() if not ok]
-        lines.append(
-            f"| {variant} | {len(mine)} | {est['iqm']:.1f} [{est['iqm_ci'][0]:.1f}, {est['iqm_ci'][1]:.1f}] "
-            f"| {est['mean']:.1f} [{est['mean_ci'][0]:.1f}, {est['mean_ci'][1]:.1f}] | {returns.min():.1f} "
-            f"| {np.mean([float(r[progress_key]) for r in mine]):.2f} "
-            f"| {np.mean([float(r['mean_action_abs_steer']) for r in mine]):.2f} "
-            f"({np.mean([float(r['final_mean_abs_steer']) for r in mine]):.2f}) | {holds} of {len(mine)} "
-            f"| {'met' if not failed else 'not met: ' + ', '.join(failed)} |"
-        )
-    return "\n".join(lines) + "\n"
-
-
-def fresh_reference(results_dir: str = RESULTS) -> str:
-    """One line for learning_final.md: random actions and the pursuit driver on the same fresh tracks."""
-    base = baselines(*FRESH_TRACKS, results_dir=results_dir, filename="baselines_fresh.json")
-    first, count = FRESH_TRACKS
-    rand, pursuit = base["random"], base["pursuit@70"]
-    return (
-        f"\nOn the same {count} tracks ({first}..{first + count - 1}): random actions "
-        f"{rand['eval_return']:.1f} (progress {rand['eval_progress']:.2f}), the pure-pursuit driver at 70 "
-        f"{pursuit['eval_return']:.1f} ({pursuit['eval_progress']:.2f}).\n"
-    )
-
-
-def variant_difference(path: str = os.path.join(RESULTS, "learning_final.csv")) -> str:
-    """Markdown for learning_final.md: the paper's solo claim, the LSTM's mean final return minus the GRU's over
-    their seeds (the variants' defaults only), with the final policy driving its mean action and sampled: the
-    difference of the means of independent runs, its test (the exact permutation test's one-sided p over every
-    split of the runs, Welch's t 95% interval: stats.two_group_claim) and the verdict (stats.judge). "" until both
-    variants have a row."""
-    from stats import describe, two_group_claim
-
-    rows = [r for r in read_rows(path, FINAL_COLUMNS, FINAL_ADVICE) if r["exp_name"] == experiment_name(r["variant"])]
-    if not {"lstm", "gru"} <= {r["variant"] for r in rows}:
-        return ""
-    lines = ["", "| final policy: LSTM - GRU | difference of means | test (one-sided p of the claim) "
-                 "| the LSTM beats the GRU |"]  # fmt: skip
-    lines.append("|---|---|---|---|")
-    for policy, label in (("mean-action", "mean action"), ("stochastic", "sampled")):
-        key = FINAL_POLICY_COLUMNS[policy][0]
-        lstm, gru = (np.array([float(r[key]) for r in rows if r["variant"] == v]) for v in ("lstm", "gru"))
-        claim = two_group_claim(lstm, gru)
-        lines.append(f"| {label} | {claim['estimate']:+.1f} | {describe(claim)} | {claim['verdict']} |")
-    return "\n".join(lines) + "\n"
-
-
-def peer_summary(
-    final_path: str = os.path.join(RESULTS, "learning_final.csv"),
-    peer_path: str = os.path.join(RESULTS, "ppo_peer.csv"), reps: int = 2000,
-) -> str:
-    """Markdown for learning_final.md: SB3 PPO (benchmarks/ppo_peer.py, its deterministic policy) over its seeds,
-    each with the CPU time it had, and each variant's final policy driving its mean action minus PPO on the same
-    fresh tracks: the difference of the means of independent runs, its test (the exact permutation test's one-sided
-    p, Welch's t 95% interval: stats.two_group_claim) and the verdict (stats.judge: none while a side has fewer than
-    stats.MIN_RUNS runs). PPO's own mean has a stratified-bootstrap interval (rliable): a description. Only PPO's
-    rows of the fresh tracks count (ppo_peer.read_rows: a row without a ``tracks`` column was measured there); the
-    variants' defaults only (an ablation is not the method); "" while ppo_peer.csv has no such row."""
-    from ppo_peer import read_rows as read_peer_rows
-    from common import track_block
-    from stats import MIN_RUNS, describe, interval_estimates, two_group_claim
-
-    peer = [r for r in read_peer_rows(peer_path) if r["tracks"] == track_block(*FRESH_TRACKS)]
-    if not peer:
-        return ""
-    ppo = np.array([float(r["final_return"]) for r in peer])
-    rows = read_rows(final_path, FINAL_COLUMNS, FINAL_ADVICE)
-    rows = [r for r in rows if r["exp_name"] == experiment_name(r["variant"])]
-    budget = {r["seed"]: f" at {float(r['cpu_hours']):.2f} CPU-h" if r.get("cpu_hours") else "" for r in peer}
-    seeds = ", ".join(f"{r['seed']}: {float(r['final_return']):.1f}{budget[r['seed']]}" for r in peer)
-    if ppo.size >= MIN_RUNS:
-        est = interval_estimates({"ppo": ppo[:, None]}, reps=reps)["ppo"]
-        mean = f"mean {est['mean']:.1f} [{est['mean_ci'][0]:.1f}, {est['mean_ci'][1]:.1f}]"
-    else:
-        mean = f"{ppo.mean():.1f} (one seed: no interval)"
-    lines = [
-        "",
-        f"SB3 PPO at the same CPU time (benchmarks/ppo_peer.py), {ppo.size} seed{'s' * (ppo.size > 1)}, its "
-        f"deterministic policy: {mean} (seed {seeds}).",
-        "",
-        "| variant (mean action) - PPO | difference of means | test (one-sided p of the claim) "
-        "| the variant beats PPO |",
-        "|---|---|---|---|",
-    ]
-    for variant in sorted({r["variant"] for r in rows}):
-        mine = np.array([float(r[FINAL_POLICY_COLUMNS["mean-action"][0]]) for r in rows if r["variant"] == variant])
-        claim = two_group_claim(mine, ppo)
-        lines.append(f"| {variant} - ppo | {claim['estimate']:+.1f} | {describe(claim)} | {claim['verdict']} |")
-    return "\n".join(lines) + "\n"
-
-
-def write_final_report(results_dir: str = RESULTS, reps: int = 2000, peer_path: str | None = None) -> str:
-    """(Re)write learning_final.md from learning_final.csv (and the PPO peer's csv, by default ppo_peer.csv beside
-    it, when present): the evaluation policy of the rule in docs/learning.md first (the mean action), then the
-    policy as trained, the LSTM against the GRU, the references on the same tracks, and the PPO peer. Returns the
-    text."""
-    final_path = os.path.join(results_dir, "learning_final.csv")
-    peer_path = peer_path or os.path.join(results_dir, "ppo_peer.csv")
-    text = (
-        final_summary(final_path, reps, policy="mean-action") + "\n" + final_summary(final_path, reps)
-        + variant_difference(final_path) + fresh_reference(results_dir)
-        + peer_summary(final_path, peer_path, reps)
-    )  # fmt: skip
-    with open(os.path.join(results_dir, "learning_final.md"), "w") as f:
-        f.write(text)
-    return text

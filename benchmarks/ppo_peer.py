@@ -30,9 +30,8 @@ race's start) on tracks ``--first-track`` .. + ``--tracks`` - 1: by default the 
 ``benchmarks/results/ppo_peer.csv`` (``recurrent_ppo_peer.csv``) with its ``tracks`` (``10300..10329``): one row
 per seed and tracks, so a seed's rows on the fresh and the report tracks stand side by side (read_rows, write_rows).
 A row of a file written before that column was measured on the old default tracks and is read as 10100..10119
-(UNNAMED_TRACKS). For PPO on 10100..10119 beside a ``learning_final.csv`` of the 8,000-update protocol,
-``learning_final.md`` is rewritten with PPO over its seeds (its rows of those tracks) and each Dreamer variant minus
-PPO; the final protocol's report takes the peers' rows with ``learning.py --protocol-report``.
+(UNNAMED_TRACKS). The final protocol's report takes the peers' rows of the report tracks with ``learning.py
+--protocol-report``.
 """
 
 from __future__ import annotations
@@ -406,26 +405,9 @@ def main(argv=None) -> dict | list[dict]:
     write_row(row, results)
     print(row)
     results_dir = os.path.dirname(os.path.abspath(results))
-    on_its_tracks = (args.first_track, args.tracks) == FRESH_TRACKS  # the 8,000-update protocol's
-    if args.algo == "ppo" and on_its_tracks and holds_old_protocol(results_dir):
-        import learning_report
-
-        print(learning_report.write_final_report(results_dir, peer_path=results))  # with PPO and the differences
-    elif (args.first_track, args.tracks) == FINAL_TRACKS:
+    if (args.first_track, args.tracks) == FINAL_TRACKS:
         print(f"python benchmarks/learning.py --protocol-report --results-dir {results_dir}  # the report with it")
     return row
-
-
-def holds_old_protocol(results_dir: str) -> bool:
-    """Does `results_dir`'s learning_final.csv hold the 8,000-update protocol's rows (its header), whose report a PPO
-    row of the fresh tracks joins? The CPU-budget protocol's file has other columns and its own report."""
-    import learning
-
-    path = os.path.join(results_dir, "learning_final.csv")
-    if not os.path.exists(path):
-        return False
-    with open(path, newline="") as f:
-        return tuple(next(csv.reader(f), ())) == learning.FINAL_COLUMNS
 
 
 if __name__ == "__main__":

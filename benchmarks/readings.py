@@ -11,19 +11,19 @@ For one saved single-car agent, on a block of tracks (the screening tracks 10200
 * the model's view of the pedal (``pedal_response.py``): after 40 decisions of the mean action on the block's first
   3 tracks, the pedal held at -1, 0, 0.3 and 1 for H decisions; the range over the pedals of the mean imagined
   return and of the mean real one (a model that sees the pedal imagines a range near the real one);
-* training, as logged over the run's last ``screening.SCREEN_WINDOW`` updates: the actor's sigma, the entropy
+* training, as logged over the run's last ``SCREEN_WINDOW`` updates: the actor's sigma, the entropy
   (-log pi), the entropy weight alpha (--entropy-target) and the imagined lambda-return; and the run's CPU-hours.
 """
 
 from __future__ import annotations
 
+import glob
 import json
 import os
 
 import numpy as np
 from calibration import calibrate_checkpoint
 from learning_report import progress_rows
-from screening import SCREEN_WINDOW, checkpoint_at
 
 POLICIES = ("stochastic", "mean-action")
 DRIVING = ("return", "progress", "abs_steer", "gas", "brake_share", "speed", "lap_finished", "eliminated")
@@ -33,9 +33,35 @@ TRAINING = {  # column: the progress.csv tag averaged over the last SCREEN_WINDO
 }  # fmt: skip
 MODEL = ("imagined_task_return", "real_task_return", "eliminations", "terminal_reward_predicted")
 PEDAL = ("pedal_range_imagined", "pedal_range_real")
+SCREEN_WINDOW = 500  # the TRAINING readings: means over the updates (u - SCREEN_WINDOW, u]
 PEDAL_AFTER, PEDAL_TRACKS = 40, 3  # pedal_response.py's start (decisions) and tracks (the block's first)
 COLUMNS = ("tag", "variant", "seed", "updates", "policy", *DRIVING, *TRAINING, *MODEL, *PEDAL, "cpu_hours",
            "checkpoint")  # fmt: skip
+
+
+def checkpoint_at(run_dir: str, updates: int) -> str:
+    """The policy `run_dir` kept at exactly `updates` updates: its latest.pt or one of its eval_<race>.pt."""
+    import race
+
+    paths = [os.path.join(run_dir, "checkpoints", "latest.pt")]
+    paths += sorted(glob.glob(os.path.join(run_dir, "checkpoints", "eval_*.pt")), reverse=True)
+    kept = []
+    for path in paths:
+        if not os.path.exists(path):
+            continue
+        done = int(race.read_checkpoint(path)[1]["agents"][0]["num_updates"])
+        if done == updates:
+            return path
+        kept.append(done)
+    kept = sorted(set(kept))
+    hint = (
+        f"it passed {updates} without keeping a policy there: screen at one of the counts it kept"
+        if kept and kept[-1] > updates
+        else "resume it with --updates to reach them"
+    )
+    raise ValueError(
+        f"{run_dir} kept no policy at {updates} updates (it kept: {', '.join(map(str, kept)) or 'none'}); {hint}"
+    )
 
 
 def driving(path: str, first_track: int, tracks: int) -> dict[str, dict[str, float]]:

@@ -118,7 +118,7 @@ def test_a_reference_page_is_short_and_leaves_lab_notes_to_docs_lab(page):
 # Each value is hard-coded from what the results record (test_the_recorded_experiment_is_the_one_in_the_results
 # reads them back from the files where it can):
 AS_RUN = {
-    "variants": ("lstm", "gru"),  # ghost_vs_control.csv, learning_final.csv
+    "variants": ("lstm", "gru"),  # ghost_vs_control.csv, history/8000_updates/learning_final.csv (HISTORY)
     "seeds": (11, 12, 13),  # head_to_head.csv's seed pairs 11,11 12,12 13,13; ghost_vs_control.csv
     "preset": "cpu",  # learning_final.csv: the single trials are the learning benchmark's --preset cpu runs
     "overrides": (),  # ditto: only a spec without overrides names its single trials learning_<variant>
@@ -138,6 +138,7 @@ AS_RUN = {
 EVAL_POLICY = {"single": "stochastic", "ghost": "mean-action", "race": "mean-action"}
 SECOND_POLICY = "stochastic"  # head_to_head_stochastic.csv: the same tournaments raced sampled
 FRESH_TRACKS = 20  # ghost_vs_control.csv: the 20 fresh tracks 10100..10119
+HISTORY = os.path.join("history", "8000_updates")  # the single stage's rows and the rule, under benchmarks/results
 RACE_NUM_CPUS = 3  # docs/lab/experiment_log.md: the race stage ran its three seed pairs at once (--num-cpus 3)
 
 
@@ -216,9 +217,10 @@ def test_the_recorded_experiment_is_the_one_in_the_results():
     ghost = rows("ghost_vs_control.csv")
     assert {(r["variant"], int(r["seed"])) for r in ghost} == {(v, s) for v in AS_RUN["variants"] for s in seeds}
     assert {int(r["updates"]) for r in ghost} == {AS_RUN["ghost_updates"]}
-    single = rows("learning_final.csv")
+    single = rows(os.path.join(HISTORY, "learning_final.csv"))
     assert {(r["variant"], int(r["seed"])) for r in single} == {(v, s) for v in AS_RUN["variants"] for s in seeds}
     assert {int(r["updates"]) for r in single} == {AS_RUN["single_updates"]}
-    assert f"Evaluation policy: **{EVAL_POLICY['race']}**" in open(os.path.join(results, "policy_rule.md")).read()
+    rule = open(os.path.join(results, HISTORY, "policy_rule.md")).read()
+    assert f"Evaluation policy: **{EVAL_POLICY['race']}**" in rule
     summary = open(os.path.join(results, "experiment.md")).read()
     assert ("ran without controls" in summary) == (not AS_RUN["controls"])

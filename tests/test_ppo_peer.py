@@ -201,20 +201,12 @@ def test_the_evaluation_tracks_are_parameters(tmp_path, monkeypatch):
                         or {"return": 1.0, "progress": 0.5, "abs_steer": 0.25})  # fmt: skip
     argv = ["--seed", "3", "--evaluate-only", "--runs-dir", str(tmp_path), "--results", str(tmp_path / "p.csv")]
     ppo_peer.main(argv)  # the default: the final protocol's report tracks
-    # the 8,000-update protocol's tracks, beside a learning_final.csv of the final protocol: its report (not the old
-    # one, which would refuse the file's columns) is learning.py --protocol-report's
-    import final_protocol
-    import learning
-
-    (tmp_path / "learning_final.csv").write_text(",".join(final_protocol.PROTOCOL_COLUMNS) + "\n")
-    ppo_peer.main([*argv, "--first-track", "10100", "--tracks", "20"])
+    ppo_peer.main([*argv, "--first-track", "10100", "--tracks", "20"])  # the 8,000-update protocol's tracks
     assert seen == [ppo_peer.FINAL_TRACKS, ppo_peer.FRESH_TRACKS] == [(10_300, 30), (10_100, 20)]
     assert [(r["seed"], r["tracks"]) for r in ppo_peer.read_rows(str(tmp_path / "p.csv"))] == [
         ("3", "10100..10119"), ("3", "10300..10329")
     ]  # the seed's row on each block of tracks
-    assert not (tmp_path / "learning_final.md").exists() and not ppo_peer.holds_old_protocol(str(tmp_path))
-    (tmp_path / "learning_final.csv").write_text(",".join(learning.FINAL_COLUMNS) + "\n")
-    assert ppo_peer.holds_old_protocol(str(tmp_path))
+    assert not (tmp_path / "learning_final.md").exists()  # a row is written; the report is learning.py's
 
 
 def test_a_row_replaces_only_the_row_of_its_seed_and_tracks_and_old_rows_are_the_fresh_tracks(tmp_path):
