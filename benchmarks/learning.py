@@ -277,7 +277,8 @@ class Args:
     """mode: only write the curves and the table"""
     diagnose: bool = False
     """mode: only the run's diagnostics per 500 updates (returns, sigma, entropy, kl_dyn, reward NLL, imagined
-    return, evaluations): printed and written to benchmarks/results/<experiment>_seed<S>_diagnostics.md"""
+    return, evaluations): printed and written to benchmarks/results/<experiment>_seed<S>_diagnostics.md; the run
+    is learning_<variant>, else an experiment trial <variant>_single (e.g. --runs-dir runs/final/trials --seed 21)"""
     protocol_row: bool = False
     """mode: only measure the final protocol's run of --variant and --seed (21..25: the single-stage trial of
     experiment.py --single-cpu-hours 3.1 under --runs-dir <storage>/trials, refused before its budget is spent),
@@ -342,8 +343,11 @@ def run_mode(args: Args) -> bool:
         from learning_report import diagnostics, diagnostics_table
 
         run = find_run(name, args.seed, args.runs_dir)
+        if run is None:  # an experiment.py single-stage trial of its own settings (the final protocol's runs)
+            name = f"{args.variant}_single"
+            run = find_run(name, args.seed, args.runs_dir)
         if run is None:
-            raise ValueError(f"no run of {name} seed {args.seed} in {args.runs_dir}")
+            raise ValueError(f"no run of learning_{args.variant} or {name} seed {args.seed} in {args.runs_dir}")
         table = diagnostics_table(diagnostics(run))
         with open(os.path.join(RESULTS, f"{name}_seed{args.seed}_diagnostics.md"), "w") as f:
             f.write(f"{os.path.basename(run)}\n\n{table}")

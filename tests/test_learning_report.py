@@ -124,6 +124,20 @@ def test_diagnostics_average_each_bucket_of_updates(tmp_path):
     assert table[2].startswith("| 0-499 | 4 | -25.00 |") and table[4].endswith("|  |  |  |")
 
 
+def test_diagnose_reads_a_final_protocol_trial_when_no_learning_run_has_the_seed(tmp_path, monkeypatch):
+    tags = dict(learning_report.DIAGNOSTICS)
+    run = tmp_path / "trials" / "single_gru_seed21" / "multi_car_racing__gru_single__21__1700000000"
+    run.mkdir(parents=True)
+    with open(run / "progress.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=["charts/episode", "car_0/perf/updates", tags["actor sigma"]])
+        writer.writeheader()
+        writer.writerow({"charts/episode": 1, "car_0/perf/updates": 100, tags["actor sigma"]: 0.3})
+    monkeypatch.setattr(learning, "RESULTS", str(tmp_path))
+    assert learning.run_mode(learning.Args(diagnose=True, variant="gru", seed=21, runs_dir=str(tmp_path / "trials")))
+    written = (tmp_path / "gru_single_seed21_diagnostics.md").read_text()
+    assert written.startswith(run.name) and "| 0-499 | 0 |  |  | 0.30 |" in written  # no race logged a return
+
+
 def test_report_keeps_saved_curves_and_never_shrinks_one(dirs):
     runs, results = dirs
     fields = ["env_steps", "updates", "wall_hours", "eval_return", "eval_progress"]
@@ -261,8 +275,8 @@ def test_the_command_line_refuses_bad_input_in_one_line_before_any_work(argv, me
 
 def test_a_mode_without_its_run_or_checkpoint_names_it_in_one_line(tmp_path):
     for argv, message in [
-        (["--diagnose", "--seed", "3"], f"no run of learning_lstm seed 3 in {tmp_path}"),
-        (["--diagnose", "--variant", "gru"], f"no run of learning_gru seed 1 in {tmp_path}"),
+        (["--diagnose", "--seed", "3"], f"no run of learning_lstm or lstm_single seed 3 in {tmp_path}"),
+        (["--diagnose", "--variant", "gru"], f"no run of learning_gru or gru_single seed 1 in {tmp_path}"),
         (["--calibrate", str(tmp_path / "none.pt")], "none.pt: no such checkpoint file"),
     ]:
         with pytest.raises(SystemExit, match=r"^learning\.py: error: ") as exit_info:
