@@ -46,9 +46,9 @@ class Args:
 
 
 def evaluate_checkpoint(path: str, first_track: int = 10_000, tracks: int = 10, policies=("stochastic",),
-                        index: int = 0, seeds=None) -> dict[str, dict[str, list[float]]]:  # fmt: skip
+                        index: int = 0) -> dict[str, dict[str, list[float]]]:  # fmt: skip
     """Per policy, every reading of `drive_races` per track: {policy: {reading: [value per track]}}. The tracks are
-    first_track .. first_track + tracks - 1, or `seeds` when given (the random stream still starts at first_track)."""
+    first_track .. first_track + tracks - 1."""
     import torch
 
     from race import read_checkpoint  # one reader of checkpoints: clear one-line errors naming the file
@@ -61,7 +61,7 @@ def evaluate_checkpoint(path: str, first_track: int = 10_000, tracks: int = 10, 
     args = script.args_from_checkpoint(checkpoint, path, num_agents=1)
     agent = script.agent_from_checkpoint(path, index)
     envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
-    out, tracks_of = {}, list(range(first_track, first_track + tracks) if seeds is None else seeds)
+    out, tracks_of = {}, list(range(first_track, first_track + tracks))
     try:
         for policy in policies:
             torch.manual_seed(first_track)  # a sampled policy: the same command gives the same numbers

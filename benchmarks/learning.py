@@ -7,6 +7,7 @@
     python benchmarks/learning.py --variant lstm --seed 11 --resume        # continue it in a later sitting
     python benchmarks/learning.py --report                                 # curves + table only
     python benchmarks/learning.py --variant lstm --seed 11 --diagnose      # sigma, entropy, kl_dyn... per 500 updates
+    python benchmarks/learning.py --runs-dir runs/final/trials --variant lstm --seed 21 --diagnose   # a protocol run
     python benchmarks/learning.py --calibrate runs/learning/<run>/checkpoints/latest.pt   # optimistic critic/model?
 
 Trains `dreamer_<variant>.py --preset cpu` on the single-car race (stage ``single``, one torch thread, so two runs
@@ -345,6 +346,10 @@ def run_mode(args: Args) -> bool:
         run = find_run(name, args.seed, args.runs_dir)
         if run is None:  # an experiment.py single-stage trial of its own settings (the final protocol's runs)
             name = f"{args.variant}_single"
+            trials = sorted({os.path.dirname(r) for r in learning_runs(args.runs_dir, name, args.seed)})
+            if len(trials) > 1:  # e.g. a sweep's flag sets: which one is meant is not for this mode to guess
+                raise ValueError(f"{len(trials)} trials of {name} seed {args.seed} under {args.runs_dir}: give "
+                                 f"--runs-dir one of them ({', '.join(trials)})")  # fmt: skip
             run = find_run(name, args.seed, args.runs_dir)
         if run is None:
             raise ValueError(f"no run of learning_{args.variant} or {name} seed {args.seed} in {args.runs_dir}")

@@ -138,6 +138,46 @@ def test_diagnose_reads_a_final_protocol_trial_when_no_learning_run_has_the_seed
     assert written.startswith(run.name) and "| 0-499 | 0 |  |  | 0.30 |" in written  # no race logged a return
 
 
+def test_diagnose_refuses_to_guess_among_several_trials_of_the_seed(tmp_path):
+    for tag in ("a", "b"):  # a sweep's flag sets: one trial each, the same variant and seed
+        (tmp_path / tag / "trials" / "single_lstm_seed11" / "multi_car_racing__lstm_single__11__1700000000").mkdir(
+            parents=True)  # fmt: skip
+    with pytest.raises(ValueError, match=r"^2 trials of lstm_single seed 11 under .*: give --runs-dir one of them"):
+        learning.run_mode(learning.Args(diagnose=True, variant="lstm", seed=11, runs_dir=str(tmp_path)))
+
+
+def test_a_learning_run_is_the_cpu_preset_with_the_benchmarks_settings_and_refused_values_name_their_flag(
+    tmp_path, monkeypatch
+):
+    monkeypatch.setattr(learning, "RUNS", str(tmp_path))  # no runs here: every sitting starts a new run
+    script, args, overrides = learning.run_args("gru", 2, 1.5, False)
+    cpu = script.PRESETS["cpu"]
+    assert script.VARIANT == "gru" and args.exp_name == "learning_gru" and overrides == set()
+    assert (args.seed, args.time_limit_hours, args.total_updates) == (2, 1.5, 8000)
+    assert (args.image_size, args.batch_size, args.imagination_horizon) == (64, cpu["batch_size"], 15)
+    assert (args.stage, args.num_agents, args.eval_episodes, args.eval_checkpoints, args.preset,
+            args.torch_threads) == ("single", 1, 10, True, "cpu", 1)  # fmt: skip
+    with pytest.raises(SystemExit, match=r"^learning\.py: error: --hours must be > 0, got -1\.0$"):
+        learning.cli(["--hours", "-1", "--runs-dir", str(tmp_path)])
+    monkeypatch.setattr(learning, "LEARNING_CONFIG", {**learning.LEARNING_CONFIG, "decoder_min_log_sigma": 3.0})
+    with pytest.raises(SystemExit, match=r"^learning\.py: error: --decoder-min-log-sigma must lie in \[-5, 2\], got 3"):
+        learning.cli(["--runs-dir", str(tmp_path)])  # the script's own rule, before any work
+    assert not any(tmp_path.iterdir())
+
+
+def test_the_references_are_measured_once_for_their_tracks_and_refuse_others(tmp_path):
+    base = learning_report.baselines(10_000, 1, results_dir=str(tmp_path))
+    assert base["pursuit@70"]["eval_progress"] > 0.95 and base["pursuit@70"]["eval_return"] > 800
+    assert base["random"]["eval_progress"] < 0.2 and base["random"]["eval_return"] < 0
+    with open(tmp_path / "baselines.json", "w") as f:  # read back, not recomputed
+        json.dump({"random": {"eval_return": -1.0, "eval_progress": 0.01},
+                   "pursuit@70": {"eval_return": 2.0, "eval_progress": 1.0}, "tracks": "10000..10000"}, f)  # fmt: skip
+    assert learning_report.baselines(10_000, 1, results_dir=str(tmp_path))["random"]["eval_return"] == -1.0
+    with pytest.raises(ValueError, match=r"baselines.json holds the references on tracks 10000..10000, not "
+                                         r"10000..10009: give another results_dir"):  # fmt: skip
+        learning_report.baselines(10_000, 10, results_dir=str(tmp_path))
+
+
 def test_report_keeps_saved_curves_and_never_shrinks_one(dirs):
     runs, results = dirs
     fields = ["env_steps", "updates", "wall_hours", "eval_return", "eval_progress"]

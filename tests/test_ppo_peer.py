@@ -206,7 +206,6 @@ def test_the_evaluation_tracks_are_parameters(tmp_path, monkeypatch):
     assert [(r["seed"], r["tracks"]) for r in ppo_peer.read_rows(str(tmp_path / "p.csv"))] == [
         ("3", "10100..10119"), ("3", "10300..10329")
     ]  # the seed's row on each block of tracks
-    assert not (tmp_path / "learning_final.md").exists()  # a row is written; the report is learning.py's
 
 
 def test_a_row_replaces_only_the_row_of_its_seed_and_tracks_and_old_rows_are_the_fresh_tracks(tmp_path):
