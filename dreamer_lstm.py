@@ -256,6 +256,8 @@ class Args:
 # dead-zone schedule in 30 races, evaluation every 5, a unit-variance pixel likelihood (log sigma floored at 0: a
 # learned sigma let kl_dyn grow without bound on CPU runs). It keeps the paper's trade: the same imagined steps per
 # update (B * L * H), the LSTM with a small batch and a long horizon (B=15, H=50), the GRU the other way (B=50, H=15).
+# Each variant's own part also holds the defaults its screens chose: while those differ (imagination starts), so do
+# the imagined steps per update, and the variants are compared at equal CPU time (docs/deviations.md).
 PRESETS: dict[str, dict] = {
     "paper": {},
     "cpu": {

@@ -82,7 +82,7 @@ def drive(agent, args, envs, track: int, after: int, pedal: float | None, horizo
         if t >= after:  # the held pedal, in the action and in the agent's memory of it (its previous action)
             action = action.copy()
             action[:, 1] = pedal
-            state = (state[0], state[1], torch.as_tensor(action), state[3])
+            state = (state[0], state[1], torch.as_tensor(action, device=state[2].device), state[3])
         reward = 0.0
         for _ in range(args.action_repeat):
             obs, step_rewards, dones, _ = envs.step(action)
