@@ -18,14 +18,19 @@ protocol (``learning.py --final`` until commit 32c3b4c), whose ``learning_final.
   ``tracks`` are the report tracks (protocol_peer_path, read_peer_rows); the rows of other tracks (the fresh tracks
   10100..10119 of the 8,000-update protocol, which a row without a ``tracks`` column was measured on) are left out.
   Their sample efficiency: the snapshots of ``<peer>_peer_curve.csv`` (``ppo_peer.py --curve``) on the report tracks.
+* Why a run drives as it does (protocol_measure; ``learning_final_readings.csv``): benchmarks/readings.py's
+  readings of the same final policy on the same tracks, per policy: its driving (speed, gas, brake share, laps,
+  eliminations: from the row's own drives), its training logs' last updates (sigma, alpha, imagined return), its
+  model on sampled drives (imagined against real H-step return, the reward head on the elimination frames) and its
+  view of the pedal.
 * The bar, per variant over its seeds (protocol_bar): with its mean action, mean return >= 800 with every seed
   >= 650, mean progress >= 0.85 and mean |steer| <= 0.3; sampled, mean return >= 700. A variant short of seeds is
   provisional.
 * ``learning_final.md`` (write_protocol_report): per variant and policy and per peer the mean and the IQM over seeds
   with rliable's stratified-bootstrap 95% intervals (descriptions), the bar, every run's row, the LSTM minus the
   GRU and each variant minus each peer, judged by the exact permutation test and Welch's t interval
-  (benchmarks/stats.py), and the env steps after which each peer's snapshots reach each variant's final mean return
-  (sample_efficiency).
+  (benchmarks/stats.py), the env steps after which each peer's snapshots reach each variant's final mean return
+  (sample_efficiency), and per variant the readings' means over seeds (protocol_why).
 
 How to run it (``learning.py`` stays the benchmark's one command line; its ``--results-dir`` moves
 learning_final.csv, learning_final.md and the peers' files):
@@ -44,7 +49,8 @@ import os
 
 import numpy as np
 
-from common import TRACKS, track_block
+import readings
+from common import TRACKS, replace_rows, track_block
 from learning import (
     OLD_PROTOCOL_HOME, RESULTS, VARIANTS, eval_curve, eval_summary, read_rows, replace_row, training_hours,
 )  # fmt: skip
@@ -70,6 +76,11 @@ PROTOCOL_COLUMNS = (
 )  # fmt: skip
 PROTOCOL_PEERS = ("ppo", "recurrent_ppo")  # benchmarks/ppo_peer.py's variants (--algo ppo, recurrent-ppo)
 PEER_COLUMNS = tuple(c for c in PEER_CSV_COLUMNS if c != "tracks")  # a peer's row (ppo_peer.py's), its tracks aside
+# Why a run drives as it does: benchmarks/readings.py's readings of its final policy on the report tracks, per policy,
+# kept beside learning_final.csv (the driving from the row's own drives, not driven again; the training logs' last
+# readings.SCREEN_WINDOW updates; the model on real episodes; its view of the pedal)
+WHY_CSV = "learning_final_readings.csv"
+WHY_COLUMNS = tuple(c for c in readings.COLUMNS if c != "tag")
 PROTOCOL_ADVICE = (
     f"move the old protocol's files (learning_final.csv, learning_final.md) to {OLD_PROTOCOL_HOME}/ first"
 )
@@ -122,6 +133,11 @@ def protocol_row(variant: str, seed: int, runs_dir: str) -> dict:
     action's mean speed. Beside them agent 0's updates, the env steps (``counters["global_step"]``), the CPU-hours
     of latest.pt, the wall hours of the sittings (training_hours), and the best and last-three-average returns of
     the run's own evaluations (eval_summary)."""
+    return protocol_measure(variant, seed, runs_dir, why=False)[0]
+
+
+def protocol_measure(variant: str, seed: int, runs_dir: str, why: bool = True) -> tuple[dict, list[dict]]:
+    """The run's row (protocol_row) and, with `why`, its readings' rows (protocol_why), from the same drives."""
     if seed not in PROTOCOL_SEEDS:
         raise ValueError(f"the final protocol's seeds are {', '.join(map(str, PROTOCOL_SEEDS))}, got {seed}")
     run = protocol_run(variant, seed, runs_dir)
@@ -131,11 +147,12 @@ def protocol_row(variant: str, seed: int, runs_dir: str) -> dict:
 
     checkpoint = race.read_checkpoint(latest)[1]
     cpu_hours = protocol_cpu_hours(run, checkpoint)
-    readings = evaluate.evaluate_checkpoint(latest, *REPORT_TRACKS, PROTOCOL_POLICIES)
-    sampled, mean_action = (track_means(readings[policy]) for policy in PROTOCOL_POLICIES)
+    driven = evaluate.evaluate_checkpoint(latest, *REPORT_TRACKS, PROTOCOL_POLICIES)
+    sampled, mean_action = (track_means(driven[policy]) for policy in PROTOCOL_POLICIES)
     best_eval, last3_eval = eval_summary(eval_curve(run))
-    return {
-        "variant": variant, "seed": seed, "updates": int(checkpoint["agents"][0]["num_updates"]),
+    updates = int(checkpoint["agents"][0]["num_updates"])
+    row = {
+        "variant": variant, "seed": seed, "updates": updates,
         "env_steps": int(checkpoint["counters"]["global_step"]), "cpu_hours": round(cpu_hours, 4),
         "wall_hours": training_hours(run),
         "final_return": round(sampled["return"], 2), "final_progress": round(sampled["progress"], 4),
@@ -147,12 +164,25 @@ def protocol_row(variant: str, seed: int, runs_dir: str) -> dict:
         "mean_speed": round(mean_action["speed"], 2),
         "best_eval_return": best_eval, "last3_eval_return": last3_eval,
     }  # fmt: skip
+    if not why:
+        return row, []
+    measured = readings.measure(latest, run, updates, *REPORT_TRACKS, driven=driven)
+    why_rows = [{"variant": variant, "seed": seed, "updates": updates, "policy": policy, **measured[policy],
+                 "checkpoint": os.path.relpath(latest, runs_dir)} for policy in PROTOCOL_POLICIES]  # fmt: skip
+    return row, why_rows
 
 
 def write_protocol_row(row: dict, path: str = os.path.join(RESULTS, "learning_final.csv")) -> None:
     """Add a row of the final protocol to learning_final.csv, replacing an earlier row of the same variant and seed.
     A file with other columns (the 8,000-update protocol's) is refused (read_rows)."""
     replace_row(row, path, PROTOCOL_COLUMNS, lambda r: (r["variant"], int(r["seed"])), PROTOCOL_ADVICE)
+
+
+def write_why_rows(rows: list[dict], path: str = os.path.join(RESULTS, WHY_CSV)) -> None:
+    """Add a run's readings (protocol_measure: one row per policy) to learning_final_readings.csv, replacing its
+    earlier ones."""
+    replace_rows(path, rows, WHY_COLUMNS, lambda r: (r["variant"], int(r["seed"]), r["policy"]),
+                 other_header=f"{path} holds other readings: move it aside first")  # fmt: skip
 
 
 # --- learning_final.md -----------------------------------------------------------------------
@@ -293,6 +323,41 @@ def protocol_bar_table(rows: list[dict]) -> str:
         if missing:
             verdict += f" (provisional: seeds {', '.join(map(str, missing))} missing)"
         lines.append(f"| {variant} | {len(mine)} | " + " | ".join(cells) + f" | {verdict} |")
+    return "\n".join(lines) + "\n"
+
+
+# learning_final.md's readings: (label, column of learning_final_readings.csv, the policy row it is read from: a
+# run's training and model readings stand in both of its rows)
+WHY_TABLE = (
+    (f"actor sigma (last {readings.SCREEN_WINDOW} updates)", "actor_sigma", "stochastic"),
+    ("entropy weight alpha", "alpha", "stochastic"),
+    ("imagined lambda-return", "imagined_return", "stochastic"),
+    *((f"{POLICY_NAMES[policy]}: {label}", key, policy) for policy in PROTOCOL_POLICIES[::-1] for label, key in (
+        ("speed", "speed"), ("gas", "gas"), ("brake share", "brake_share"), ("laps finished", "lap_finished"),
+        ("eliminated", "eliminated"))),
+    ("model on sampled drives: imagined H-step return", "imagined_task_return", "stochastic"),
+    ("... the real H-step return from the same states", "real_task_return", "stochastic"),
+    ("... eliminations in those drives", "eliminations", "stochastic"),
+    ("... reward head's mean on their last frame (real: -100)", "terminal_reward_predicted", "stochastic"),
+    ("pedal: range of the imagined return over held pedals", "pedal_range_imagined", "mean-action"),
+    ("... of the real return", "pedal_range_real", "mean-action"),
+)  # fmt: skip
+
+
+def protocol_why(why_rows: list[dict]) -> str:
+    """Markdown: per reading of WHY_TABLE, per variant with readings, its mean over the seeds and in brackets the
+    lowest and highest seed's (NaNs, readings a run could not take, left out; "-" if none)."""
+    variants = [v for v in VARIANTS if any(r["variant"] == v for r in why_rows)]
+    seeds = {v: len({r["seed"] for r in why_rows if r["variant"] == v}) for v in variants}
+    lines = ["| reading | " + " | ".join(f"{v} ({n} seed{'s' * (n > 1)})" for v, n in seeds.items()) + " |",
+             "|---|" + "---|" * len(variants)]  # fmt: skip
+    for label, key, policy in WHY_TABLE:
+        cells = []
+        for variant in variants:
+            values = column([r for r in why_rows if r["variant"] == variant and r["policy"] == policy], key)
+            values = values[~np.isnan(values)]
+            cells.append(f"{values.mean():.2f} [{values.min():.2f}, {values.max():.2f}]" if values.size else "-")
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -463,6 +528,12 @@ def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
             + "\nThe comparisons (independent runs):\n\n" + protocol_comparisons(rows, peers)
             + sample_efficiency(rows, curves)
         )  # fmt: skip
+        why_rows = read_rows(os.path.join(results_dir, WHY_CSV), WHY_COLUMNS, f"move {WHY_CSV} aside first")
+        if why_rows:
+            text += (
+                f"\nWhy they drive as they do: benchmarks/readings.py's readings of the same final policies on the "
+                f"same tracks ({WHY_CSV}), the mean over seeds [lowest, highest]:\n\n" + protocol_why(why_rows)
+            )  # fmt: skip
     with open(os.path.join(results_dir, "learning_final.md"), "w") as f:
         f.write(text)
     return text

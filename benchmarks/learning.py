@@ -22,7 +22,8 @@ evaluating every 5 races on the 10 held-out tracks (seeds 10000..10009) and keep
 * ``learning.png`` and ``learning.md``: every curve, with the baselines;
 * with ``--calibrate``: a row of ``calibration.csv``, the agent's value and imagined return of real states against
   what the real episodes returned from them;
-* with ``--protocol-row``: the final protocol's row of ``learning_final.csv`` and ``learning_final.md``;
+* with ``--protocol-row``: the final protocol's row of ``learning_final.csv``, the run's readings (why it drives as
+  it does, benchmarks/readings.py) in ``learning_final_readings.csv``, and ``learning_final.md``;
   ``--protocol-report`` rewrites ``learning_final.md`` alone;
 * with ``--protocol-ship``: ``ship_<variant>.csv``, the protocol's final policies and the shipped agent on the
   screening tracks, and ``pretrained/<variant>_cpu.pt`` replaced by the best of them.
@@ -284,7 +285,8 @@ class Args:
     """mode: only measure the final protocol's run of --variant and --seed (21..25: the single-stage trial of
     experiment.py --single-cpu-hours 3.1 under --runs-dir <storage>/trials, refused before its budget is spent),
     its latest.pt sampled and with its mean action on the 30 report tracks 10300..10329: its row of
-    learning_final.csv, then learning_final.md"""
+    learning_final.csv; its readings (benchmarks/readings.py: the same drives, its training logs, its model on
+    sampled drives of those tracks, its view of the pedal) in learning_final_readings.csv; then learning_final.md"""
     protocol_report: bool = False
     """mode: only rewrite learning_final.md from the final protocol's learning_final.csv and its peers' rows of the
     report tracks in <peer>_peer.csv and <peer>_peer_curve.csv (no evaluation)"""
@@ -294,8 +296,8 @@ class Args:
     screening tracks 10200..10219; the best seed is exported over the shipped file if it drives better there
     (ship_<variant>.csv in --results-dir)"""
     results_dir: str = RESULTS
-    """--protocol-row, --protocol-report, --protocol-ship: where learning_final.csv and .md (and the peers' CSVs,
-    ship_<variant>.csv) are"""
+    """--protocol-row, --protocol-report, --protocol-ship: where learning_final.csv and .md (and the readings, the
+    peers' CSVs, ship_<variant>.csv) are"""
     calibrate: Annotated[str | None, tyro.conf.arg(metavar="CHECKPOINT")] = None
     """mode: only measure whether this agent's critic and imagination are optimistic on real episodes (its sampled
     policy on --tracks tracks from --first-track); a row of benchmarks/results/calibration.csv"""
@@ -368,8 +370,9 @@ def run_mode(args: Args) -> bool:
         if args.protocol_row:
             path = os.path.join(args.results_dir, "learning_final.csv")
             read_rows(path, protocol.PROTOCOL_COLUMNS, protocol.PROTOCOL_ADVICE)  # another protocol's: refused first
-            row = protocol.protocol_row(args.variant, args.seed, args.runs_dir)
+            row, why = protocol.protocol_measure(args.variant, args.seed, args.runs_dir)
             protocol.write_protocol_row(row, path)
+            protocol.write_why_rows(why, os.path.join(args.results_dir, protocol.WHY_CSV))
             print(json.dumps(row, indent=1))
         print(protocol.write_protocol_report(args.results_dir))
     else:

@@ -64,12 +64,14 @@ def checkpoint_at(run_dir: str, updates: int) -> str:
     )
 
 
-def driving(path: str, first_track: int, tracks: int) -> dict[str, dict[str, float]]:
-    """Per policy, the mean of every DRIVING reading over the tracks (evaluate.py's evaluate_checkpoint)."""
-    from evaluate import evaluate_checkpoint
+def driving(path: str, first_track: int, tracks: int, driven: dict | None = None) -> dict[str, dict[str, float]]:
+    """Per policy, the mean of every DRIVING reading over the tracks: of evaluate.py's evaluate_checkpoint, or of
+    `driven`, its answer for this policy and these tracks when it is already in hand."""
+    if driven is None:
+        from evaluate import evaluate_checkpoint
 
-    results = evaluate_checkpoint(path, first_track, tracks, POLICIES)
-    return {policy: {key: round(float(np.mean(r[key])), 4) for key in DRIVING} for policy, r in results.items()}
+        driven = evaluate_checkpoint(path, first_track, tracks, POLICIES)
+    return {policy: {key: round(float(np.mean(r[key])), 4) for key in DRIVING} for policy, r in driven.items()}
 
 
 def training(run_dir: str, updates: int) -> dict[str, float]:
@@ -97,12 +99,14 @@ def pedal(path: str, first_track: int) -> dict[str, float]:
     return {"pedal_range_imagined": round(imagined, 2), "pedal_range_real": round(real, 2)}
 
 
-def measure(path: str, run_dir: str, updates: int, first_track: int, tracks: int) -> dict:
-    """Every reading of the policy at `path` (kept by `run_dir` at `updates` updates): {policy: row fields}."""
+def measure(path: str, run_dir: str, updates: int, first_track: int, tracks: int, driven: dict | None = None) -> dict:
+    """Every reading of the policy at `path` (kept by `run_dir` at `updates` updates): {policy: row fields}; the
+    driving from `driven` if given (driving)."""
     model = calibrate_checkpoint(path, first_track, tracks)
     model = {**{key: model[key] for key in MODEL}, **pedal(path, first_track)}
     trained = training(run_dir, updates)
-    return {policy: {**values, **trained, **model} for policy, values in driving(path, first_track, tracks).items()}
+    driven = driving(path, first_track, tracks, driven)
+    return {policy: {**values, **trained, **model} for policy, values in driven.items()}
 
 
 def report(sweep) -> str:

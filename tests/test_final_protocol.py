@@ -19,6 +19,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(
 import evaluate  # noqa: E402
 import final_protocol  # noqa: E402
 import learning  # noqa: E402
+import readings  # noqa: E402
 from test_learning_report import write_sitting  # noqa: E402
 
 BUDGET_SECONDS = 3600 * final_protocol.PROTOCOL_CPU_HOURS
@@ -36,6 +37,14 @@ def fake_trial(trials, variant="lstm", seed=21, cpu_seconds=BUDGET_SECONDS + 36.
               (2500, 590.0, 0.75, 1200)]  # fmt: skip
     write_sitting(run, points, wall_start=1_000_000.0, pid=101)  # 4000 s
     write_sitting(run, [(3000, 600.0, 0.8, 1500), (3500, 620.0, 0.8, 1800)], wall_start=2_000_000.0, pid=202)  # 1000 s
+    logged = [{"car_0/perf/updates": 6500, "car_0/losses/actor_std": 9.0, "charts/cpu_hours": 3.0},
+              {"car_0/perf/updates": updates - 421, "car_0/losses/actor_std": 0.5, "car_0/losses/alpha": 0.1},
+              {"car_0/perf/updates": updates, "car_0/losses/actor_std": 0.3, "car_0/losses/alpha": 0.3,
+               "charts/cpu_hours": cpu_seconds / 3600}]  # fmt: skip
+    with open(os.path.join(run, "progress.csv"), "w", newline="") as f:  # (its training readings: the last two)
+        writer = csv.DictWriter(f, fieldnames=sorted({key for row in logged for key in row}))
+        writer.writeheader()
+        writer.writerows(logged)
     checkpoint = {"variant": variant, "args": {}, "rng": {}, "agents": [{"num_updates": updates}],
                   "counters": {"global_step": steps, "episode": 250},
                   "extra": {"cpu_seconds": cpu_seconds}}  # fmt: skip
@@ -72,17 +81,64 @@ EXPECTED = {
 }  # fmt: skip
 
 
+MODEL_READINGS = {"imagined_task_return": 31.5, "real_task_return": 12.25, "eliminations": 4,
+                  "terminal_reward_predicted": -7.5}  # (calibrate_checkpoint's answer, in part)
+
+
 def test_a_runs_row_is_its_latest_policy_on_the_report_tracks_both_ways(tmp_path, monkeypatch):
     trials, results = str(tmp_path / "trials"), tmp_path / "results"
     results.mkdir()
     fake_trial(trials)
     monkeypatch.setattr(evaluate, "evaluate_checkpoint", known_readings)
+    monkeypatch.setattr(readings, "calibrate_checkpoint", refuse_to_drive)  # the row alone measures no model
     row = final_protocol.protocol_row("lstm", 21, trials)
     assert list(row) == list(final_protocol.PROTOCOL_COLUMNS)
     assert row == pytest.approx(EXPECTED, abs=1e-4)
-    # the command line: the same row in learning_final.csv, in the protocol's column order, and learning_final.md
+
+
+def test_a_runs_readings_come_from_the_same_drives_its_training_logs_and_its_model(tmp_path, monkeypatch):
+    trials, results = str(tmp_path / "trials"), tmp_path / "results"
+    results.mkdir()
+    run = fake_trial(trials)
+    drives, models = [], []
+    monkeypatch.setattr(evaluate, "evaluate_checkpoint", lambda *a: drives.append(a) or known_readings(*a))
+    monkeypatch.setattr(readings, "calibrate_checkpoint",
+                        lambda *a: models.append(a) or {**MODEL_READINGS, "value": 1.0})  # fmt: skip
+    monkeypatch.setattr(readings, "pedal", lambda path, first: {"pedal_range_imagined": 1.5,
+                                                                 "pedal_range_real": float("nan")})  # (car out)
+    row, why = final_protocol.protocol_measure("lstm", 21, trials)
+    latest = os.path.join(run, "checkpoints", "latest.pt")
+    assert row == pytest.approx(EXPECTED, abs=1e-4) and len(drives) == 1  # driven once, for both
+    assert models == [(latest, 10_300, 30)]
+    assert [(r["variant"], r["seed"], r["updates"], r["policy"]) for r in why] == [
+        ("lstm", 21, 7421, "stochastic"), ("lstm", 21, 7421, "mean-action")]
+    sampled, mean_action = why
+    # the row's own numbers (known_readings: hand-computed in EXPECTED), the training window (7421 - 500, 7421]: the
+    # last two logged rows (sigma (0.5 + 0.3) / 2, alpha (0.1 + 0.3) / 2), the model's and the pedal's answers
+    assert (mean_action["return"], mean_action["speed"], mean_action["lap_finished"]) == (780.0, 40.0, 0.7)
+    assert (sampled["return"], sampled["progress"], sampled["gas"]) == (700.0, 0.7, 0.5)
+    for policy_row in why:
+        assert policy_row["actor_sigma"] == pytest.approx(0.4) and policy_row["alpha"] == pytest.approx(0.2)
+        assert policy_row["cpu_hours"] == pytest.approx(3.11) and np.isnan(policy_row["entropy"])
+        assert {k: policy_row[k] for k in MODEL_READINGS} == MODEL_READINGS
+        assert policy_row["checkpoint"] == os.path.relpath(latest, trials)
+    # the command line: the row and the readings written beside learning_final.md, which shows their means
     learning.cli(["--protocol-row", "--variant", "lstm", "--seed", "21", "--runs-dir", trials,
                   "--results-dir", str(results)])  # fmt: skip
+    with open(results / "learning_final_readings.csv", newline="") as f:
+        reader = csv.DictReader(f)
+        written = list(reader)
+    assert reader.fieldnames == list(final_protocol.WHY_COLUMNS) and "tag" not in reader.fieldnames
+    assert [(r["policy"], float(r["speed"]), float(r["terminal_reward_predicted"])) for r in written] == [
+        ("mean-action", 40.0, -7.5), ("stochastic", 20.0, -7.5)]  # sorted by variant, seed, policy
+    text = (results / "learning_final.md").read_text()
+    for line in ["| reading | lstm (1 seed) |", "| actor sigma (last 500 updates) | 0.40 [0.40, 0.40] |",
+                 "| mean action: speed | 40.00 [40.00, 40.00] |", "| sampled: speed | 20.00 [20.00, 20.00] |",
+                 "| mean action: laps finished | 0.70 [0.70, 0.70] |", "| imagined lambda-return | - |",
+                 "| ... reward head's mean on their last frame (real: -100) | -7.50 [-7.50, -7.50] |",
+                 "| ... of the real return | - |"]:  # fmt: skip
+        assert line in text
+    # learning_final.csv: the same row, in the protocol's column order, also shown in learning_final.md
     with open(results / "learning_final.csv", newline="") as f:
         reader = csv.DictReader(f)
         (written,) = list(reader)
@@ -396,3 +452,19 @@ def test_the_cpu_hours_of_a_checkpoint_are_its_cpu_seconds_over_3600_and_a_budge
         return experiment.spent_budget(path, Script, type("A", (), {"cpu_hours_limit": limit}))
 
     assert spent(3.1) and spent(3.0) and not spent(3.2) and not spent(0.0)  # 0: no limit
+
+
+def test_the_readings_table_gives_each_variants_mean_lowest_and_highest_seed_leaving_nans_out():
+    def why(variant, seed, policy, sigma, speed):
+        return {"variant": variant, "seed": seed, "policy": policy, "actor_sigma": sigma, "speed": speed,
+                **{key: "nan" for _, key, _ in final_protocol.WHY_TABLE if key not in ("actor_sigma", "speed")}}
+
+    rows = [why("lstm", 21, "stochastic", 0.2, 10.0), why("lstm", 21, "mean-action", 0.2, 40.0),
+            why("lstm", 22, "stochastic", "nan", 30.0), why("lstm", 22, "mean-action", "nan", 50.0),
+            why("gru", 21, "stochastic", 0.5, 20.0), why("gru", 21, "mean-action", 0.5, 60.0)]  # fmt: skip
+    text = final_protocol.protocol_why(rows)
+    assert "| reading | lstm (2 seeds) | gru (1 seed) |" in text  # the variants in their order, whatever the rows'
+    assert "| actor sigma (last 500 updates) | 0.20 [0.20, 0.20] | 0.50 [0.50, 0.50] |" in text  # seed 22's NaN out
+    assert "| mean action: speed | 45.00 [40.00, 50.00] | 60.00 [60.00, 60.00] |" in text
+    assert "| sampled: speed | 20.00 [10.00, 30.00] | 20.00 [20.00, 20.00] |" in text
+    assert "| entropy weight alpha | - | - |" in text
