@@ -265,11 +265,14 @@ PRESETS: dict[str, dict] = {
         "action_repeat": 2, "prefill_episodes": 20, "train_steps_per_episode": 100,
         "dead_zone_episodes": 30, "eval_every": 5, "video_every": 25, "decoder_min_log_sigma": 0.0,
         # this variant's own: the paper's trade (B * L * H = 16 * 32 * 15 = 7,680 imagined steps per update), and the
-        # screened defaults of docs/deviations.md (none yet: the GRU's screen is running)
+        # defaults its screens chose (docs/deviations.md): SAC's alpha toward 0 nats per action dimension with the
+        # extreme-action term at its own weight 1, and imagination from half the starts (256 * 15 = 3,840 steps)
         "batch_size": 16, "imagination_horizon": 15,
-        "imagination_starts": 0,
+        "imagination_starts": 256, "entropy_target": 0.0, "action_penalty": 1.0,
     },
 }  # fmt: skip
+
+
 def preset_args(preset: str = "paper", **overrides) -> Args:
     """Args of a preset with `overrides` on top (the Python form of `--preset NAME --flag value ...`)."""
     if preset not in PRESETS:

@@ -271,6 +271,8 @@ PRESETS: dict[str, dict] = {
         "imagination_starts": 80, "entropy_target": 0.0, "action_penalty": 1.0,
     },
 }  # fmt: skip
+
+
 def preset_args(preset: str = "paper", **overrides) -> Args:
     """Args of a preset with `overrides` on top (the Python form of `--preset NAME --flag value ...`)."""
     if preset not in PRESETS:
