@@ -254,10 +254,10 @@ class Args:
 # --preset cpu: a configuration that learns on a 2-core CPU in hours (docs/deviations.md); explicit flags override it.
 # Smaller networks, 64 px frames, 2 env steps per decision, 20 random prefill races, 100 updates per race, the
 # dead-zone schedule in 30 races, evaluation every 5, a unit-variance pixel likelihood (log sigma floored at 0: a
-# learned sigma let kl_dyn grow without bound on CPU runs). It keeps the paper's trade: the same imagined steps per
-# update (B * L * H), the LSTM with a small batch and a long horizon (B=15, H=50), the GRU the other way (B=50, H=15).
-# Each variant's own part also holds the defaults its screens chose: while those differ (imagination starts), so do
-# the imagined steps per update, and the variants are compared at equal CPU time (docs/deviations.md).
+# learned sigma let kl_dyn grow without bound on CPU runs). It keeps the paper's trade at a smaller size: the same
+# imagined steps per update (B * L * H = 7,680), the LSTM with a small batch and a long horizon (B=5, H=48), the GRU
+# the other way (B=16, H=15). Each variant's own part also holds the defaults its screens chose (docs/deviations.md),
+# among them imagination from half the starts: 3,840 imagined steps per update for both.
 PRESETS: dict[str, dict] = {
     "paper": {},
     "cpu": {

@@ -120,7 +120,7 @@ def test_a_reference_page_is_short_and_leaves_lab_notes_to_docs_lab(page):
 AS_RUN = {
     "variants": ("lstm", "gru"),  # ghost_vs_control.csv, history/8000_updates/learning_final.csv (HISTORY)
     "seeds": (11, 12, 13),  # head_to_head.csv's seed pairs 11,11 12,12 13,13; ghost_vs_control.csv
-    "preset": "cpu",  # learning_final.csv: the single trials are the learning benchmark's --preset cpu runs
+    "preset": "cpu",  # learning_final.csv: the learning benchmark's --preset cpu runs (the code of commit 59e2cc7)
     "overrides": (),  # ditto: only a spec without overrides names its single trials learning_<variant>
     "single_updates": 8000,  # learning_final.csv: updates
     "ghost_updates": 2000,  # ghost_vs_control.csv: updates
