@@ -18,7 +18,7 @@ protocol (``learning.py --final`` until commit 32c3b4c), whose ``learning_final.
   ``tracks`` are the report tracks (protocol_peer_path, read_peer_rows); the rows of other tracks (the fresh tracks
   10100..10119 of the 8,000-update protocol, which a row without a ``tracks`` column was measured on) are left out.
   Their sample efficiency: the snapshots of ``<peer>_peer_curve.csv`` (``ppo_peer.py --curve``) on the report tracks.
-* Why a run drives as it does (protocol_measure; ``learning_final_readings.csv``): benchmarks/readings.py's
+* Why a run drives as it does (protocol_readings; ``learning_final_readings.csv``): benchmarks/readings.py's
   readings of the same final policy on the same tracks, per policy: its driving (speed, gas, brake share, laps,
   eliminations: from the row's own drives), its training logs' last updates (sigma, alpha, imagined return), its
   model on sampled drives (imagined against real H-step return, the reward head on the elimination frames) and its
@@ -84,6 +84,7 @@ WHY_COLUMNS = tuple(c for c in readings.COLUMNS if c != "tag")
 PROTOCOL_ADVICE = (
     f"move the old protocol's files (learning_final.csv, learning_final.md) to {OLD_PROTOCOL_HOME}/ first"
 )
+WHY_ADVICE = f"it holds other readings than {WHY_CSV}'s: move it aside first"
 
 
 # --- A run's row of learning_final.csv --------------------------------------------------------
@@ -133,11 +134,12 @@ def protocol_row(variant: str, seed: int, runs_dir: str) -> dict:
     action's mean speed. Beside them agent 0's updates, the env steps (``counters["global_step"]``), the CPU-hours
     of latest.pt, the wall hours of the sittings (training_hours), and the best and last-three-average returns of
     the run's own evaluations (eval_summary)."""
-    return protocol_measure(variant, seed, runs_dir, why=False)[0]
+    return protocol_measure(variant, seed, runs_dir)[0]
 
 
-def protocol_measure(variant: str, seed: int, runs_dir: str, why: bool = True) -> tuple[dict, list[dict]]:
-    """The run's row (protocol_row) and, with `why`, its readings' rows (protocol_why), from the same drives."""
+def protocol_measure(variant: str, seed: int, runs_dir: str) -> tuple[dict, dict]:
+    """The run's row (protocol_row) and the drives it was measured on (evaluate_checkpoint's per-track readings per
+    policy), which protocol_readings reuses."""
     if seed not in PROTOCOL_SEEDS:
         raise ValueError(f"the final protocol's seeds are {', '.join(map(str, PROTOCOL_SEEDS))}, got {seed}")
     run = protocol_run(variant, seed, runs_dir)
@@ -150,9 +152,8 @@ def protocol_measure(variant: str, seed: int, runs_dir: str, why: bool = True) -
     driven = evaluate.evaluate_checkpoint(latest, *REPORT_TRACKS, PROTOCOL_POLICIES)
     sampled, mean_action = (track_means(driven[policy]) for policy in PROTOCOL_POLICIES)
     best_eval, last3_eval = eval_summary(eval_curve(run))
-    updates = int(checkpoint["agents"][0]["num_updates"])
     row = {
-        "variant": variant, "seed": seed, "updates": updates,
+        "variant": variant, "seed": seed, "updates": int(checkpoint["agents"][0]["num_updates"]),
         "env_steps": int(checkpoint["counters"]["global_step"]), "cpu_hours": round(cpu_hours, 4),
         "wall_hours": training_hours(run),
         "final_return": round(sampled["return"], 2), "final_progress": round(sampled["progress"], 4),
@@ -164,12 +165,22 @@ def protocol_measure(variant: str, seed: int, runs_dir: str, why: bool = True) -
         "mean_speed": round(mean_action["speed"], 2),
         "best_eval_return": best_eval, "last3_eval_return": last3_eval,
     }  # fmt: skip
-    if not why:
-        return row, []
+    return row, driven
+
+
+def protocol_readings(row: dict, driven: dict, runs_dir: str) -> list[dict]:
+    """Why the run of `row` drives as it does (WHY_COLUMNS, one row per policy): readings.measure of its final
+    policy on the REPORT_TRACKS, its driving from `driven` (protocol_measure's drives, not driven again), its
+    training logs' last readings.SCREEN_WINDOW updates before the row's updates, its model on a sampled drive of the
+    same tracks (calibration) and its view of the pedal. Costs another sampled drive and the model's imagination
+    from every frame of it."""
+    run = protocol_run(row["variant"], int(row["seed"]), runs_dir)
+    latest = os.path.join(run, "checkpoints", "latest.pt")
+    updates = int(row["updates"])
     measured = readings.measure(latest, run, updates, *REPORT_TRACKS, driven=driven)
-    why_rows = [{"variant": variant, "seed": seed, "updates": updates, "policy": policy, **measured[policy],
-                 "checkpoint": os.path.relpath(latest, runs_dir)} for policy in PROTOCOL_POLICIES]  # fmt: skip
-    return row, why_rows
+    return [{"variant": row["variant"], "seed": int(row["seed"]), "updates": updates, "policy": policy,
+             **measured[policy], "checkpoint": os.path.relpath(latest, runs_dir)}
+            for policy in PROTOCOL_POLICIES]  # fmt: skip
 
 
 def write_protocol_row(row: dict, path: str = os.path.join(RESULTS, "learning_final.csv")) -> None:
@@ -179,10 +190,10 @@ def write_protocol_row(row: dict, path: str = os.path.join(RESULTS, "learning_fi
 
 
 def write_why_rows(rows: list[dict], path: str = os.path.join(RESULTS, WHY_CSV)) -> None:
-    """Add a run's readings (protocol_measure: one row per policy) to learning_final_readings.csv, replacing its
-    earlier ones."""
+    """Add a run's readings (protocol_readings: one row per policy) to learning_final_readings.csv, replacing its
+    earlier ones. A file with other columns is refused (WHY_ADVICE)."""
     replace_rows(path, rows, WHY_COLUMNS, lambda r: (r["variant"], int(r["seed"]), r["policy"]),
-                 other_header=f"{path} holds other readings: move it aside first")  # fmt: skip
+                 other_header=WHY_ADVICE)  # fmt: skip
 
 
 # --- learning_final.md -----------------------------------------------------------------------
@@ -346,7 +357,8 @@ WHY_TABLE = (
 
 def protocol_why(why_rows: list[dict]) -> str:
     """Markdown: per reading of WHY_TABLE, per variant with readings, its mean over the seeds and in brackets the
-    lowest and highest seed's (NaNs, readings a run could not take, left out; "-" if none)."""
+    lowest and highest seed's (NaNs, readings a run could not take, left out and the seeds that have it counted;
+    "-" if none)."""
     variants = [v for v in VARIANTS if any(r["variant"] == v for r in why_rows)]
     seeds = {v: len({r["seed"] for r in why_rows if r["variant"] == v}) for v in variants}
     lines = ["| reading | " + " | ".join(f"{v} ({n} seed{'s' * (n > 1)})" for v, n in seeds.items()) + " |",
@@ -356,7 +368,10 @@ def protocol_why(why_rows: list[dict]) -> str:
         for variant in variants:
             values = column([r for r in why_rows if r["variant"] == variant and r["policy"] == policy], key)
             values = values[~np.isnan(values)]
-            cells.append(f"{values.mean():.2f} [{values.min():.2f}, {values.max():.2f}]" if values.size else "-")
+            cell = f"{values.mean():.2f} [{values.min():.2f}, {values.max():.2f}]" if values.size else "-"
+            if 0 < values.size < seeds[variant]:
+                cell += f" ({values.size} of {seeds[variant]} seeds)"
+            cells.append(cell)
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -503,7 +518,8 @@ def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
     """(Re)write learning_final.md from the final protocol's learning_final.csv (refused if it holds the old
     protocol's columns) and its peers' rows and snapshots on the report tracks (``<peer>_peer.csv`` and
     ``<peer>_peer_curve.csv``, when present): the mean and IQM per variant and policy and per peer, the bar, every
-    run's row, the comparisons and the peers' sample efficiency; and its figure, learning_final.png (plot_protocol).
+    run's row, the comparisons, the peers' sample efficiency and, when learning_final_readings.csv is there, the
+    readings per variant (protocol_why); and its figure, learning_final.png (plot_protocol).
     Returns the text."""
     rows = read_rows(os.path.join(results_dir, "learning_final.csv"), PROTOCOL_COLUMNS, PROTOCOL_ADVICE)
     peers = {peer: read_peer_rows(protocol_peer_path(peer, results_dir)) for peer in PROTOCOL_PEERS}
@@ -528,7 +544,7 @@ def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
             + "\nThe comparisons (independent runs):\n\n" + protocol_comparisons(rows, peers)
             + sample_efficiency(rows, curves)
         )  # fmt: skip
-        why_rows = read_rows(os.path.join(results_dir, WHY_CSV), WHY_COLUMNS, f"move {WHY_CSV} aside first")
+        why_rows = read_rows(os.path.join(results_dir, WHY_CSV), WHY_COLUMNS, WHY_ADVICE)
         if why_rows:
             text += (
                 f"\nWhy they drive as they do: benchmarks/readings.py's readings of the same final policies on the "

@@ -287,6 +287,9 @@ class Args:
     its latest.pt sampled and with its mean action on the 30 report tracks 10300..10329: its row of
     learning_final.csv; its readings (benchmarks/readings.py: the same drives, its training logs, its model on
     sampled drives of those tracks, its view of the pedal) in learning_final_readings.csv; then learning_final.md"""
+    protocol_readings: bool = True
+    """--protocol-row: also measure the run's readings (--no-protocol-readings skips them; they cost another sampled
+    drive of the tracks and the model's imagination from every frame of it)"""
     protocol_report: bool = False
     """mode: only rewrite learning_final.md from the final protocol's learning_final.csv and its peers' rows of the
     report tracks in <peer>_peer.csv and <peer>_peer_curve.csv (no evaluation)"""
@@ -369,11 +372,14 @@ def run_mode(args: Args) -> bool:
 
         if args.protocol_row:
             path = os.path.join(args.results_dir, "learning_final.csv")
+            why_path = os.path.join(args.results_dir, protocol.WHY_CSV)
             read_rows(path, protocol.PROTOCOL_COLUMNS, protocol.PROTOCOL_ADVICE)  # another protocol's: refused first
-            row, why = protocol.protocol_measure(args.variant, args.seed, args.runs_dir)
-            protocol.write_protocol_row(row, path)
-            protocol.write_why_rows(why, os.path.join(args.results_dir, protocol.WHY_CSV))
+            read_rows(why_path, protocol.WHY_COLUMNS, protocol.WHY_ADVICE)
+            row, driven = protocol.protocol_measure(args.variant, args.seed, args.runs_dir)
+            protocol.write_protocol_row(row, path)  # kept before the readings are measured
             print(json.dumps(row, indent=1))
+            if args.protocol_readings:
+                protocol.write_why_rows(protocol.protocol_readings(row, driven, args.runs_dir), why_path)
         print(protocol.write_protocol_report(args.results_dir))
     else:
         return False

@@ -1,6 +1,8 @@
-"""What a screened policy does and why: the readings of ``benchmarks/sweep.py --report``.
+"""What a screened or final policy does and why: the readings of ``benchmarks/sweep.py --report`` and of the final
+protocol's runs (``final_protocol.protocol_readings``, ``learning.py --protocol-row``).
 
-For one saved single-car agent, on a block of tracks (the screening tracks 10200..10219 by default):
+For one saved single-car agent, on a block of tracks (a sweep's: the screening tracks 10200..10219 by default; the
+final protocol's: its report tracks 10300..10329):
 
 * driving, for each policy (sampled as trained, and the mean action): return, progress, |steer| (near 1: bang-bang),
   gas (mean of max(action[1], 0)), brake share (decisions at or below the dead zone's edge), speed, the share of

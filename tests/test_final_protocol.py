@@ -90,7 +90,7 @@ def test_a_runs_row_is_its_latest_policy_on_the_report_tracks_both_ways(tmp_path
     results.mkdir()
     fake_trial(trials)
     monkeypatch.setattr(evaluate, "evaluate_checkpoint", known_readings)
-    monkeypatch.setattr(readings, "calibrate_checkpoint", refuse_to_drive)  # the row alone measures no model
+    monkeypatch.setattr(readings, "calibrate_checkpoint", refuse_to_drive)  # (the row alone measures no model)
     row = final_protocol.protocol_row("lstm", 21, trials)
     assert list(row) == list(final_protocol.PROTOCOL_COLUMNS)
     assert row == pytest.approx(EXPECTED, abs=1e-4)
@@ -106,10 +106,11 @@ def test_a_runs_readings_come_from_the_same_drives_its_training_logs_and_its_mod
                         lambda *a: models.append(a) or {**MODEL_READINGS, "value": 1.0})  # fmt: skip
     monkeypatch.setattr(readings, "pedal", lambda path, first: {"pedal_range_imagined": 1.5,
                                                                  "pedal_range_real": float("nan")})  # (car out)
-    row, why = final_protocol.protocol_measure("lstm", 21, trials)
+    row, driven = final_protocol.protocol_measure("lstm", 21, trials)
+    assert row == pytest.approx(EXPECTED, abs=1e-4) and not models  # the row alone measures no model
+    why = final_protocol.protocol_readings(row, driven, trials)
     latest = os.path.join(run, "checkpoints", "latest.pt")
-    assert row == pytest.approx(EXPECTED, abs=1e-4) and len(drives) == 1  # driven once, for both
-    assert models == [(latest, 10_300, 30)]
+    assert len(drives) == 1 and models == [(latest, 10_300, 30)]  # driven once, for both
     assert [(r["variant"], r["seed"], r["updates"], r["policy"]) for r in why] == [
         ("lstm", 21, 7421, "stochastic"), ("lstm", 21, 7421, "mean-action")]
     sampled, mean_action = why
@@ -138,6 +139,17 @@ def test_a_runs_readings_come_from_the_same_drives_its_training_logs_and_its_mod
                  "| ... reward head's mean on their last frame (real: -100) | -7.50 [-7.50, -7.50] |",
                  "| ... of the real return | - |"]:  # fmt: skip
         assert line in text
+    # without the readings (--no-protocol-readings) only the row is measured and written; a readings file of other
+    # columns is refused before anything is driven
+    (results / "learning_final_readings.csv").unlink()
+    learning.cli(["--protocol-row", "--variant", "lstm", "--seed", "21", "--runs-dir", trials,
+                  "--results-dir", str(results), "--no-protocol-readings"])  # fmt: skip
+    assert len(drives) == 3 and len(models) == 2 and not (results / "learning_final_readings.csv").exists()
+    (results / "learning_final_readings.csv").write_text("tag,variant,seed\n")
+    with pytest.raises(SystemExit, match="holds other readings"):
+        learning.cli(["--protocol-row", "--variant", "lstm", "--seed", "21", "--runs-dir", trials,
+                      "--results-dir", str(results)])  # fmt: skip
+    assert len(drives) == 3
     # learning_final.csv: the same row, in the protocol's column order, also shown in learning_final.md
     with open(results / "learning_final.csv", newline="") as f:
         reader = csv.DictReader(f)
@@ -464,7 +476,7 @@ def test_the_readings_table_gives_each_variants_mean_lowest_and_highest_seed_lea
             why("gru", 21, "stochastic", 0.5, 20.0), why("gru", 21, "mean-action", 0.5, 60.0)]  # fmt: skip
     text = final_protocol.protocol_why(rows)
     assert "| reading | lstm (2 seeds) | gru (1 seed) |" in text  # the variants in their order, whatever the rows'
-    assert "| actor sigma (last 500 updates) | 0.20 [0.20, 0.20] | 0.50 [0.50, 0.50] |" in text  # seed 22's NaN out
+    assert "| actor sigma (last 500 updates) | 0.20 [0.20, 0.20] (1 of 2 seeds) | 0.50 [0.50, 0.50] |" in text
     assert "| mean action: speed | 45.00 [40.00, 50.00] | 60.00 [60.00, 60.00] |" in text
     assert "| sampled: speed | 20.00 [10.00, 30.00] | 20.00 [20.00, 20.00] |" in text
     assert "| entropy weight alpha | - | - |" in text
