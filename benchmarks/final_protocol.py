@@ -29,7 +29,8 @@ protocol (``learning.py --final`` until commit 32c3b4c), whose ``learning_final.
 * ``learning_final.md`` (write_protocol_report): per variant and policy and per peer the mean and the IQM over seeds
   with rliable's stratified-bootstrap 95% intervals (descriptions), the bar, every run's row, the LSTM minus the
   GRU and each variant minus each peer, judged by the exact permutation test and Welch's t interval
-  (benchmarks/stats.py), the env steps after which each peer's snapshots reach each variant's final mean return
+  (benchmarks/stats.py), what random actions and the pure-pursuit driver score on the same tracks
+  (protocol_references), the env steps after which each peer's snapshots reach each variant's final mean return
   (sample_efficiency), and per variant the readings' means over seeds (protocol_why).
 
 How to run it (``learning.py`` stays the benchmark's one command line; its ``--results-dir`` moves
@@ -54,6 +55,7 @@ from common import TRACKS, replace_rows, track_block
 from learning import (
     OLD_PROTOCOL_HOME, RESULTS, VARIANTS, eval_curve, eval_summary, read_rows, replace_row, training_hours,
 )  # fmt: skip
+from learning_report import baselines
 from ppo_peer import COLUMNS as PEER_CSV_COLUMNS, CURVE_COLUMNS, read_rows as read_peer_csv
 
 # --- The protocol ----------------------------------------------------------------------------
@@ -84,6 +86,7 @@ WHY_COLUMNS = tuple(c for c in readings.COLUMNS if c != "tag")
 PROTOCOL_ADVICE = (
     f"move the old protocol's files (learning_final.csv, learning_final.md) to {OLD_PROTOCOL_HOME}/ first"
 )
+REFERENCES_JSON = "references_report.json"  # random actions and the pure-pursuit driver on the report tracks
 WHY_ADVICE = f"it holds other readings than {WHY_CSV}'s: move it aside first"
 
 
@@ -284,6 +287,16 @@ def protocol_summary(rows: list[dict], peers: dict[str, list[dict]], reps: int =
             f"| {column(mine, progress).mean():.2f} | {column(mine, steer).mean():.2f} | {laps} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def protocol_references(results_dir: str) -> str:
+    """Markdown: what random actions and the pure-pursuit driver at 70 score on the report tracks (learning_report's
+    baselines, driven once and then read from REFERENCES_JSON beside learning_final.csv)."""
+    refs = baselines(*REPORT_TRACKS, results_dir=results_dir, name=REFERENCES_JSON)
+    random, pursuit = refs["random"], refs["pursuit@70"]
+    return (f"On the same tracks random actions score {random['eval_return']:.1f} (progress "
+            f"{random['eval_progress']:.2f}) and the pure-pursuit driver at speed 70 {pursuit['eval_return']:.1f} "
+            f"(progress {pursuit['eval_progress']:.2f}; {REFERENCES_JSON}).\n")  # fmt: skip
 
 
 def protocol_seeds(rows: list[dict], peers: dict[str, list[dict]]) -> str:
@@ -517,7 +530,8 @@ def plot_protocol(data: dict, path: str) -> None:
 def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
     """(Re)write learning_final.md from the final protocol's learning_final.csv (refused if it holds the old
     protocol's columns) and its peers' rows and snapshots on the report tracks (``<peer>_peer.csv`` and
-    ``<peer>_peer_curve.csv``, when present): the mean and IQM per variant and policy and per peer, the bar, every
+    ``<peer>_peer_curve.csv``, when present): the mean and IQM per variant and policy and per peer, the references
+    on the same tracks (protocol_references: driven the first time), the bar, every
     run's row, the comparisons, the peers' sample efficiency and, when learning_final_readings.csv is there, the
     readings per variant (protocol_why); and its figure, learning_final.png (plot_protocol).
     Returns the text."""
@@ -539,7 +553,8 @@ def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
     else:
         plot_protocol(figure_data(rows, peers, curves), os.path.join(results_dir, "learning_final.png"))
         text = (
-            header + protocol_summary(rows, peers, reps) + "\nThe bar, per variant over its seeds:\n\n"
+            header + protocol_summary(rows, peers, reps) + "\n" + protocol_references(results_dir)
+            + "\nThe bar, per variant over its seeds:\n\n"
             + protocol_bar_table(rows) + "\nEvery run:\n\n" + protocol_seeds(rows, peers)
             + "\nThe comparisons (independent runs):\n\n" + protocol_comparisons(rows, peers)
             + sample_efficiency(rows, curves)

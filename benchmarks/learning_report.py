@@ -30,14 +30,15 @@ BAR_RETURN, BAR_PROGRESS = 600.0, 0.65
 
 
 # --- Curves, their figure and table ----------------------------------------------------------
-def baselines(eval_seed: int = 10_000, episodes: int = 10, results_dir: str = RESULTS) -> dict:
+def baselines(eval_seed: int = 10_000, episodes: int = 10, results_dir: str = RESULTS, name: str = "baselines.json"
+              ) -> dict:  # fmt: skip
     """Random actions and the pursuit driver on the tracks ``eval_seed ..`` (by default the 10 held-out tracks of
-    the evaluations), with the env settings of training. Computed once, then read from
-    ``results_dir/baselines.json``, which names its tracks (a file of other tracks is refused; one written before
-    it named them is read as it is)."""
+    the evaluations), with the env settings of training. Computed once, then read from ``results_dir/<name>``,
+    which names its tracks (a file of other tracks is refused; one written before it named them is read as it
+    is)."""
     from common import track_block
 
-    path, tracks = os.path.join(results_dir, "baselines.json"), track_block(eval_seed, episodes)
+    path, tracks = os.path.join(results_dir, name), track_block(eval_seed, episodes)
     if os.path.exists(path):
         with open(path) as f:
             saved = json.load(f)

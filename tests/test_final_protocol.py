@@ -6,6 +6,7 @@ hand."""
 
 import csv
 import itertools
+import json
 import os
 import re
 import sys
@@ -69,6 +70,13 @@ def refuse_to_drive(*args, **kwargs):
     raise AssertionError("the protocol drove a policy it should have refused first")
 
 
+def write_references(results):
+    """The references on the report tracks as learning_report.baselines keeps them (read back, not driven here)."""
+    (results / final_protocol.REFERENCES_JSON).write_text(json.dumps({
+        "random": {"eval_return": -61.3, "eval_progress": 0.04},
+        "pursuit@70": {"eval_return": 905.5, "eval_progress": 0.99}, "tracks": "10300..10329"}))  # fmt: skip
+
+
 # Hand-computed from fake_trial and known_readings: sampled (15 * 500 + 15 * 900) / 30 = 700, progress 0.7; mean
 # action (20 * 810 + 10 * 720) / 30 = 780, progress (27 * 0.9 + 3 * 0.6) / 30 = 0.87, laps 21 / 30 = 0.7, speed
 # (15 * 30 + 15 * 50) / 30 = 40; the evaluations' best 650 and last three (590 + 600 + 620) / 3; the sittings' 4000 s
@@ -99,6 +107,7 @@ def test_a_runs_row_is_its_latest_policy_on_the_report_tracks_both_ways(tmp_path
 def test_a_runs_readings_come_from_the_same_drives_its_training_logs_and_its_model(tmp_path, monkeypatch):
     trials, results = str(tmp_path / "trials"), tmp_path / "results"
     results.mkdir()
+    write_references(results)
     run = fake_trial(trials)
     drives, models = [], []
     monkeypatch.setattr(evaluate, "evaluate_checkpoint", lambda *a: drives.append(a) or known_readings(*a))
@@ -281,8 +290,11 @@ def test_the_report_gives_mean_iqm_and_exact_tests_on_the_same_tracks_only(tmp_p
     (results / "recurrent_ppo_peer.csv").write_text(  # a file of before the tracks column: its rows, 10100..10119
         columns + "\nrecurrent_ppo,11,4870,4011296,3.1,6000.0,0.8,0.16\n"
     )  # fmt: skip
+    write_references(results)
     text = final_protocol.write_protocol_report(str(results), reps=200)
     assert (results / "learning_final.md").read_text() == text
+    assert ("On the same tracks random actions score -61.3 (progress 0.04) and the pure-pursuit driver at speed 70 "
+            "905.5 (progress 0.99; references_report.json)") in text  # fmt: skip
     # the mean counts every seed; the IQM (rliable: 25% trimmed from each end) of 5 seeds is the mean of the middle 3
     for runs, policy, scores in [("lstm", "mean action", lstm), ("gru", "mean action", gru),
                                  ("lstm", "sampled", [r / 2 for r in lstm]), ("SB3 PPO", "deterministic", ppo)]:
@@ -355,6 +367,7 @@ def test_the_sample_efficiency_table_gives_the_first_snapshot_whose_mean_reaches
     curve = str(results / "recurrent_ppo_peer_curve.csv")  # snapshots up to 250k only
     ppo_peer.write_rows(snapshots("recurrent_ppo", 11, [10.0, 200.0, 300.0]) + snapshots(
         "recurrent_ppo", 12, [30.0, 400.0, 500.0]), curve, ppo_peer.CURVE_COLUMNS)  # fmt: skip
+    write_references(results)
     text = final_protocol.write_protocol_report(str(results), reps=200)
     section = text[text.index("\nSample efficiency: "):]
     # PPO's means over its seeds: 100, 300, 650, 820 at 50k..500k, and 960 at 1M (one seed); RecurrentPPO's 20,
