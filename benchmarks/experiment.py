@@ -554,7 +554,6 @@ def trial_progress(spec: dict, kind: str, variant: str, seed: int) -> tuple[str 
     return run, done, done if spent_budget(latest, script, args) else target  # a spent CPU budget ends a trial
 
 
-
 def progress_text(name: str, run: str | None, done: int, target: int | None) -> str:
     if run is None:
         return f"{name} (not started)"

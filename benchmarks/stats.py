@@ -88,7 +88,6 @@ def mean_difference(x: np.ndarray, y: np.ndarray, reps: int = 2000, seed: int = 
     return {"diff": diff, "ci": ci}
 
 
-
 ALPHA = 0.05  # the level of every claim: its exact one-sided p-value below this and its t 95% interval clear of 0
 SMALL_N = 6  # a claim over this many units (seeds or seed pairs) or fewer: an exact test and a t interval only
 MAX_EXACT = 10**7  # sign assignments or splits an exact test enumerates at most
