@@ -52,7 +52,7 @@ VARIANT = "gru"  # written into every checkpoint, so race.py knows which script 
 
 
 # =====================================================================================
-# 1. Arguments (defaults: the paper and its authors' code, GRU column; docs/agent.md)
+# 1. Arguments (defaults: the paper and its authors' code, GRU column; "(ours)" marks this project's; docs/agent.md)
 # =====================================================================================
 @dataclasses.dataclass
 class Args:
@@ -86,7 +86,8 @@ class Args:
     fresh_replay: bool = False
     """--checkpoint: start with empty replays instead of the one saved beside the checkpoint"""
     stage: Literal["single", "ghost", "race"] = "race"
-    """single: one car, evaluation and best.pt; ghost: one car against its best previous run; race: N learning cars"""
+    """single: one car; ghost: one car against its best previous run; race: N learning cars (every stage evaluates
+    and keeps best.pt)"""
 
     # --- environment
     env_id: str = "multi_car_racing"
@@ -100,7 +101,7 @@ class Args:
     max_steps: int = 1000
     """env: a race is truncated after this many steps (CarRacing's 1000)"""
     stall_steps: int = 150
-    """env: a car that touches no new tile for this many steps is eliminated"""
+    """env: a car that touches no new tile for this many steps is eliminated (ours)"""
     brake_speed_threshold: float = 50.0
     """env: braking has no effect below this speed"""
     collision_penalty: float = 0.05
@@ -108,13 +109,14 @@ class Args:
     offroad_penalty: float = 100.0
     """env: reward paid once when a car is eliminated (off road, off the playfield, stalled)"""
     speed_reward_coef: float = 0.0
-    """env: reward per step per unit of forward speed along the track"""
+    """env: reward per step per unit of forward speed along the track (ours: none)"""
     dead_zone_start: float = -1.0
-    """dead-zone lower edge of the throttle-brake axis at episode 0 (a run from --checkpoint races at the end value)"""
+    """dead-zone lower edge of the throttle-brake axis at episode 0 (ours; a run from --checkpoint races at the end
+    value)"""
     dead_zone_end: float = -0.5
     """dead-zone lower edge after the schedule (the paper's -0.5)"""
     dead_zone_episodes: int = 200
-    """episodes over which the dead zone moves linearly from start to end"""
+    """episodes over which the dead zone moves linearly from start to end (ours)"""
     action_repeat: int = 1
     """repeat every action this many env steps, summing rewards"""
 
@@ -131,7 +133,8 @@ class Args:
     race): process CPU time summed over every sitting of a resumed run (0: no limit); unlike wall time it does not
     depend on what else the machine runs"""
     prefill_episodes: int = 5
-    """random-action races before the first update (from a --checkpoint the agent's own policy fills replay)"""
+    """random-action races before the first update (ours; from a --checkpoint the agent's own policy fills
+    replay)"""
     train_steps_per_episode: int = 200
     """updates per agent after every finished race"""
     replay_capacity: int = 100_000
@@ -139,7 +142,7 @@ class Args:
     eval_every: int = 20
     """evaluate every this many races (--eval-policy on held-out tracks); best.pt keeps the best"""
     eval_episodes: int = 10
-    """races per evaluation"""
+    """races per evaluation (ours)"""
     eval_policy: Literal["deterministic", "mean-action", "stochastic"] = "mean-action"
     """evaluation's policy: deterministic = posterior mean z and mean action; mean-action = sampled z, mean action;
     stochastic = sampled z and action (the policy that was optimised). The mean action by default: after 8,000
@@ -175,7 +178,8 @@ class Args:
     imagination_horizon: int = 15
     """H: imagined steps per start"""
     imagination_starts: int = 0
-    """imagination starts per update, a random subset of the B*L posterior states (0: all B*L)"""
+    """imagination starts per update, a random subset of the B*L posterior states (0: all B*L, ours; the paper
+    authors' code: 100)"""
     model_lr: float = 6e-4
     """Adam learning rate of the world model"""
     critic_lr: float = 6e-4
@@ -194,7 +198,8 @@ class Args:
     free_bits: float = 1.0
     """free nats per step of each KL term: max(free_bits, KL)"""
     kl_dyn_scale: float = 1.0
-    """beta_dyn: weight of L_dyn = max(free_bits, KL(sg(posterior) || prior))"""
+    """beta_dyn: weight of L_dyn = max(free_bits, KL(sg(posterior) || prior)); sg(.): the target networks' output
+    (soft-updated copies, --tau), not the live network's with its gradient stopped"""
     kl_rep_scale: float = 1.0
     """beta_rep: weight of L_rep = max(free_bits, KL(posterior || sg(prior)))"""
     decoder_min_log_sigma: float = -5.0
@@ -217,7 +222,8 @@ class Args:
     keeps actions off +-1: at a fixed weight it keeps the mean action smooth while a lower alpha narrows sigma"""
     return_norm: bool = False
     """DreamerV3's return normalisation: scale the task part of the lambda-return by 1 / max(1, S), S an EMA of
-    its 95th - 5th percentile range; the entropy part stays unscaled (DreamerV3 pairs it with --entropy-coef 3e-4)"""
+    its 95th - 5th percentile range, in the actor's objective only (the critic learns the unscaled return); the
+    entropy part stays unscaled (DreamerV3 pairs it with --entropy-coef 3e-4)"""
     reward_nll_beta: float = 0.0
     """beta of the reward head's beta-NLL (Seitzer et al., ICLR 2022): each step's Gaussian NLL weighted by the
     stop-gradient sigma^(2 beta), so that a rare large reward (an elimination's -100) moves the head's mean and not
@@ -239,7 +245,7 @@ class Args:
     cnn_depth: int = 32
     """channels of the first conv layer (doubling per layer: 32-64-128-256)"""
     deter_size: int = 512
-    """size of the recurrent state h (and c)"""
+    """size of the recurrent state h (an LSTM's cell state c has the same size)"""
     hidden_size: int = 1024
     """width of the encoder embedding, the recurrent input layer and the posterior/prior MLPs"""
     mlp_size: int = 512
@@ -320,13 +326,9 @@ def race_seed(seed: int, episode: int) -> int:
 # 3. Networks (paper appendix)
 # =====================================================================================
 LATENT_MIN_STD = 0.1  # sigma of posterior and prior: softplus(.) + this minimum
-LOG_SIGMA_RANGE = (-5.0, 2.0)  # bounds of the decoder's log sigma (--decoder-min-log-sigma raises the floor)
+LOG_SIGMA_RANGE = (-5.0, 2.0)  # the decoder's log sigma: the lowest floor --decoder-min-log-sigma may set, the cap
 HEAD_MIN_STD = 0.1  # sigma of the reward and critic Gaussians
 ACTOR_STD_BOUNDS = (0.1, 1.0)  # the paper authors' soft bounds of the actor's sigma (0.1 .. 1.34: soft_bounded)
-RETURN_NORM_RATE = 0.01  # --return-norm: EMA rate of the return scale (DreamerV3)
-EVAL_POLICIES = ("deterministic", "mean-action", "stochastic")  # Agent.act's policies (--eval-policy)
-ACTING_PARTS = ("encoder.", "recurrent_input.", "cell.", "representation.")  # the world model's share of acting
-AGENT_PARTS = ("world_model", "actor", "critic", "targets", "model_optimizer", "actor_optimizer", "critic_optimizer")
 
 
 def norm_1d(kind: str, size: int) -> nn.Module:
@@ -704,50 +706,6 @@ def return_range(returns: torch.Tensor) -> torch.Tensor:
     return torch.quantile(flat, 0.95) - torch.quantile(flat, 0.05)
 
 
-@torch.no_grad()
-def soft_update(target: nn.Module, source: nn.Module, tau: float) -> None:
-    """target <- target + tau (source - target), for parameters and float buffers (BatchNorm statistics)."""
-    for t, s in zip(target.parameters(), source.parameters()):
-        t.lerp_(s, tau)
-    for t, s in zip(target.buffers(), source.buffers()):
-        if t.dtype.is_floating_point:
-            t.lerp_(s, tau)
-        else:  # BatchNorm's num_batches_tracked
-            t.copy_(s)
-
-
-@contextlib.contextmanager
-def frozen(*modules: nn.Module):
-    """Parameters of `modules` take no gradient inside the block (gradients still flow through them)."""
-    params = [p for m in modules for p in m.parameters() if p.requires_grad]
-    for p in params:
-        p.requires_grad_(False)
-    try:
-        yield
-    finally:
-        for p in params:
-            p.requires_grad_(True)
-
-
-def imagine_rollout(world_model: WorldModel, actor: Actor, state: tuple, h, z, horizon: int):
-    """Roll the prior forward `horizon` steps from detached start states, acting with the actor.
-
-    Returns features s_0..s_H (H+1, N, F), log pi_0..log pi_{H-1} (H, N), the sampled actions before clipping
-    (H, N, A; the model is given them clipped to [-1, 1]) and the actor's sigma at every step (H, N, A).
-    Everything is reparameterised, so the actor loss backpropagates through the learned dynamics.
-    """
-    features, log_pis, samples, stds = [torch.cat([z, h], -1)], [], [], []
-    for _ in range(horizon):
-        mean, std = actor(features[-1])
-        action = mean + std * torch.randn_like(std)  # Actor.sample, keeping sigma for the diagnostics
-        log_pis.append(policy_log_prob(action, mean, std))
-        samples.append(action)
-        state, h, z = world_model.imagine_step(state, z, action.clamp(-1.0, 1.0))
-        features.append(torch.cat([z, h], -1))
-        stds.append(std)
-    return torch.stack(features), torch.stack(log_pis), torch.stack(samples), torch.stack(stds)
-
-
 # =====================================================================================
 # 5. Replay (one per agent)
 # =====================================================================================
@@ -811,8 +769,59 @@ class Replay:
 # =====================================================================================
 # 6. Agent: world-model learning, behaviour learning in imagination, acting
 # =====================================================================================
+RETURN_NORM_RATE = 0.01  # --return-norm: EMA rate of the return scale (DreamerV3)
+EVAL_POLICIES = ("deterministic", "mean-action", "stochastic")  # Agent.act's policies (--eval-policy)
+ACTING_PARTS = ("encoder.", "recurrent_input.", "cell.", "representation.")  # the world model's share of acting
+AGENT_PARTS = ("world_model", "actor", "critic", "targets", "model_optimizer", "actor_optimizer", "critic_optimizer")
+
+
+@torch.no_grad()
+def soft_update(target: nn.Module, source: nn.Module, tau: float) -> None:
+    """target <- target + tau (source - target), for parameters and float buffers (BatchNorm statistics)."""
+    for t, s in zip(target.parameters(), source.parameters()):
+        t.lerp_(s, tau)
+    for t, s in zip(target.buffers(), source.buffers()):
+        if t.dtype.is_floating_point:
+            t.lerp_(s, tau)
+        else:  # BatchNorm's num_batches_tracked
+            t.copy_(s)
+
+
+@contextlib.contextmanager
+def frozen(*modules: nn.Module):
+    """Parameters of `modules` take no gradient inside the block (gradients still flow through them)."""
+    params = [p for m in modules for p in m.parameters() if p.requires_grad]
+    for p in params:
+        p.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for p in params:
+            p.requires_grad_(True)
+
+
+def imagine_rollout(world_model: WorldModel, actor: Actor, state: tuple, h, z, horizon: int):
+    """Roll the prior forward `horizon` steps from detached start states, acting with the actor.
+
+    Returns features s_0..s_H (H+1, N, F), log pi_0..log pi_{H-1} (H, N), the sampled actions before clipping
+    (H, N, A; the model is given them clipped to [-1, 1]) and the actor's sigma at every step (H, N, A).
+    Everything is reparameterised, so the actor loss backpropagates through the learned dynamics.
+    """
+    features, log_pis, samples, stds = [torch.cat([z, h], -1)], [], [], []
+    for _ in range(horizon):
+        mean, std = actor(features[-1])
+        action = mean + std * torch.randn_like(std)  # Actor.sample, keeping sigma for the diagnostics
+        log_pis.append(policy_log_prob(action, mean, std))
+        samples.append(action)
+        state, h, z = world_model.imagine_step(state, z, action.clamp(-1.0, 1.0))
+        features.append(torch.cat([z, h], -1))
+        stds.append(std)
+    return torch.stack(features), torch.stack(log_pis), torch.stack(samples), torch.stack(stds)
+
+
 class Agent:
-    """One car's learner: world model, actor, critic, their target networks and three Adam optimisers."""
+    """One car's learner: world model, actor, critic, the target networks (the KL terms' stop-gradient side, the
+    slow critic) and Adam optimisers for the model, actor, critic (and alpha, with --entropy-target)."""
 
     def __init__(self, args: Args, action_dim: int = 2, device: torch.device | str = "cpu"):
         self.args, self.action_dim, self.device = args, action_dim, torch.device(device)
@@ -911,7 +920,7 @@ class Agent:
         """The entropy weight of the lambda-return: --entropy-coef, or exp(log alpha) under --entropy-target."""
         return self.args.entropy_coef if self.log_alpha is None else self.log_alpha.detach().exp()
 
-    def imagination_starts(self, post: dict, terminated: torch.Tensor):
+    def start_states(self, post: dict, terminated: torch.Tensor):
         """Detached posterior states (state tuple, h, z) of all B*L steps, or a random subset of them, and each
         start's continue flag 1 - terminated."""
         state = tuple(s.flatten(0, 1).detach() for s in post["states"])
@@ -936,7 +945,7 @@ class Agent:
         with torch.no_grad():  # the actor's BatchNorm statistics: real posterior states of the batch
             self.actor.train()
             self.actor(torch.cat([post["z"], post["h"]], -1).detach())
-        state, h, z, start_cont = self.imagination_starts(post, terminated)
+        state, h, z, start_cont = self.start_states(post, terminated)
         bootstrap = self.targets["critic"] if args.target_critic else self.critic
         wm.eval()
         self.actor.eval()
@@ -972,16 +981,19 @@ class Agent:
         gamma, lam = args.gamma, args.lambda_
         # --action-penalty beta reweighs log pi's extreme-action part: -alpha log pi + (alpha - beta) term
         # = -alpha log N(a) - beta term, added to the rewards (lambda_returns is linear in r, V and log pi)
-        extra = None if args.action_penalty is None else (alpha - args.action_penalty) * extreme_action_term(samples)
+        action_term = None
+        if args.action_penalty is not None:
+            action_term = (alpha - args.action_penalty) * extreme_action_term(samples)
         if not args.return_norm:  # the paper's
-            returns = lambda_returns(rewards if extra is None else rewards + extra, continues, values, log_pi, gamma,
-                                     lam, alpha)  # fmt: skip
+            shaped = rewards if action_term is None else rewards + action_term
+            returns = lambda_returns(shaped, continues, values, log_pi, gamma, lam, alpha)
             return returns, returns
         # --return-norm (DreamerV3): the task part over max(1, S), S an EMA of its 95th - 5th percentile range; the
         # entropy part unscaled
         zero = torch.zeros_like(rewards)
         task = lambda_returns(rewards, continues, values, torch.zeros_like(log_pi), gamma, lam, 0.0)
-        entropy = lambda_returns(zero if extra is None else extra, continues, zero, log_pi, gamma, lam, alpha)
+        entropy_rewards = zero if action_term is None else action_term
+        entropy = lambda_returns(entropy_rewards, continues, zero, log_pi, gamma, lam, alpha)
         with torch.no_grad():  # (a non-finite batch leaves the scale alone)
             spread = return_range(task)
             moved = self.return_scale.lerp(spread, RETURN_NORM_RATE)
@@ -1018,7 +1030,7 @@ class Agent:
         assert actions.shape == (b, l, self.action_dim), actions.shape
         assert rewards.shape == terminated.shape == (b, l), (rewards.shape, terminated.shape)
         self._set_training(True)
-        statistics = {m: [b.clone() for b in m.buffers()] for m in (self.world_model, self.actor)}  # BatchNorm
+        statistics = {m: [buf.clone() for buf in m.buffers()] for m in (self.world_model, self.actor)}  # BatchNorm
 
         with self.autocast():
             model_loss, metrics, post = self.world_model_loss(obs, actions, rewards, is_first, terminated)
@@ -1153,8 +1165,8 @@ class Agent:
 # 7. Training loop (Algorithm 1)
 # =====================================================================================
 def train_agent(agent: Agent, replay: Replay, args: Args, logger, prefix: str, on_update=None) -> float:
-    """Algorithm 1's training step of one agent: K = --train-steps-per-episode updates, each on B sequences of length
-    L sampled uniformly from its own replay; returns updates per second.
+    """Algorithm 1's training step of one agent: --train-steps-per-episode updates, each on B sequences of length L
+    sampled uniformly from its own replay; returns updates per second.
 
     Each update's losses go to the logger as running means (SB3's record_mean; non-finite values are left out).
     `on_update(done, seconds)` is called after every update (progress display). Stops early once the agent has

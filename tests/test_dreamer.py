@@ -142,7 +142,7 @@ def test_shapes_through_every_network(script, image_size, norm):
     mean, std = agent.critic(features)
     assert mean.shape == std.shape == (B, L)
     # imagination from every posterior state
-    state, h, z, cont = agent.imagination_starts(post, torch.zeros(B, L))
+    state, h, z, cont = agent.start_states(post, torch.zeros(B, L))
     feats, log_pis, actions, stds = script.imagine_rollout(wm, agent.actor, state, h, z, horizon=4)
     assert feats.shape == (5, B * L, args.latent_size + args.deter_size) and cont.shape == (B * L,)
     assert log_pis.shape == (4, B * L) and actions.shape == stds.shape == (4, B * L, 2)
@@ -208,16 +208,16 @@ def test_imagination_starts_subset(script):
     post = agent.world_model.observe(torch.zeros(3, 5, 16), torch.zeros(3, 5, 2), torch.zeros(3, 5, dtype=torch.bool))
     terminated = torch.zeros(3, 5)
     terminated[1, 2] = 1.0
-    state, h, z, cont = agent.imagination_starts(post, terminated)
+    state, h, z, cont = agent.start_states(post, terminated)
     assert h.shape[0] == z.shape[0] == cont.shape[0] == 7 and all(s.shape[0] == 7 for s in state)
-    _, _, _, all_cont = script.Agent(tiny_args(script)).imagination_starts(post, terminated)
+    _, _, _, all_cont = script.Agent(tiny_args(script)).start_states(post, terminated)
     torch.testing.assert_close(all_cont, 1.0 - terminated.flatten())  # each start's continue flag, in order
     assert not h.requires_grad and not z.requires_grad  # starts are detached
     # every part of a chosen start comes from the same posterior step: each tensor carries its step's flat index
     index = torch.arange(15.0).reshape(3, 5, 1)
     coded = {"h": index.expand(3, 5, 4), "z": index.expand(3, 5, 6) + 0.5, "states": (-index, 2 * index)}
     torch.manual_seed(0)
-    state, h, z, cont = agent.imagination_starts(coded, index.squeeze(-1) % 2)
+    state, h, z, cont = agent.start_states(coded, index.squeeze(-1) % 2)
     chosen = h[:, 0]
     assert len(set(chosen.tolist())) == 7  # distinct steps
     torch.testing.assert_close(z[:, 0], chosen + 0.5)
@@ -423,7 +423,7 @@ def test_return_norm_scales_the_task_part_of_the_actor_objective(script, monkeyp
     log_pi = -torch.arange(1.0, 6.0)[None].requires_grad_()
     monkeypatch.setattr(script, "imagine_rollout", lambda *a: (features, log_pi, None, torch.ones(1, 5, 2)))
     start_cont = torch.tensor([1.0, 1.0, 1.0, 1.0, 0.0])  # the fifth start is a terminal state
-    monkeypatch.setattr(agent, "imagination_starts", lambda post, terminated: (None, None, None, start_cont))
+    monkeypatch.setattr(agent, "start_states", lambda post, terminated: (None, None, None, start_cont))
     agent.world_model.reward = _Column(0, pair=False)
     agent.world_model.cont = _Constant(100.0)  # sigmoid(100) = 1 in float32
     agent.targets["critic"] = _Column(1, pair=True)

@@ -121,7 +121,7 @@ def test_the_action_penalty_reweighs_the_extreme_action_term_of_the_bonus(script
     log_pi = torch.full((1, 1), -1.0)
     samples = torch.full((1, 1, 2), 0.5)
     monkeypatch.setattr(script, "imagine_rollout", lambda *a: (features, log_pi, samples, torch.ones(1, 1, 2)))
-    monkeypatch.setattr(agent, "imagination_starts", lambda post, terminated: (None, None, None, torch.ones(1)))
+    monkeypatch.setattr(agent, "start_states", lambda post, terminated: (None, None, None, torch.ones(1)))
     agent.world_model.reward = _Column(0, pair=False)
     agent.world_model.cont = _Constant(100.0)
     agent.targets["critic"] = _Column(1, pair=True)
