@@ -968,7 +968,9 @@ class Agent:
         }  # fmt: skip
         if args.return_norm:
             metrics["return_scale"] = self.return_scale.clone()
-        if self.log_alpha is not None:  # and the entropy alpha weighs (without the extreme-action term if apart)
+        # --entropy-target: the entropy alpha weighs, -log pi (-log N(a) when --action-penalty takes the extreme-action
+        # term apart); logged, and the input of update()'s alpha step
+        if self.log_alpha is not None:
             metrics["alpha"] = self.log_alpha.detach().exp()
             apart = 0 if args.action_penalty is None else extreme_action_term(samples.detach()).mean()
             metrics["alpha_entropy"] = -log_pi.detach().mean() + apart
