@@ -11,7 +11,7 @@ import os
 
 import numpy as np
 
-from common import TRACKS, replace_rows
+from common import TRACKS, replace_rows, track_block
 from learning import RESULTS
 
 
@@ -127,7 +127,7 @@ def calibrate_checkpoint(path: str, first_track: int = TRACKS["fresh"][0], track
     named = sorted({r for r in reasons if r is not None})
     return {
         "checkpoint": path, "variant": checkpoint["variant"], "updates": int(checkpoint["agents"][0]["num_updates"]),
-        "tracks": f"{first_track}..{first_track + tracks - 1}", "horizon": horizon, "starts": starts,
+        "tracks": track_block(first_track, tracks), "horizon": horizon, "starts": starts,
         **{k: round(float(sums[k] / max(starts, 1)), 3 if k == "bootstrap_weight" else 2)
            for k in ("value", "realised_return", "bootstrap_weight")},
         "imagined_task_return": round(float(sums["imagined"] / max(horizon_starts, 1)), 2),

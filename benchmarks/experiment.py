@@ -71,7 +71,7 @@ class Spec:
     """the dreamer scripts' --preset"""
     overrides: tuple[str, ...] = ()
     """more flags of the dreamer scripts as name=value (e.g. entropy_coef=0.5), on top of the preset"""
-    single_updates: int = 8000
+    single_updates: int = learning.LEARNING_UPDATES
     """updates of a single-stage trial"""
     single_cpu_hours: float = 0.0
     """if > 0, a single-stage trial ends when its run has used this many CPU-hours (process CPU time over all its
@@ -211,8 +211,9 @@ def trial_args(spec: dict, stage: str, variant: str, seed: int):
             settings["cpu_hours_limit"], target = spec["single_cpu_hours"], NO_UPDATE_TARGET
         # the learning benchmark's run (benchmarks/learning.py --runs-dir <storage>/trials reads it) unless the
         # spec changes the preset, a flag, the updates, the threads or the evaluation policy (which picks best.pt):
-        # the scripts' default, or the sampled policy the final protocol's runs were made with
-        plain = spec["preset"] == "cpu" and not spec["overrides"] and spec["single_updates"] == learning.FINAL_UPDATES
+        # the scripts' default, or the sampled policy the 8,000-update protocol's runs were made with
+        plain = spec["preset"] == "cpu" and not spec["overrides"]
+        plain = plain and spec["single_updates"] == learning.LEARNING_UPDATES
         plain = plain and spec["single_cpu_hours"] == 0
         plain = plain and spec["torch_threads"] == learning.LEARNING_CONFIG["torch_threads"]
         plain = plain and spec["eval_policy"] in (script.Args().eval_policy, "stochastic")
@@ -568,10 +569,9 @@ def unfinished(spec: dict, stage: str, variants, seeds) -> list[str]:
     names = []
     for variant in variants:
         for seed in seeds:
-            for kind in [stage]:
-                run, done, target = trial_progress(spec, kind, variant, seed)
-                if run is None or done < target:
-                    names.append(progress_text(f"{kind}_{variant}_seed{seed}", run, done, target))
+            run, done, target = trial_progress(spec, stage, variant, seed)
+            if run is None or done < target:
+                names.append(progress_text(f"{stage}_{variant}_seed{seed}", run, done, target))
     return names
 
 

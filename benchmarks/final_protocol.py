@@ -65,7 +65,7 @@ from ppo_peer import COLUMNS as PEER_CSV_COLUMNS, CURVE_COLUMNS, read_rows as re
 PROTOCOL_CPU_HOURS = 3.1
 PROTOCOL_SEEDS = (21, 22, 23, 24, 25)  # per variant
 REPORT_TRACKS = TRACKS["report"]  # first seed and count of the report tracks
-PROTOCOL_POLICIES = ("stochastic", "mean-action")  # sampled (as trained) and the actor's mean
+PROTOCOL_POLICIES = readings.POLICIES  # sampled (as trained) and the actor's mean
 # The bar, per variant over its seeds. Mean action: mean return, every seed's return, mean progress, mean |steer|;
 # sampled: mean return.
 PROTOCOL_BAR_RETURN, PROTOCOL_BAR_SEED_RETURN, PROTOCOL_BAR_PROGRESS, PROTOCOL_BAR_STEER = 800.0, 650.0, 0.85, 0.3
@@ -188,7 +188,7 @@ def protocol_readings(row: dict, driven: dict, runs_dir: str) -> list[dict]:
 
 def write_protocol_row(row: dict, path: str = os.path.join(RESULTS, "learning_final.csv")) -> None:
     """Add a row of the final protocol to learning_final.csv, replacing an earlier row of the same variant and seed.
-    A file with other columns (the 8,000-update protocol's) is refused (read_rows)."""
+    A file with other columns (the 8,000-update protocol's) is refused (common.replace_rows)."""
     replace_row(row, path, PROTOCOL_COLUMNS, lambda r: (r["variant"], int(r["seed"])), PROTOCOL_ADVICE)
 
 

@@ -5,7 +5,7 @@
     python benchmarks/highway_random.py --run runs/<highway run> --csv benchmarks/results/highway.csv
 
 The dreamer scripts evaluate with ``--env-id highway-intersection`` on the scenarios
-``eval_seed + e`` (``evaluate()``: one race per seed, rewards of every slot summed until the race
+``eval_seed + e`` (``utils.collector.drive_races``: one race per seed, rewards of every slot summed until the race
 resets). This runs the same loop with uniform random actions in [-1, 1]^2, so the agents' logged
 ``car_i/eval/episodic_return`` has a reference on exactly those scenarios. With ``--run`` it also
 prints (and with ``--csv`` saves) that run's evaluations next to the random reference.

@@ -69,7 +69,8 @@ import common  # noqa: E402  (the blocks of tracks, the results' CSV rows)
 RESULTS = os.path.join(ROOT, "benchmarks", "results")
 RUNS = os.path.join(ROOT, "runs", "learning")
 VARIANTS = ("lstm", "gru")
-FINAL_UPDATES = 8000  # a learning run's updates (the 8,000-update protocol's, replaced by final_protocol.py's)
+LEARNING_UPDATES = 8000  # a learning run's updates (the 8,000-update protocol's; the final protocol's runs end on CPU
+# time)
 # What the benchmark adds to the scripts' CPU preset (--preset cpu): one car; decisions evaluated on the 10 held-out
 # tracks every 5 races, each evaluated policy kept; the run ends at --updates; one thread, two runs on two cores.
 LEARNING_CONFIG = {
@@ -100,7 +101,8 @@ def find_run(exp_name: str, seed: int, runs_dir: str = RUNS) -> str | None:
     return runs[-1] if runs else None
 
 
-def run_args(variant: str, seed: int, hours: float, resume: bool, updates: int = FINAL_UPDATES, runs_dir: str = RUNS):
+def run_args(variant: str, seed: int, hours: float, resume: bool, updates: int = LEARNING_UPDATES,
+             runs_dir: str = RUNS):  # fmt: skip
     """The dreamer script of ``variant``, the Args of this sitting and the fields they override: a new run at the
     CPU preset plus LEARNING_CONFIG, or (``resume``) the latest run of the same name and seed, continued with its
     own settings (only the time limit and the update target are this sitting's)."""
@@ -219,7 +221,7 @@ def policy_summary(
         "variant": variant,
         "updates": int(checkpoint["agents"][0]["num_updates"]),
         "policy": policy,
-        "tracks": f"{first_track}..{first_track + tracks - 1}",
+        "tracks": common.track_block(first_track, tracks),
         "eval_return": float(returns.mean()),
         "eval_progress": float(progress.mean()),
         "returns": [round(float(r), 2) for r in returns],
@@ -269,7 +271,7 @@ class Args:
     """the run's seed"""
     hours: float = 3.0
     """wall-clock budget of this sitting"""
-    updates: int = FINAL_UPDATES
+    updates: int = LEARNING_UPDATES
     """the run ends after this many updates"""
     resume: bool = False
     """continue the latest run of this variant and seed"""

@@ -50,7 +50,7 @@ def baselines(eval_seed: int = 10_000, episodes: int = 10, results_dir: str = RE
     from envs.pursuit import PursuitDriver
 
     results = {}
-    for name in ("random", "pursuit@70"):
+    for reference in ("random", "pursuit@70"):
         returns, progress = [], []
         for e in range(episodes):
             env = MultiCarRacing(num_agents=1, dead_zone=-0.5)
@@ -59,12 +59,12 @@ def baselines(eval_seed: int = 10_000, episodes: int = 10, results_dir: str = RE
             driver = PursuitDriver(env, "car_0", 70.0)
             total = 0.0
             while env.agents:
-                action = driver.act() if name.startswith("pursuit") else rng.uniform(-1, 1, 2)
+                action = driver.act() if reference.startswith("pursuit") else rng.uniform(-1, 1, 2)
                 _, rewards, _, _, infos = env.step({"car_0": action})
                 total += rewards["car_0"]
             returns.append(total)
             progress.append(infos["car_0"]["progress"])
-        results[name] = {"eval_return": float(np.mean(returns)), "eval_progress": float(np.mean(progress))}
+        results[reference] = {"eval_return": float(np.mean(returns)), "eval_progress": float(np.mean(progress))}
     os.makedirs(results_dir, exist_ok=True)
     with open(path, "w") as f:
         json.dump({**results, "tracks": tracks}, f, indent=2)
@@ -239,7 +239,8 @@ def plot_curves(curves: dict[str, list[dict]], training: dict[str, list[dict]], 
             )
         for (bname, b), style in zip(base.items(), (":", "--")):
             ax.axhline(b[key], color="gray", linestyle=style, label=bname)
-        ax.axhline(bar, color="red", linestyle="-.", alpha=0.6, label="bar (final policy, mean over seeds)")
+        ax.axhline(bar, color="red", linestyle="-.", alpha=0.6,
+                   label="8,000-update bar (final policy, mean over seeds)")
         ax.set_xlabel("env steps")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)

@@ -16,13 +16,13 @@ has the zoo's CarRacing-v0 entry of hyperparams/ppo_lstm.yml, untuned: the same 
 normalised (the entry's ``normalize`` is commented out), ``CnnLstmPolicy`` (an LSTM of 128 for the actor, a linear
 layer for the critic), gSDE, 512 steps, batch 128, 20 epochs, gae_lambda 0.9, clip range 0.4, a constant learning
 rate 3e-5, GELU (inert: that policy has no hidden layer), log-std init -2. The env has the Dreamer runs' settings
-(``dreamer_lstm.Args``' defaults at their final dead zone, -0.5). Each gets the budget of one Dreamer run of the
-learning benchmark on one torch thread, counted as this process's CPU time (``--cpu-hours`` over all sittings), so
-that other processes on the same cores neither shorten nor lengthen it. While it trains, the model and its
-VecNormalize statistics are kept as ``model_<N>.zip`` and ``vecnormalize_<N>.pkl`` when the env steps first pass
-N = 50k, 100k, 250k, 500k, 1M (sample efficiency); ``--curve`` evaluates every snapshot on the given tracks and
-writes a row per snapshot (its N, the env steps it had taken, its tracks) to
-``benchmarks/results/<variant>_peer_curve.csv``.
+(``dreamer_lstm.Args``' defaults at their final dead zone, -0.5). Each gets the final protocol's budget per Dreamer
+run (final_protocol.PROTOCOL_CPU_HOURS, 3.1) on one torch thread, counted as this process's CPU time
+(``--cpu-hours`` over all sittings), so that other processes on the same cores neither shorten nor lengthen it.
+While it trains, the model and its VecNormalize statistics are kept as ``model_<N>.zip`` and
+``vecnormalize_<N>.pkl`` when the env steps first pass N = 50k, 100k, 250k, 500k, 1M (sample efficiency);
+``--curve`` evaluates every snapshot on the given tracks and writes a row per snapshot (its N, the env steps it had
+taken, its tracks) to ``benchmarks/results/<variant>_peer_curve.csv``.
 
 A model is evaluated with its deterministic policy (an LSTM's state carried from step to step and reset at each
 race's start) on tracks ``--first-track`` .. + ``--tracks`` - 1: by default the final protocol's 30 report tracks
@@ -91,7 +91,6 @@ ALGO_KEYS = ("batch_size", "n_steps", "gamma", "gae_lambda", "n_epochs", "ent_co
              "max_grad_norm", "vf_coef", "use_sde", "clip_range")  # fmt: skip
 
 # SB3's PPO (and RecurrentPPO) count an epoch over a rollout as one update; each is this many minibatch gradient steps
-PPO_MINIBATCHES = ZOO["n_steps"] * ZOO["n_envs"] // ZOO["batch_size"]
 
 
 class FrameSkip(gymnasium.Wrapper):
@@ -196,7 +195,7 @@ def train(
     the model and normaliser are kept as model_<threshold>.zip and vecnormalize_<threshold>.pkl (the zip, written
     last, carries the steps actually taken); a snapshot on disk is never rewritten, so each is written once over
     every sitting. Returns the record: env steps, updates (SB3's ``_n_updates``, epochs over a rollout of
-    PPO_MINIBATCHES gradient steps each) and CPU hours."""
+    n_steps * n_envs / batch_size gradient steps each) and CPU hours."""
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.vec_env import VecNormalize
 
@@ -352,7 +351,7 @@ def main(argv=None) -> dict | list[dict]:
     parser.add_argument("--seed", type=int, default=11)
     parser.add_argument(
         "--cpu-hours", type=float, default=3.1,
-        help="CPU-time budget of the whole run (all sittings): one Dreamer run of the learning benchmark",
+        help="CPU-time budget of the whole run (all sittings): the final protocol's per Dreamer run",
     )  # fmt: skip
     parser.add_argument(
         "--budget-steps", type=int, default=None,

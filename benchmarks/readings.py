@@ -25,6 +25,7 @@ import os
 
 import numpy as np
 from calibration import calibrate_checkpoint
+from common import track_block
 from learning_report import progress_rows
 
 POLICIES = ("stochastic", "mean-action")
@@ -172,7 +173,7 @@ def table(sweep, rows: list[dict], waiting: list[str]) -> str:
         "",
         f"`python benchmarks/sweep.py --name {sweep.name} --grid {grid} --variants {' '.join(sweep.variants)} "
         f"--seeds {' '.join(map(str, sweep.seeds))} {budget}`, then `--report`: each trial's policy {when} on "
-        f"tracks {sweep.first_track}..{sweep.first_track + sweep.tracks - 1} (benchmarks/readings.py says what each "
+        f"tracks {track_block(sweep.first_track, sweep.tracks)} (benchmarks/readings.py says what each "
         "column is).",
         "",
     ]  # fmt: skip

@@ -3,7 +3,6 @@
 * ``interval_estimates``: IQM and mean of each method's scores with stratified-bootstrap 95% intervals;
 * ``paired_probability_of_improvement``: P(X > Y) within pairs of runs measured together, with its
   bootstrap-over-pairs interval;
-* ``mean_difference``: mean(X) - mean(Y) of independent runs, with its stratified-bootstrap interval;
 * ``t_interval``, ``paired_t_interval``, ``two_sample_t_interval``: Student t 95% intervals of a mean, of the mean
   of paired differences and of a difference of independent means (Welch);
 * ``sign_flip_test``: the exact one- or two-sided p-value of paired differences over all 2^n sign assignments;
@@ -52,18 +51,6 @@ def interval_estimates(scores: dict[str, np.ndarray], reps: int = 2000, seed: in
     }
 
 
-def two_sample_estimate(x: np.ndarray, y: np.ndarray, statistic, reps: int = 2000, seed: int = 0):
-    """statistic(x, y) of independent runs x (runs_x, tasks) and y (runs_y, tasks), each resampled on its own
-    (rliable's stratified independent bootstrap), with its 95% interval: (estimate, (low, high))."""
-    from rliable import library as rly
-
-    np.random.seed(seed)  # rliable draws its bootstrap samples from numpy's global stream
-    pair = {"x,y": (np.asarray(x, float), np.asarray(y, float))}
-    points, intervals = rly.get_interval_estimates(pair, statistic, reps=reps)
-    low, high = np.asarray(intervals["x,y"], float).reshape(-1)  # rliable gives the interval as a (2, 1) array
-    return float(points["x,y"]), (float(low), float(high))
-
-
 def paired_probability_of_improvement(x: np.ndarray, y: np.ndarray, reps: int = 2000, seed: int = 0) -> dict:
     """P(X > Y) for paired runs: the share of pairs i with x[i] > y[i] (a tie counts one half), with its 95%
     interval from a bootstrap over pairs (rliable's, on the per-pair outcomes).
@@ -79,13 +66,6 @@ def paired_probability_of_improvement(x: np.ndarray, y: np.ndarray, reps: int = 
     outcome = (x > y) + 0.5 * (x == y)
     est = interval_estimates({"pairs": outcome[:, None]}, reps=reps, seed=seed)["pairs"]
     return {"p": est["mean"], "ci": est["mean_ci"]}
-
-
-def mean_difference(x: np.ndarray, y: np.ndarray, reps: int = 2000, seed: int = 0) -> dict:
-    """mean(X) - mean(Y) of independent runs x and y, with its stratified-bootstrap 95% interval: a description.
-    A claim over 6 runs or fewer is judged by ``two_group_claim`` (paired runs: ``paired_claim``)."""
-    diff, ci = two_sample_estimate(x, y, lambda a, b: np.mean(a) - np.mean(b), reps, seed)
-    return {"diff": diff, "ci": ci}
 
 
 ALPHA = 0.05  # the level of every claim: its exact one-sided p-value below this and its t 95% interval clear of 0

@@ -1,11 +1,11 @@
 """Screens as a Ray Tune sweep: a grid of flag sets x variants x seeds of single-car dreamer runs, then their readings.
 
-    python benchmarks/sweep.py --name entropy --grid entropy_coef=0.3 "return_norm=true entropy_coef=3e-4" \\
+    python benchmarks/sweep.py --name heads --grid head_sigma=1.0 "head_sigma=1.0 norm=mixed" \\
         --seeds 11 12 --variants lstm --updates 3100                # train (resumable: the same command continues)
-    python benchmarks/sweep.py --name entropy --status                # how far each trial got (nothing runs)
-    python benchmarks/sweep.py --name entropy --report                # readings of the finished trials
-    python benchmarks/sweep.py --name entropy --address auto ...      # on a Ray cluster (shared --storage)
-    python benchmarks/sweep.py --name cheap --grid imagination_starts=80 action_repeat=4 --cpu-hours 1.05
+    python benchmarks/sweep.py --name heads --status                  # how far each trial got (nothing runs)
+    python benchmarks/sweep.py --name heads --report                  # readings of the finished trials
+    python benchmarks/sweep.py --name heads --address auto ...        # on a Ray cluster (shared --storage)
+    python benchmarks/sweep.py --name repeat --grid action_repeat=4 default --cpu-hours 1.06
                                                                       # equal CPU time, not equal updates
 
 Each (flag set, variant, seed) is one Ray Tune trial: the single-stage run of ``benchmarks/experiment.py`` (the same
@@ -13,14 +13,14 @@ trial code: ``--preset cpu`` with the flag set on top, one car, ``--updates`` up
 ``latest.pt`` in chunks; with ``--cpu-hours`` until its process CPU time reaches the budget, whatever the
 updates), in its own run directory ``<storage>/<name>/<tag>/trials/single_<variant>_seed<S>/``.
 A flag set is ``name=value`` pairs of the scripts' ``Args`` separated by spaces, or ``default`` (the preset alone);
-its tag names its directory (``entropy-coef-0.3``). The grid of a sweep is fixed when it starts (``sweep.json``):
+its tag names its directory (``head-sigma-1.0``). The grid of a sweep is fixed when it starts (``sweep.json``):
 the same command continues it, another grid needs another ``--name``.
 
 ``--report`` measures every finished trial's final policy (``latest.pt`` at ``--updates``, or when the CPU budget
 ran out) on the screening tracks
 (10200..10219 by default, never used to report a result), sampled and with its mean action, and writes
 ``benchmarks/results/screening/sweep_<name>.csv`` and ``.md`` with the readings that say *why* a policy drives as it
-does (``screen_readings``): return, progress, |steer|, throttle, speed, laps finished, eliminations; the actor's
+does (``readings.measure``): return, progress, |steer|, throttle, speed, laps finished, eliminations; the actor's
 sigma and entropy, the imagined return and the reward head's mean on elimination frames; each measurement is kept in
 ``<storage>/<name>/readings.json`` and made once.
 """
