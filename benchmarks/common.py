@@ -1,5 +1,6 @@
-"""What the benchmarks share: the blocks of tracks, with what each may decide, and the one way a results CSV is
-rewritten (as Stable-Baselines3's ``common/``: small pieces the scripts of ``benchmarks/`` import).
+"""What the benchmarks share: the blocks of tracks, with what each may decide, and how a results CSV is written
+(``write_table``: whole, atomically; ``replace_rows``: some of its rows, locked) (as Stable-Baselines3's ``common/``:
+small pieces the scripts of ``benchmarks/`` import).
 
 A track is an env seed; a block is ``(first, count)``, tracks ``first .. first + count - 1``. A result is reported on
 a block that chose nothing: the block a choice was made on measures that choice with a bias in its favour.
@@ -37,6 +38,21 @@ def check_header(path: str, header, columns: tuple[str, ...], advice: str) -> No
         raise ValueError(f"{path} has the columns {','.join(header)}, not {','.join(columns)}: {advice}")
 
 
+def write_table(path: str, rows: Iterable[dict], columns) -> None:
+    """Write `rows` under the header `columns` as the CSV at `path` (no rows: the header alone), atomically: a
+    temporary file replaces it once whole, so a reader or a kill never sees half a table. A row with a field outside
+    `columns` raises csv's ValueError and leaves the file as it was."""
+    try:
+        with open(path + ".tmp", "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(columns))
+            writer.writeheader()
+            writer.writerows(rows)
+    except BaseException:
+        os.remove(path + ".tmp")
+        raise
+    os.replace(path + ".tmp", path)
+
+
 def replace_rows(
     path: str,
     rows: Iterable[dict],
@@ -69,13 +85,5 @@ def replace_rows(
                 filled = ({**r, **{k: v for k, v in (defaults or {}).items() if not r.get(k)}} for r in reader)
                 kept = [r for r in filled if key(r) not in new]
         table = sorted(kept + rows, key=order or key)
-        try:
-            with open(path + ".tmp", "w", newline="") as f:
-                writer = csv.DictWriter(f, fieldnames=columns)  # a field outside `columns` raises a ValueError
-                writer.writeheader()
-                writer.writerows(table)
-        except BaseException:
-            os.remove(path + ".tmp")
-            raise
-        os.replace(path + ".tmp", path)
+        write_table(path, table, columns)
     return table

@@ -381,8 +381,6 @@ def claims_table(single_returns: dict[str, list[float]], ghost_rows: list[dict],
 
 
 def write_csv(path: str, columns: tuple[str, ...], rows: list[dict]) -> None:
-    """The rows under a fixed header (no rows: the header alone, so no table of an earlier experiment survives)."""
-    with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(columns))
-        writer.writeheader()
-        writer.writerows(rows)
+    """The rows under a fixed header (no rows: the header alone, so no table of an earlier experiment survives),
+    atomically (common.write_table)."""
+    common.write_table(path, rows, columns)

@@ -51,7 +51,7 @@ import os
 import numpy as np
 
 import readings
-from common import TRACKS, replace_rows, track_block
+from common import TRACKS, replace_rows, track_block, write_table
 from learning import (
     OLD_PROTOCOL_HOME, RESULTS, VARIANTS, eval_curve, eval_summary, read_rows, replace_row, training_hours,
 )  # fmt: skip
@@ -607,8 +607,6 @@ def ship(variant: str, runs_dir: str, shipped: str, results_dir: str = RESULTS) 
     """Measure the candidates (ship_rows) and write them to ``ship_<variant>.csv`` in `results_dir` (its ``shipped``
     column marks the winner); then, if the best seed's return beats the shipped agent's, export it over `shipped`
     (atomically; refused above SHIP_MAX_BYTES, the shipped file unchanged). Returns a markdown table of the rows."""
-    import csv
-
     import race
     from utils.checkpoint import export_policy
 
@@ -618,10 +616,7 @@ def ship(variant: str, runs_dir: str, shipped: str, results_dir: str = RESULTS) 
     winner = best if current is None or best["return"] > current["return"] else current
     winner["shipped"] = True
     os.makedirs(results_dir, exist_ok=True)
-    with open(os.path.join(results_dir, f"ship_{variant}.csv"), "w", newline="") as f:  # the record first
-        writer = csv.DictWriter(f, fieldnames=SHIP_COLUMNS)
-        writer.writeheader()
-        writer.writerows(rows)
+    write_table(os.path.join(results_dir, f"ship_{variant}.csv"), rows, SHIP_COLUMNS)  # the record first
     if winner is best:
         script = race.read_checkpoint(best["checkpoint"])[0]
         os.makedirs(os.path.dirname(os.path.abspath(shipped)), exist_ok=True)

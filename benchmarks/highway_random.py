@@ -14,7 +14,6 @@ prints (and with ``--csv`` saves) that run's evaluations next to the random refe
 from __future__ import annotations
 
 import argparse
-import csv
 import glob
 import os
 import re
@@ -24,6 +23,9 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from utils import make_vec_env  # noqa: E402
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from common import write_table  # noqa: E402
 
 
 def random_returns(episodes: int, repeats: int, eval_seed: int = 10_000, num_agents: int = 2) -> np.ndarray:
@@ -114,10 +116,7 @@ def main() -> None:
             + ", ".join(f"{key} {value:.1f}" for key, value in row.items() if key.startswith("car_"))
         )
     if args.csv:
-        with open(args.csv, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(random_row))
-            writer.writeheader()
-            writer.writerows([*evaluations, random_row])
+        write_table(args.csv, [*evaluations, random_row], list(random_row))
         print(f"wrote {args.csv}")
 
 

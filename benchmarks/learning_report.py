@@ -22,6 +22,7 @@ import re
 
 import numpy as np
 
+from common import write_table
 from learning import RESULTS, RUNS, eval_curve, learning_runs
 
 # The lines the figure and table draw: the 8,000-update protocol's bar on a learning run's mean evaluation return
@@ -96,10 +97,7 @@ def load_curves(runs_dir: str = RUNS, results_dir: str = RESULTS) -> dict[str, l
             # a restarted run has not caught up with the curve an earlier sitting saved: keep that one
             print(f"note: {run_dir} ({rows[-1]['env_steps']} env steps) is behind {csv_path}; keeping the CSV")
             continue
-        with open(csv_path, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
+        write_table(csv_path, rows, list(rows[0]))
         curves[name] = rows
     for csv_path in sorted(glob.glob(os.path.join(results_dir, "learning_*_seed*.csv"))):
         if csv_path.endswith("_training.csv"):
@@ -143,10 +141,7 @@ def training_curves(runs_dir: str = RUNS, results_dir: str = RESULTS) -> dict[st
             continue
         if rows:
             curves[f"{exp_name}_seed{seed}"] = rows
-            with open(saved_path, "w", newline="") as f:
-                writer = csv.DictWriter(f, fieldnames=["updates", "return"])
-                writer.writeheader()
-                writer.writerows(rows)
+            write_table(saved_path, rows, ["updates", "return"])
     for path in sorted(glob.glob(os.path.join(results_dir, "learning_*_training.csv"))):
         name = os.path.basename(path).removesuffix("_training.csv")
         if name not in curves:

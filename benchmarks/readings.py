@@ -25,7 +25,7 @@ import os
 
 import numpy as np
 from calibration import calibrate_checkpoint
-from common import track_block
+from common import track_block, write_table
 from learning_report import progress_rows
 
 POLICIES = ("stochastic", "mean-action")
@@ -115,8 +115,6 @@ def measure(path: str, run_dir: str, updates: int, first_track: int, tracks: int
 def report(sweep) -> str:
     """Measure every finished trial of `sweep` once (kept in <storage>/<name>/readings.json), write
     sweep_<name>.csv and .md in --results, and return the markdown table."""
-    import csv
-
     import sweep as sweeps
 
     cache_path = os.path.join(sweep.storage, sweep.name, "readings.json")
@@ -152,10 +150,7 @@ def report(sweep) -> str:
                          "checkpoint": os.path.relpath(path, sweep.storage)})  # fmt: skip
     os.makedirs(sweep.results, exist_ok=True)
     base = os.path.join(sweep.results, f"sweep_{sweep.name}")
-    with open(base + ".csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=COLUMNS)
-        writer.writeheader()
-        writer.writerows(rows)
+    write_table(base + ".csv", rows, COLUMNS)
     text = table(sweep, rows, waiting)
     with open(base + ".md", "w") as f:
         f.write(text)

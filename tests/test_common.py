@@ -83,3 +83,16 @@ def test_writers_side_by_side_lose_no_row(tmp_path):
         p.join()
     assert all(p.exitcode == 0 for p in processes)
     assert sorted(read(path)) == sorted((str(s), str(i), str(i)) for s in (1, 2) for i in range(40))
+
+
+def test_a_whole_table_is_written_at_once_or_not_at_all(tmp_path):
+    path = str(tmp_path / "table.csv")
+    common.write_table(path, [{"seed": 1, "score": 2.5}], ("seed", "score"))
+    with open(path, newline="") as f:
+        assert list(csv.DictReader(f)) == [{"seed": "1", "score": "2.5"}]
+    before = open(path).read()
+    with pytest.raises(ValueError):  # a field outside the columns, after a good row: nothing of it lands
+        common.write_table(path, [{"seed": 3, "score": 1.0}, {"seed": 4, "bogus": 0}], ("seed", "score"))
+    assert open(path).read() == before and os.listdir(tmp_path) == ["table.csv"]
+    common.write_table(path, [], ("seed", "score"))  # no rows: the header alone
+    assert open(path).read().splitlines() == ["seed,score"]
