@@ -24,6 +24,9 @@ TRACKS = {
     # the CPU-budget protocol's report (benchmarks/final_protocol.py) and its peers: never used for a choice
     "report": (10_300, 30),
 }
+# The final protocol's budget per run, in process CPU-hours on one torch thread: each Dreamer run's
+# (final_protocol.py) and each peer's (ppo_peer.py)
+PROTOCOL_CPU_HOURS = 3.1
 
 
 def track_block(first: int, count: int) -> str:

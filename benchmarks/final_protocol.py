@@ -51,7 +51,7 @@ import os
 import numpy as np
 
 import readings
-from common import TRACKS, replace_rows, track_block, write_table
+from common import PROTOCOL_CPU_HOURS, TRACKS, replace_rows, track_block, write_table
 from learning import (
     OLD_PROTOCOL_HOME, RESULTS, VARIANTS, eval_curve, eval_summary, read_rows, replace_row, training_hours,
 )  # fmt: skip
@@ -62,7 +62,6 @@ from ppo_peer import COLUMNS as PEER_CSV_COLUMNS, CURVE_COLUMNS, read_rows as re
 # Each run is a single-stage trial of benchmarks/experiment.py trained until it has spent PROTOCOL_CPU_HOURS of
 # process CPU time (``--single-cpu-hours 3.1``, the PPO peers' budget); its final policy is its latest.pt then,
 # whatever its updates, measured sampled and with its mean action on REPORT_TRACKS, which serve no choice.
-PROTOCOL_CPU_HOURS = 3.1
 PROTOCOL_SEEDS = (21, 22, 23, 24, 25)  # per variant
 REPORT_TRACKS = TRACKS["report"]  # first seed and count of the report tracks
 PROTOCOL_POLICIES = readings.POLICIES  # sampled (as trained) and the actor's mean

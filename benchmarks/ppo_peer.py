@@ -17,7 +17,7 @@ normalised (the entry's ``normalize`` is commented out), ``CnnLstmPolicy`` (an L
 layer for the critic), gSDE, 512 steps, batch 128, 20 epochs, gae_lambda 0.9, clip range 0.4, a constant learning
 rate 3e-5, GELU (inert: that policy has no hidden layer), log-std init -2. The env has the Dreamer runs' settings
 (``dreamer_lstm.Args``' defaults at their final dead zone, -0.5). Each gets the final protocol's budget per Dreamer
-run (final_protocol.PROTOCOL_CPU_HOURS, 3.1) on one torch thread, counted as this process's CPU time
+run (common.PROTOCOL_CPU_HOURS, 3.1) on one torch thread, counted as this process's CPU time
 (``--cpu-hours`` over all sittings), so that other processes on the same cores neither shorten nor lengthen it.
 While it trains, the model and its VecNormalize statistics are kept as ``model_<N>.zip`` and
 ``vecnormalize_<N>.pkl`` when the env steps first pass N = 50k, 100k, 250k, 500k, 1M (sample efficiency);
@@ -350,7 +350,7 @@ def main(argv=None) -> dict | list[dict]:
     parser.add_argument("--algo", choices=tuple(ALGOS), default="ppo")
     parser.add_argument("--seed", type=int, default=11)
     parser.add_argument(
-        "--cpu-hours", type=float, default=3.1,
+        "--cpu-hours", type=float, default=common.PROTOCOL_CPU_HOURS,
         help="CPU-time budget of the whole run (all sittings): the final protocol's per Dreamer run",
     )  # fmt: skip
     parser.add_argument(
