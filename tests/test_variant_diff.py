@@ -71,3 +71,21 @@ def test_the_allowed_regions_are_found():
     assert any("nn.LSTMCell" in lines[i - 1] for i in allowed)
     assert any(lines[i - 1].strip().startswith("batch_size: int") for i in allowed)
     assert not any("def lambda_returns" in lines[i - 1] for i in allowed)
+
+
+def test_both_presets_keep_the_papers_trade_at_equal_imagined_steps_per_update():
+    """The LSTM imagines far (small batch, long horizon), the GRU near (large batch, short horizon), and each update
+    imagines as many steps in both: (starts, or all B * L) * H, by hand: paper 15 * 50 * 50 = 50 * 50 * 15 = 37,500;
+    CPU preset 80 * 48 = 256 * 15 = 3,840 (half of 5 * 32 and of 16 * 32 starts)."""
+    import importlib
+
+    lstm, gru = (importlib.import_module(name) for name in ("dreamer_lstm", "dreamer_gru"))
+    for preset, steps in (("paper", 37_500), ("cpu", 3_840)):
+        imagined = {}
+        for script in (lstm, gru):
+            args = script.preset_args(preset)
+            starts = args.imagination_starts or args.batch_size * args.seq_len
+            imagined[script.VARIANT] = starts * args.imagination_horizon
+        assert imagined == {"lstm": steps, "gru": steps}, preset
+        assert lstm.preset_args(preset).imagination_horizon > gru.preset_args(preset).imagination_horizon
+        assert lstm.preset_args(preset).batch_size < gru.preset_args(preset).batch_size
