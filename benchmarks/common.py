@@ -24,6 +24,7 @@ TRACKS = {
     # the CPU-budget protocol's report (benchmarks/final_protocol.py) and its peers: never used for a choice
     "report": (10_300, 30),
 }
+RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")  # benchmarks/results: every result
 # The final protocol's budget per run, in process CPU-hours on one torch thread: each Dreamer run's
 # (final_protocol.py) and each peer's (ppo_peer.py)
 PROTOCOL_CPU_HOURS = 3.1

@@ -66,7 +66,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import common  # noqa: E402  (the blocks of tracks, the results' CSV rows)
 
 # --- The protocol ----------------------------------------------------------------------------
-RESULTS = os.path.join(ROOT, "benchmarks", "results")
+RESULTS = common.RESULTS
 RUNS = os.path.join(ROOT, "runs", "learning")
 VARIANTS = ("lstm", "gru")
 LEARNING_UPDATES = 8000  # a learning run's updates (the 8,000-update protocol's; the final protocol's runs end on CPU

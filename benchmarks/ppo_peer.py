@@ -53,7 +53,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import common  # noqa: E402  (the blocks of tracks, the results' CSV rows)
 from common import track_block  # noqa: E402
 
-RESULTS = os.path.join(ROOT, "benchmarks", "results")
+RESULTS = common.RESULTS
 RUNS = os.path.join(ROOT, "runs", "ppo_peer")
 FRESH_TRACKS = common.TRACKS["fresh"]  # the 8,000-update protocol's tracks
 FINAL_TRACKS = common.TRACKS["report"]  # the CPU-budget protocol's tracks (final_protocol.py): the default

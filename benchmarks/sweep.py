@@ -42,7 +42,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import common  # noqa: E402  (the blocks of tracks)
 import experiment  # noqa: E402  (the trials are the experiment's single-stage trials)
 
-SCREEN_RESULTS = os.path.join(ROOT, "benchmarks", "results", "screening")
+SCREEN_RESULTS = os.path.join(common.RESULTS, "screening")
 
 
 @dataclasses.dataclass
