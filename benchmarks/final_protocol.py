@@ -291,7 +291,7 @@ def protocol_summary(rows: list[dict], peers: dict[str, list[dict]], reps: int =
 def protocol_references(results_dir: str) -> str:
     """Markdown: what random actions and the pure-pursuit driver at 70 score on the report tracks (learning_report's
     baselines, driven once and then read from REFERENCES_JSON beside learning_final.csv)."""
-    refs = baselines(*REPORT_TRACKS, results_dir=results_dir, name=REFERENCES_JSON)
+    refs = baselines(*REPORT_TRACKS, results_dir=results_dir, filename=REFERENCES_JSON)
     random, pursuit = refs["random"], refs["pursuit@70"]
     return (f"On the same tracks random actions score {random['eval_return']:.1f} (progress "
             f"{random['eval_progress']:.2f}) and the pure-pursuit driver at speed 70 {pursuit['eval_return']:.1f} "

@@ -22,7 +22,7 @@ import re
 
 import numpy as np
 
-from common import write_table
+from common import track_block, write_table
 from learning import RESULTS, RUNS, eval_curve, learning_runs
 
 # The lines the figure and table draw: the 8,000-update protocol's bar on a learning run's mean evaluation return
@@ -31,21 +31,20 @@ BAR_RETURN, BAR_PROGRESS = 600.0, 0.65
 
 
 # --- Curves, their figure and table ----------------------------------------------------------
-def baselines(eval_seed: int = 10_000, episodes: int = 10, results_dir: str = RESULTS, name: str = "baselines.json"
-              ) -> dict:  # fmt: skip
+def baselines(
+    eval_seed: int = 10_000, episodes: int = 10, results_dir: str = RESULTS, filename: str = "baselines.json"
+) -> dict:
     """Random actions and the pursuit driver on the tracks ``eval_seed ..`` (by default the 10 held-out tracks of
-    the evaluations), with the env settings of training. Computed once, then read from ``results_dir/<name>``,
+    the evaluations), with the env settings of training. Computed once, then read from ``results_dir/filename``,
     which names its tracks (a file of other tracks is refused; one written before it named them is read as it
     is)."""
-    from common import track_block
-
-    path, tracks = os.path.join(results_dir, name), track_block(eval_seed, episodes)
+    path, tracks = os.path.join(results_dir, filename), track_block(eval_seed, episodes)
     if os.path.exists(path):
         with open(path) as f:
             saved = json.load(f)
         if saved.setdefault("tracks", tracks) != tracks:
             raise ValueError(f"{path} holds the references on tracks {saved['tracks']}, not {tracks}: give another "
-                             "results_dir")  # fmt: skip
+                             "results_dir or filename")  # fmt: skip
         return {name: value for name, value in saved.items() if name != "tracks"}
     from envs import MultiCarRacing
     from envs.pursuit import PursuitDriver
