@@ -555,11 +555,24 @@ def trial_progress(spec: dict, kind: str, variant: str, seed: int) -> tuple[str 
     return run, done, done if spent_budget(latest, script, args) else target  # a spent CPU budget ends a trial
 
 
-def progress_text(name: str, run: str | None, done: int, target: int | None) -> str:
+def cpu_budget(spec: dict, kind: str, variant: str, seed: int) -> tuple[float, float] | None:
+    """(CPU-hours spent, the budget) of a single trial that a CPU budget ends (--single-cpu-hours), as its latest.pt
+    holds them; None for any other trial or one not started."""
+    run = run_of(trial_dir(spec, kind, variant, seed))
+    if kind != "single" or spec["single_cpu_hours"] <= 0 or run is None:
+        return None
+    script = importlib.import_module(f"dreamer_{variant}")
+    spent = cpu_hours_of(script.load_checkpoint(os.path.join(run, "checkpoints", "latest.pt")))
+    return spent, spec["single_cpu_hours"]
+
+
+def progress_text(name: str, run: str | None, done: int, target: int | None,
+                  budget: tuple[float, float] | None = None) -> str:  # fmt: skip
+    """How far a trial got: its updates against its target, or (`budget`: cpu_budget) against its CPU budget."""
     if run is None:
         return f"{name} (not started)"
-    if target == NO_UPDATE_TARGET:
-        return f"{name} ({done} updates, CPU budget not spent)"
+    if budget is not None:
+        return f"{name} ({done} updates, {budget[0]:.2f} of {budget[1]:g} CPU-hours)"
     return f"{name} ({done} of {target} updates)"
 
 
@@ -571,7 +584,8 @@ def unfinished(spec: dict, stage: str, variants, seeds) -> list[str]:
         for seed in seeds:
             run, done, target = trial_progress(spec, stage, variant, seed)
             if run is None or done < target:
-                names.append(progress_text(f"{stage}_{variant}_seed{seed}", run, done, target))
+                names.append(progress_text(f"{stage}_{variant}_seed{seed}", run, done, target,
+                                           cpu_budget(spec, stage, variant, seed)))  # fmt: skip
     return names
 
 
@@ -594,14 +608,17 @@ def race_progress(spec: dict, seed: int) -> str:
 
 def status(spec: Spec) -> str:
     """Every trial of the experiment, stage by stage, with how far it has got: a dreamer trial's updates against
-    its target (read from its latest.pt), a race trial's races and tournaments. Nothing is started or measured."""
+    its target, or against its CPU budget (read from its latest.pt), a race trial's races and tournaments.
+    Nothing is started or measured."""
     plain, lines = dataclasses.asdict(spec), []
     for stage in ("single", "ghost", "race"):
         if stage == "race":
             trials = [race_progress(plain, seed) for seed in spec.seeds]
         else:
-            trials = [progress_text(f"{kind}_{variant}_seed{seed}", *trial_progress(plain, kind, variant, seed))
-                      for seed in spec.seeds for kind in trial_kinds(plain, stage) for variant in spec.variants]
+            names = [(kind, variant, seed) for seed in spec.seeds for kind in trial_kinds(plain, stage)
+                     for variant in spec.variants]  # fmt: skip
+            trials = [progress_text(f"{k}_{v}_seed{s}", *trial_progress(plain, k, v, s), cpu_budget(plain, k, v, s))
+                      for k, v, s in names]  # fmt: skip
         lines += [f"{stage}:"] + [f"  {trial}" for trial in trials]
     return "\n".join(lines)
 

@@ -17,8 +17,8 @@ import numpy as np
 import common
 import learning
 from experiment import (
-    Spec, progress_text, race_tournament, tournament_checkpoints, tournament_metrics, tournament_racers, trial_dir,
-    trial_kinds, trial_progress, updates_of,
+    Spec, cpu_budget, progress_text, race_tournament, tournament_checkpoints, tournament_metrics, tournament_racers,
+    trial_dir, trial_kinds, trial_progress, updates_of,
 )  # fmt: skip
 
 GHOST_COLUMNS = ("variant", "seed", "updates_at_start", "updates", "return_before", "return_after_ghost",
@@ -44,7 +44,8 @@ def aggregate(spec: Spec) -> str:
         for seed in spec.seeds:
             run, done, target = trial_progress(plain, "single", variant, seed)
             if run is None or done < target:
-                left_out.append(progress_text(f"single_{variant}_seed{seed}", run, done, target))
+                left_out.append(progress_text(f"single_{variant}_seed{seed}", run, done, target,
+                                              cpu_budget(plain, "single", variant, seed)))  # fmt: skip
                 continue
 
             def fresh(run: str, name: str) -> float:

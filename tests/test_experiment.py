@@ -806,8 +806,8 @@ def test_a_cpu_hour_budget_ends_a_single_trial_whatever_its_updates(tmp_path, mo
     spent["extra"]["cpu_seconds"] = 3.0 * 3600
     with pytest.raises(Trains):
         experiment.dreamer_trial({"trial": {"spec": spec, "stage": "single", "variant": "gru", "seed": 12}})
-    assert experiment.unfinished(spec, "single", ["gru"], [12]) == ["single_gru_seed12 (4321 updates, CPU budget "
-                                                                    "not spent)"]  # fmt: skip
+    assert experiment.unfinished(spec, "single", ["gru"], [12]) == ["single_gru_seed12 (4321 updates, 3.00 of 3.1 "
+                                                                    "CPU-hours)"]  # fmt: skip
 
 
 GHOST_TABLE = ("variant,seed,updates_at_start,updates,return_before,return_after_ghost,return_after_control\n"
