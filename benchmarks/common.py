@@ -1,6 +1,6 @@
-"""What the benchmarks share: the blocks of tracks, with what each may decide, and how a results CSV is written
-(``write_table``: whole, atomically; ``replace_rows``: some of its rows, locked) (as Stable-Baselines3's ``common/``:
-small pieces the scripts of ``benchmarks/`` import).
+"""What the benchmarks share: the blocks of tracks, with what each may decide, and how a results CSV is read
+(``read_table``) and written (``write_table``: whole, atomically; ``replace_rows``: some of its rows, locked) (as
+Stable-Baselines3's ``common/``: small pieces the scripts of ``benchmarks/`` import).
 
 A track is an env seed; a block is ``(first, count)``, tracks ``first .. first + count - 1``. A result is reported on
 a block that chose nothing: the block a choice was made on measures that choice with a bias in its favour.
@@ -42,6 +42,22 @@ def check_header(path: str, header, columns: tuple[str, ...], advice: str) -> No
         raise ValueError(f"{path} has the columns {','.join(header)}, not {','.join(columns)}: {advice}")
 
 
+def read_table(
+    path: str, columns: tuple[str, ...] = (), other_header: str | None = None, defaults: dict[str, str] | None = None
+) -> list[dict]:
+    """The rows of the CSV at `path`, by column name (none while it does not exist or is empty). With `other_header`
+    (advice for the user), a file whose header is not `columns` is refused as check_header refuses it: rows of two
+    protocols must not be read as one table. A column a row lacks or leaves empty takes its value in `defaults` (else
+    it stays as it is)."""
+    if not os.path.exists(path):
+        return []
+    with open(path, newline="") as f:
+        reader = csv.DictReader(f)
+        if other_header is not None:
+            check_header(path, reader.fieldnames, columns, other_header)
+        return [{**r, **{k: v for k, v in (defaults or {}).items() if not r.get(k)}} for r in reader]
+
+
 def write_table(path: str, rows: Iterable[dict], columns) -> None:
     """Write `rows` under the header `columns` as the CSV at `path` (no rows: the header alone), atomically: a
     temporary file replaces it once whole, so a reader or a kill never sees half a table. A row with a field outside
@@ -79,15 +95,8 @@ def replace_rows(
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     with open(path + ".lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
-        kept = []
-        if os.path.exists(path):
-            with open(path, newline="") as f:
-                reader = csv.DictReader(f)
-                if other_header is not None:
-                    check_header(path, reader.fieldnames, columns, other_header)
-                new = set(map(key, rows))
-                filled = ({**r, **{k: v for k, v in (defaults or {}).items() if not r.get(k)}} for r in reader)
-                kept = [r for r in filled if key(r) not in new]
+        new = set(map(key, rows))
+        kept = [r for r in read_table(path, columns, other_header, defaults) if key(r) not in new]
         table = sorted(kept + rows, key=order or key)
         write_table(path, table, columns)
     return table

@@ -51,10 +51,8 @@ import os
 import numpy as np
 
 import readings
-from common import PROTOCOL_CPU_HOURS, TRACKS, replace_rows, track_block, write_table
-from learning import (
-    OLD_PROTOCOL_HOME, RESULTS, VARIANTS, eval_curve, eval_summary, read_rows, replace_row, training_hours,
-)  # fmt: skip
+from common import PROTOCOL_CPU_HOURS, TRACKS, read_table, replace_rows, track_block, write_table
+from learning import RESULTS, VARIANTS, eval_curve, eval_summary, training_hours
 from learning_report import baselines
 from ppo_peer import COLUMNS as PEER_CSV_COLUMNS, CURVE_COLUMNS, read_rows as read_peer_csv
 
@@ -82,6 +80,7 @@ PEER_COLUMNS = tuple(c for c in PEER_CSV_COLUMNS if c != "tracks")  # a peer's r
 # readings.SCREEN_WINDOW updates; the model on real episodes; its view of the pedal)
 WHY_CSV = "learning_final_readings.csv"
 WHY_COLUMNS = tuple(c for c in readings.COLUMNS if c != "tag")
+OLD_PROTOCOL_HOME = os.path.join("benchmarks", "results", "history", "8000_updates")  # the replaced protocol's files
 PROTOCOL_ADVICE = (
     f"move the old protocol's files (learning_final.csv, learning_final.md) to {OLD_PROTOCOL_HOME}/ first"
 )
@@ -188,7 +187,8 @@ def protocol_readings(row: dict, driven: dict, runs_dir: str) -> list[dict]:
 def write_protocol_row(row: dict, path: str = os.path.join(RESULTS, "learning_final.csv")) -> None:
     """Add a row of the final protocol to learning_final.csv, replacing an earlier row of the same variant and seed.
     A file with other columns (the 8,000-update protocol's) is refused (common.replace_rows)."""
-    replace_row(row, path, PROTOCOL_COLUMNS, lambda r: (r["variant"], int(r["seed"])), PROTOCOL_ADVICE)
+    replace_rows(path, [row], PROTOCOL_COLUMNS, lambda r: (r["variant"], int(r["seed"])),
+                 other_header=PROTOCOL_ADVICE)  # fmt: skip
 
 
 def write_why_rows(rows: list[dict], path: str = os.path.join(RESULTS, WHY_CSV)) -> None:
@@ -534,7 +534,7 @@ def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
     run's row, the comparisons, the peers' sample efficiency and, when learning_final_readings.csv is there, the
     readings per variant (protocol_why); and its figure, learning_final.png (plot_protocol).
     Returns the text."""
-    rows = read_rows(os.path.join(results_dir, "learning_final.csv"), PROTOCOL_COLUMNS, PROTOCOL_ADVICE)
+    rows = read_table(os.path.join(results_dir, "learning_final.csv"), PROTOCOL_COLUMNS, PROTOCOL_ADVICE)
     peers = {peer: read_peer_rows(protocol_peer_path(peer, results_dir)) for peer in PROTOCOL_PEERS}
     peers = {peer: theirs for peer, theirs in peers.items() if theirs}
     curves = {peer: read_peer_rows(protocol_peer_path(peer, results_dir, curve=True), CURVE_COLUMNS)
@@ -558,7 +558,7 @@ def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
             + "\nThe comparisons (independent runs):\n\n" + protocol_comparisons(rows, peers)
             + sample_efficiency(rows, curves)
         )  # fmt: skip
-        why_rows = read_rows(os.path.join(results_dir, WHY_CSV), WHY_COLUMNS, WHY_ADVICE)
+        why_rows = read_table(os.path.join(results_dir, WHY_CSV), WHY_COLUMNS, WHY_ADVICE)
         if why_rows:
             text += (
                 f"\nWhy they drive as they do: benchmarks/readings.py's readings of the same final policies on the "

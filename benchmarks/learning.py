@@ -34,10 +34,10 @@ The final protocol (CPU budget: per variant the seeds 21..25, each a single-stag
 on the fresh tracks 10100..10119; ``--final``, ``--final-report``, ``--screen`` and ``--policy-rule`` of this file
 until commit 32c3b4c), whose files are in ``benchmarks/results/history/8000_updates/``.
 
-This file holds the learning runs (names, settings, curves read from their event files), the measurement of a saved
-policy on a block of tracks, the helpers of the final protocol's rows (eval_curve, training_hours, eval_summary,
-read_rows, replace_row) and the command line. The rest lives beside it: ``learning_report.py`` (curves, table,
-figure, diagnostics), ``final_protocol.py`` and ``calibration.py``. A saved agent on other tracks, or its acting-only
+This file holds the learning runs (names, settings, what their event files and progress.csv hold), the
+measurement of a saved policy on a block of tracks, the helpers of the final protocol's rows (eval_curve,
+training_hours, eval_summary) and the command line. The rest lives beside it: ``learning_report.py`` (curves,
+table, figure, diagnostics), ``final_protocol.py`` and ``calibration.py``. A saved agent on other tracks, or its acting-only
 export: ``evaluate.py`` at the top level (``python evaluate.py CHECKPOINT --first-track 10100 --tracks 20``,
 ``python evaluate.py CHECKPOINT --export OUT``).
 
@@ -121,7 +121,7 @@ def run_args(variant: str, seed: int, hours: float, resume: bool, updates: int =
     return script, args, set()
 
 
-# --- A run's curve, from its event files -----------------------------------------------------
+# --- A run's curve, from its event files and its progress.csv --------------------------------
 EVENT_FILE_PROCESS = re.compile(r"events\.out\.tfevents\.\d+\.(?P<process>.+\.\d+)\.\d+")
 """The name SB3's TensorBoard logger gives an event file, ``events.out.tfevents.<time>.<host>.<pid>.<n>`` (no
 suffix): host (which may hold dots) and pid name the process that wrote it."""
@@ -193,6 +193,18 @@ def eval_curve(run_dir: str) -> list[dict]:
     return [row for i, row in enumerate(rows) if i == 0 or row["env_steps"] != rows[i - 1]["env_steps"]]
 
 
+def progress_rows(run_dir: str) -> list[tuple[int, dict]]:
+    """A run's progress.csv rows, each with the updates made when it was logged (0 before the first update)."""
+    with open(os.path.join(run_dir, "progress.csv"), newline="") as f:
+        rows = list(csv.DictReader(f))
+    updates, out = 0, []
+    for row in rows:
+        if row.get("car_0/perf/updates"):
+            updates = int(float(row["car_0/perf/updates"]))
+        out.append((updates, row))
+    return out
+
+
 # --- A saved policy on a block of tracks -----------------------------------------------------
 def policy_summary(
     path: str, first_track: int = common.TRACKS["eval"][0], tracks: int = common.TRACKS["eval"][1],
@@ -240,26 +252,6 @@ def eval_summary(curve: list[dict]) -> tuple[float, float]:
         return float("nan"), float("nan")
     return round(max(evals), 2), round(float(np.mean(evals[-3:])), 2)
 
-
-OLD_PROTOCOL_HOME = os.path.join("benchmarks", "results", "history", "8000_updates")  # the replaced protocol's files
-
-
-def read_rows(path: str, columns: tuple[str, ...], advice: str) -> list[dict]:
-    """The rows of the CSV at `path` (none if it does not exist or is empty), refused with a one-line ValueError
-    naming the file and ending in `advice` when its header is not `columns`: learning_final.csv holds the rows of
-    one protocol at a time, and rows of two protocols side by side would be compared as one."""
-    if not os.path.exists(path):
-        return []
-    with open(path, newline="") as f:
-        reader = csv.DictReader(f)
-        common.check_header(path, reader.fieldnames, columns, advice)
-        return list(reader)
-
-
-def replace_row(row: dict, path: str, columns: tuple[str, ...], key, advice: str) -> None:
-    """Add `row` to the CSV at `path` (header `columns`, else refused as read_rows does), replacing an earlier row of
-    the same key(row); rows sorted by key; locked and replaced atomically (common.replace_rows)."""
-    common.replace_rows(path, [row], columns, key, other_header=advice)
 
 
 # --- Command line ----------------------------------------------------------------------------
@@ -375,8 +367,8 @@ def run_mode(args: Args) -> bool:
         if args.protocol_row:
             path = os.path.join(args.results_dir, "learning_final.csv")
             why_path = os.path.join(args.results_dir, protocol.WHY_CSV)
-            read_rows(path, protocol.PROTOCOL_COLUMNS, protocol.PROTOCOL_ADVICE)  # another protocol's: refused first
-            read_rows(why_path, protocol.WHY_COLUMNS, protocol.WHY_ADVICE)
+            common.read_table(path, protocol.PROTOCOL_COLUMNS, protocol.PROTOCOL_ADVICE)  # another's: refused first
+            common.read_table(why_path, protocol.WHY_COLUMNS, protocol.WHY_ADVICE)
             row, driven = protocol.protocol_measure(args.variant, args.seed, args.runs_dir)
             protocol.write_protocol_row(row, path)  # kept before the readings are measured
             print(json.dumps(row, indent=1))

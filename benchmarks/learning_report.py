@@ -23,7 +23,7 @@ import re
 import numpy as np
 
 from common import track_block, write_table
-from learning import RESULTS, RUNS, eval_curve, learning_runs
+from learning import RESULTS, RUNS, eval_curve, learning_runs, progress_rows
 
 # The lines the figure and table draw: the 8,000-update protocol's bar on a learning run's mean evaluation return
 # and progress (docs/learning.md).
@@ -258,18 +258,6 @@ DIAGNOSTICS = (
     ("eval progress", "car_0/eval/progress"),
     ("eval mean |steer|", "car_0/eval/mean_abs_steer"),
 )
-
-
-def progress_rows(run_dir: str) -> list[tuple[int, dict]]:
-    """A run's progress.csv rows, each with the updates made when it was logged (0 before the first update)."""
-    with open(os.path.join(run_dir, "progress.csv"), newline="") as f:
-        rows = list(csv.DictReader(f))
-    updates, out = 0, []
-    for row in rows:
-        if row.get("car_0/perf/updates"):
-            updates = int(float(row["car_0/perf/updates"]))
-        out.append((updates, row))
-    return out
 
 
 def diagnostics(run_dir: str, bucket: int = 500) -> list[dict]:

@@ -37,7 +37,6 @@ A row of a file written before that column was measured on the old default track
 from __future__ import annotations
 
 import argparse
-import csv
 import glob
 import json
 import os
@@ -301,10 +300,7 @@ def read_rows(path: str) -> list[dict]:
     """The rows of a peer's CSV (rows or curve; none while it does not exist), each with its ``tracks``: a row
     without one (a file written before the column, or an empty cell) was measured on the default tracks of the
     time, 10100..10119, and is read as such (UNNAMED_TRACKS)."""
-    if not os.path.exists(path):
-        return []
-    with open(path, newline="") as f:
-        return [{**r, "tracks": r.get("tracks") or UNNAMED_TRACKS} for r in csv.DictReader(f)]
+    return common.read_table(path, defaults={"tracks": UNNAMED_TRACKS})
 
 
 def write_rows(rows: list[dict], path: str, columns: tuple[str, ...]) -> None:

@@ -26,7 +26,7 @@ import os
 import numpy as np
 from calibration import calibrate_checkpoint
 from common import track_block, write_table
-from learning_report import progress_rows
+from learning import progress_rows
 
 POLICIES = ("stochastic", "mean-action")
 DRIVING = ("return", "progress", "abs_steer", "gas", "brake_share", "speed", "lap_finished", "eliminated")

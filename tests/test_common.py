@@ -69,6 +69,18 @@ def test_an_old_row_without_a_column_takes_its_default_before_the_key_sees_it(tm
     assert read(path) == [("11", "new", "700"), ("11", "old", "660")]
 
 
+def test_a_table_is_read_by_name_with_defaults_for_missing_or_empty_cells_and_checked_only_when_asked(tmp_path):
+    assert common.read_table(str(tmp_path / "none.csv"), COLUMNS, "advice") == []  # no file yet: no rows
+    path = tmp_path / "rows.csv"
+    path.write_text("seed,value\n11,1.5\n12,\n")
+    assert common.read_table(str(path), defaults={"value": "0", "tracks": "old"}) == [
+        {"seed": "11", "value": "1.5", "tracks": "old"}, {"seed": "12", "value": "0", "tracks": "old"}]
+    with pytest.raises(ValueError, match=r"rows.csv has the columns seed,value, not seed,tracks,value: move it"):
+        common.read_table(str(path), COLUMNS, other_header="move it")
+    path.write_text("")  # empty: no header to refuse
+    assert common.read_table(str(path), COLUMNS, other_header="move it") == []
+
+
 def write_many(path: str, seed: int, n: int) -> None:
     for i in range(n):
         common.replace_rows(path, [{"seed": seed, "tracks": str(i), "value": i}], COLUMNS, key)

@@ -17,6 +17,7 @@ import torch
 from scipy import stats as sps
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
+import common  # noqa: E402
 import evaluate  # noqa: E402
 import final_protocol  # noqa: E402
 import learning  # noqa: E402
@@ -389,7 +390,7 @@ def test_the_sample_efficiency_table_gives_the_first_snapshot_whose_mean_reaches
     )
     # the figure: what it draws, and the file
     assert (results / "learning_final.png").stat().st_size > 10_000
-    rows = learning.read_rows(path, final_protocol.PROTOCOL_COLUMNS, final_protocol.PROTOCOL_ADVICE)
+    rows = common.read_table(path, final_protocol.PROTOCOL_COLUMNS, final_protocol.PROTOCOL_ADVICE)
     curves = {peer: final_protocol.read_peer_rows(str(results / f"{peer}_peer_curve.csv"), ppo_peer.CURVE_COLUMNS)
               for peer in final_protocol.PROTOCOL_PEERS}  # fmt: skip
     data = final_protocol.figure_data(rows, {}, curves)  # (no peer has final rows here)
