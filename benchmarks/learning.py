@@ -37,9 +37,9 @@ until commit 32c3b4c), whose files are in ``benchmarks/results/history/8000_upda
 This file holds the learning runs (names, settings, what their event files and progress.csv hold), the
 measurement of a saved policy on a block of tracks, the helpers of the final protocol's rows (eval_curve,
 training_hours, eval_summary) and the command line. The rest lives beside it: ``learning_report.py`` (curves,
-table, figure, diagnostics), ``final_protocol.py`` and ``calibration.py``. A saved agent on other tracks, or its acting-only
-export: ``evaluate.py`` at the top level (``python evaluate.py CHECKPOINT --first-track 10100 --tracks 20``,
-``python evaluate.py CHECKPOINT --export OUT``).
+table, figure, diagnostics), ``final_protocol.py`` and ``calibration.py``. A saved agent on other tracks, or its
+acting-only export: ``evaluate.py`` at the top level (``python evaluate.py CHECKPOINT --first-track 10100 --tracks
+20``, ``python evaluate.py CHECKPOINT --export OUT``).
 
 ``benchmarks/experiment.py`` trains these same runs as its single stage (under ``<storage>/trials/``);
 ``--runs-dir`` points every mode at them.
