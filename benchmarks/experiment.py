@@ -46,7 +46,7 @@ import signal
 import sys
 import types
 import typing
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import tyro
 
@@ -543,32 +543,38 @@ def check_spec(spec: Spec) -> None:
             json.dump(wanted, f, indent=1)
 
 
-def trial_progress(spec: dict, kind: str, variant: str, seed: int) -> tuple[str | None, int, int | None]:
-    """A dreamer trial's run directory, the updates its latest.pt has made and its target; (None, 0, None) for a
-    trial not started (a ghost or control trial's target depends on the best.pt it will start from)."""
+class Progress(NamedTuple):
+    """How far a dreamer trial got (trial_progress)."""
+
+    run: str | None
+    """its run directory; None for a trial not started"""
+    done: int
+    """the updates its latest.pt has made"""
+    target: int | None
+    """the updates it ends at (None before it starts: a ghost or control trial's depends on the best.pt it will start
+    from); a trial that a CPU budget ends has NO_UPDATE_TARGET, or its own updates once the budget is spent"""
+    budget: tuple[float, float] | None = None
+    """(CPU-hours its latest.pt has spent, the budget) of a trial that a CPU budget ends (--single-cpu-hours)"""
+
+
+def trial_progress(spec: dict, kind: str, variant: str, seed: int) -> Progress:
+    """How far a dreamer trial got, from its latest.pt (read once)."""
     run = run_of(trial_dir(spec, kind, variant, seed))
     if run is None:
-        return None, 0, None
+        return Progress(None, 0, None)
     script, args, _, target = trial_args(spec, kind, variant, seed)
-    latest = os.path.join(run, "checkpoints", "latest.pt")
-    done = updates_of(latest, script)
-    return run, done, done if spent_budget(latest, script, args) else target  # a spent CPU budget ends a trial
-
-
-def cpu_budget(spec: dict, kind: str, variant: str, seed: int) -> tuple[float, float] | None:
-    """(CPU-hours spent, the budget) of a single trial that a CPU budget ends (--single-cpu-hours), as its latest.pt
-    holds them; None for any other trial or one not started."""
-    run = run_of(trial_dir(spec, kind, variant, seed))
-    if kind != "single" or spec["single_cpu_hours"] <= 0 or run is None:
-        return None
-    script = importlib.import_module(f"dreamer_{variant}")
-    spent = cpu_hours_of(script.load_checkpoint(os.path.join(run, "checkpoints", "latest.pt")))
-    return spent, spec["single_cpu_hours"]
+    checkpoint = script.load_checkpoint(os.path.join(run, "checkpoints", "latest.pt"))
+    done = int(checkpoint["agents"][0]["num_updates"])
+    if args.cpu_hours_limit <= 0:
+        return Progress(run, done, target)
+    spent = cpu_hours_of(checkpoint)
+    # a spent CPU budget ends a trial, whatever its updates
+    return Progress(run, done, done if spent >= args.cpu_hours_limit else target, (spent, args.cpu_hours_limit))
 
 
 def progress_text(name: str, run: str | None, done: int, target: int | None,
                   budget: tuple[float, float] | None = None) -> str:  # fmt: skip
-    """How far a trial got: its updates against its target, or (`budget`: cpu_budget) against its CPU budget."""
+    """How far a trial got (trial_progress's fields): its updates against its target or its CPU budget."""
     if run is None:
         return f"{name} (not started)"
     if budget is not None:
@@ -582,10 +588,9 @@ def unfinished(spec: dict, stage: str, variants, seeds) -> list[str]:
     names = []
     for variant in variants:
         for seed in seeds:
-            run, done, target = trial_progress(spec, stage, variant, seed)
-            if run is None or done < target:
-                names.append(progress_text(f"{stage}_{variant}_seed{seed}", run, done, target,
-                                           cpu_budget(spec, stage, variant, seed)))  # fmt: skip
+            progress = trial_progress(spec, stage, variant, seed)
+            if progress.run is None or progress.done < progress.target:
+                names.append(progress_text(f"{stage}_{variant}_seed{seed}", *progress))
     return names
 
 
@@ -615,10 +620,8 @@ def status(spec: Spec) -> str:
         if stage == "race":
             trials = [race_progress(plain, seed) for seed in spec.seeds]
         else:
-            names = [(kind, variant, seed) for seed in spec.seeds for kind in trial_kinds(plain, stage)
-                     for variant in spec.variants]  # fmt: skip
-            trials = [progress_text(f"{k}_{v}_seed{s}", *trial_progress(plain, k, v, s), cpu_budget(plain, k, v, s))
-                      for k, v, s in names]  # fmt: skip
+            trials = [progress_text(f"{kind}_{variant}_seed{seed}", *trial_progress(plain, kind, variant, seed))
+                      for seed in spec.seeds for kind in trial_kinds(plain, stage) for variant in spec.variants]
         lines += [f"{stage}:"] + [f"  {trial}" for trial in trials]
     return "\n".join(lines)
 

@@ -17,7 +17,7 @@ import numpy as np
 import common
 import learning
 from experiment import (
-    Spec, cpu_budget, progress_text, race_tournament, tournament_checkpoints, tournament_metrics, tournament_racers,
+    Spec, progress_text, race_tournament, tournament_checkpoints, tournament_metrics, tournament_racers,
     trial_dir, trial_kinds, trial_progress, updates_of,
 )  # fmt: skip
 
@@ -42,10 +42,9 @@ def aggregate(spec: Spec) -> str:
     ghost_rows, left_out = [], []
     for variant in spec.variants:
         for seed in spec.seeds:
-            run, done, target = trial_progress(plain, "single", variant, seed)
+            run, done, target, budget = trial_progress(plain, "single", variant, seed)
             if run is None or done < target:
-                left_out.append(progress_text(f"single_{variant}_seed{seed}", run, done, target,
-                                              cpu_budget(plain, "single", variant, seed)))  # fmt: skip
+                left_out.append(progress_text(f"single_{variant}_seed{seed}", run, done, target, budget))
                 continue
 
             def fresh(run: str, name: str) -> float:
@@ -53,9 +52,9 @@ def aggregate(spec: Spec) -> str:
 
             single_returns.setdefault(variant, []).append(fresh(run, "latest.pt"))
             stage = {k: trial_progress(plain, k, variant, seed) for k in trial_kinds(plain, "ghost")}
-            if any(r is None or d < t for r, d, t in stage.values()):
-                left_out += [progress_text(f"{k}_{variant}_seed{seed}", r, d, t) for k, (r, d, t) in stage.items()
-                             if r is None or d < t]  # fmt: skip
+            if any(p.run is None or p.done < p.target for p in stage.values()):
+                left_out += [progress_text(f"{k}_{variant}_seed{seed}", *p) for k, p in stage.items()
+                             if p.run is None or p.done < p.target]  # fmt: skip
                 continue
             best = os.path.join(run, "checkpoints", "best.pt")
             start = updates_of(best, importlib.import_module(f"dreamer_{variant}"))

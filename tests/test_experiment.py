@@ -7,6 +7,7 @@ untouched; the same spec run again does nothing; the aggregation matches hand-co
 import csv
 import dataclasses
 import glob
+import importlib
 import json
 import os
 import shutil
@@ -442,7 +443,7 @@ def test_the_aggregation_counts_finished_trials_only_and_replaces_old_tables(tmp
                 ("ghost", "gru", 11): 9000, ("control", "gru", 11): 9000, ("ghost", "gru", 12): 7500,
                 ("control", "gru", 12): 9000}  # fmt: skip
     returns = {"single": 100.0, "ghost": 300.0, "control": 200.0}
-    monkeypatch.setattr(experiment_report, "trial_progress", lambda spec, kind, variant, seed: (
+    monkeypatch.setattr(experiment_report, "trial_progress", lambda spec, kind, variant, seed: experiment.Progress(
         f"/runs/{kind}_{variant}_{seed}" if (kind, variant, seed) in progress else None,
         progress.get((kind, variant, seed), 0), 8000 if kind == "single" else 9000))  # fmt: skip
     monkeypatch.setattr(experiment_report, "updates_of", lambda path, script: 7000)  # every best.pt at 7,000 updates
@@ -708,7 +709,9 @@ def test_a_later_stage_needs_the_earlier_trials_finished(tmp_path, monkeypatch):
         path = os.path.join(experiment.trial_dir(plain, "single", variant, 3), "run", "checkpoints", "latest.pt")
         os.makedirs(os.path.dirname(path))
         open(path, "w").close()
-    monkeypatch.setattr(experiment, "updates_of", lambda path, script: done[script.VARIANT])
+    for variant in ("lstm", "gru"):  # what each latest.pt holds
+        monkeypatch.setattr(importlib.import_module(f"dreamer_{variant}"), "load_checkpoint",
+                            lambda path, v=variant: {"agents": [{"num_updates": done[v]}]})  # fmt: skip
     with pytest.raises(SystemExit, match=r"needs the single trials finished: single_gru_seed3 \(7500 of 8000"):
         experiment.check_spec(spec)
     done["gru"] = 8000
@@ -869,7 +872,7 @@ def test_an_experiment_without_controls_keeps_the_measured_table_and_compares_it
                            results=str(tmp_path / "results"))  # fmt: skip
     progress = {("single", v, s): 8000 for v in ("lstm", "gru") for s in (11, 12)}
     progress |= {("ghost", "lstm", 11): 9000, ("ghost", "gru", 11): 9000, ("ghost", "lstm", 12): 8500}
-    monkeypatch.setattr(experiment_report, "trial_progress", lambda spec, kind, variant, seed: (
+    monkeypatch.setattr(experiment_report, "trial_progress", lambda spec, kind, variant, seed: experiment.Progress(
         f"/runs/{kind}_{variant}_{seed}" if (kind, variant, seed) in progress else None,
         progress.get((kind, variant, seed), 0), 8000 if kind == "single" else 9000))  # fmt: skip
     monkeypatch.setattr(experiment_report, "updates_of", lambda path, script: 7000)
