@@ -109,13 +109,22 @@ def protocol_run(variant: str, seed: int, runs_dir: str) -> str:
     return run
 
 
+def numerical_stop(checkpoint: dict) -> bool:
+    """Whether the run of `checkpoint` was stopped by the dreamer scripts' guard: an agent had
+    --max-nonfinite-updates updates in a row with a non-finite loss or gradient (utils.run.NumericalFault)."""
+    limit = checkpoint["args"].get("max_nonfinite_updates")
+    return limit is not None and any(agent.get("nonfinite_in_a_row", 0) >= limit for agent in checkpoint["agents"])
+
+
 def protocol_cpu_hours(run: str, checkpoint: dict) -> float:
-    """The CPU-hours the run of `checkpoint` (its latest.pt) has spent over all its sittings; a run short of
-    PROTOCOL_CPU_HOURS is refused (ValueError naming the run, its CPU-hours and updates): no final policy yet."""
+    """The CPU-hours the run of `checkpoint` (its latest.pt) has spent over all its sittings. A run short of
+    PROTOCOL_CPU_HOURS is refused (ValueError naming the run, its CPU-hours and updates: no final policy yet),
+    unless the scripts' non-finite guard stopped it (numerical_stop): every seed counts, so its last policy is its
+    final one, and its row's CPU-hours show it stopped short (protocol_seeds says so)."""
     from experiment import cpu_hours_of
 
     hours = cpu_hours_of(checkpoint)
-    if hours < PROTOCOL_CPU_HOURS:
+    if hours < PROTOCOL_CPU_HOURS and not numerical_stop(checkpoint):
         updates = int(checkpoint["agents"][0]["num_updates"])
         raise ValueError(f"{run} has spent {hours:.2f} of its {PROTOCOL_CPU_HOURS} CPU-hours ({updates} updates): "
                          f"not a final policy yet")  # fmt: skip
@@ -207,14 +216,18 @@ PROTOCOL_POLICY_COLUMNS = {
 }
 POLICY_NAMES = {"mean-action": "mean action", "stochastic": "sampled"}
 PEER_NAMES = {"ppo": "SB3 PPO", "recurrent_ppo": "RecurrentPPO"}
-# Each part of the bar (protocol_bar's keys): what it says, and how its value is shown
+# Each part of the bar (protocol_bar's keys): what it says
 PROTOCOL_BAR_PARTS = {
-    "return": (f"mean action: mean return >= {PROTOCOL_BAR_RETURN:g}", ".1f"),
-    "every seed": (f"mean action: every seed >= {PROTOCOL_BAR_SEED_RETURN:g}", ".1f"),
-    "progress": (f"mean action: mean progress >= {PROTOCOL_BAR_PROGRESS:g}", ".2f"),
-    "steer": (f"mean action: mean \\|steer\\| <= {PROTOCOL_BAR_STEER:g}", ".2f"),
-    "sampled return": (f"sampled: mean return >= {PROTOCOL_BAR_SAMPLED_RETURN:g}", ".1f"),
+    "return": f"mean action: mean return >= {PROTOCOL_BAR_RETURN:g}",
+    "every seed": f"mean action: every seed >= {PROTOCOL_BAR_SEED_RETURN:g}",
+    "progress": f"mean action: mean progress >= {PROTOCOL_BAR_PROGRESS:g}",
+    "steer": f"mean action: mean \\|steer\\| <= {PROTOCOL_BAR_STEER:g}",
+    "sampled return": f"sampled: mean return >= {PROTOCOL_BAR_SAMPLED_RETURN:g}",
 }
+# The bar's values are means of CSV values of at most 4 decimals over the seeds: rounded to 6 decimals they are
+# exact, and a mean exactly at a threshold meets it (np.mean of 702.91, 846.15, 905.62, 753.47, 791.85 is
+# 799.9999999999999)
+BAR_DECIMALS = 6
 
 
 def column(rows: list[dict], key: str) -> np.ndarray:
@@ -226,17 +239,17 @@ def protocol_bar(rows: list[dict]) -> dict[str, tuple[float, bool]]:
     """Each part of the final protocol's bar for the rows of one variant (its seeds): (its value, met). The mean
     action: mean return >= PROTOCOL_BAR_RETURN, every seed's >= PROTOCOL_BAR_SEED_RETURN (the value: the lowest),
     mean progress >= PROTOCOL_BAR_PROGRESS, mean |steer| <= PROTOCOL_BAR_STEER; sampled: mean return >=
-    PROTOCOL_BAR_SAMPLED_RETURN."""
+    PROTOCOL_BAR_SAMPLED_RETURN. Each value is rounded to BAR_DECIMALS (what the CSV's values make exact)."""
     returns, progress, steer = (column(rows, key) for key in PROTOCOL_POLICY_COLUMNS["mean-action"])
     sampled = column(rows, PROTOCOL_POLICY_COLUMNS["stochastic"][0])
-    parts = {
-        "return": (returns.mean(), returns.mean() >= PROTOCOL_BAR_RETURN),
-        "every seed": (returns.min(), returns.min() >= PROTOCOL_BAR_SEED_RETURN),
-        "progress": (progress.mean(), progress.mean() >= PROTOCOL_BAR_PROGRESS),
-        "steer": (steer.mean(), steer.mean() <= PROTOCOL_BAR_STEER),
-        "sampled return": (sampled.mean(), sampled.mean() >= PROTOCOL_BAR_SAMPLED_RETURN),
-    }
-    return {part: (float(value), bool(met)) for part, (value, met) in parts.items()}
+    values = {"return": returns.mean(), "every seed": returns.min(), "progress": progress.mean(),
+              "steer": steer.mean(), "sampled return": sampled.mean()}  # fmt: skip
+    values = {part: round(float(value), BAR_DECIMALS) for part, value in values.items()}
+    met = {"return": values["return"] >= PROTOCOL_BAR_RETURN,
+           "every seed": values["every seed"] >= PROTOCOL_BAR_SEED_RETURN,
+           "progress": values["progress"] >= PROTOCOL_BAR_PROGRESS, "steer": values["steer"] <= PROTOCOL_BAR_STEER,
+           "sampled return": values["sampled return"] >= PROTOCOL_BAR_SAMPLED_RETURN}  # fmt: skip
+    return {part: (values[part], bool(met[part])) for part in PROTOCOL_BAR_PARTS}
 
 
 def read_peer_rows(path: str, columns: tuple[str, ...] = PEER_COLUMNS) -> list[dict]:
@@ -273,7 +286,7 @@ def protocol_summary(rows: list[dict], peers: dict[str, list[dict]], reps: int =
     scores = {f"{name} {policy}": column(mine, keys[0])[:, None] for name, policy, mine, keys in described}
     estimates = interval_estimates(scores, reps=reps)
     lines = [
-        "| runs | policy | seeds | mean return [95% CI] | IQM return [95% CI] | min seed | mean progress "
+        "| runs | policy | seeds | mean return [95% bootstrap] | IQM return [95% bootstrap] | min seed | mean progress "
         "| mean \\|steer\\| | laps finished |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
@@ -299,11 +312,17 @@ def protocol_references(results_dir: str) -> str:
 
 
 def protocol_seeds(rows: list[dict], peers: dict[str, list[dict]]) -> str:
-    """Markdown: every run's row, both policies side by side (the variants), then the peers' runs."""
+    """Markdown: every run's row, both policies side by side (the variants), then the peers' runs. A run short of
+    PROTOCOL_CPU_HOURS says why: a Dreamer run was stopped by the non-finite guard (protocol_cpu_hours admits no
+    other), a peer ended at its step budget (ppo_peer.py --budget-steps) first."""
 
     def policy(row: dict, keys: tuple) -> str:
         ret, progress, steer = (float(row[key]) for key in keys)
         return f"{ret:.1f} / {progress:.2f} / {steer:.2f}"
+
+    def hours(row: dict, short: str) -> str:
+        spent = float(row["cpu_hours"])
+        return f"{spent:.2f}" + (f" ({short})" if spent < PROTOCOL_CPU_HOURS else "")
 
     lines = [
         "| variant | seed | updates | env steps | CPU-h | wall h | mean action: return / progress / \\|steer\\| "
@@ -311,7 +330,7 @@ def protocol_seeds(rows: list[dict], peers: dict[str, list[dict]]) -> str:
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     lines += [
-        f"| {r['variant']} | {r['seed']} | {r['updates']} | {r['env_steps']} | {float(r['cpu_hours']):.2f} "
+        f"| {r['variant']} | {r['seed']} | {r['updates']} | {r['env_steps']} | {hours(r, 'non-finite stop')} "
         f"| {float(r['wall_hours']):.2f} | {policy(r, PROTOCOL_POLICY_COLUMNS['mean-action'])} "
         f"| {float(r['mean_action_laps_finished']):.2f} | {float(r['mean_speed']):.1f} "
         f"| {policy(r, PROTOCOL_POLICY_COLUMNS['stochastic'])} "
@@ -319,7 +338,7 @@ def protocol_seeds(rows: list[dict], peers: dict[str, list[dict]]) -> str:
         for r in rows
     ]  # fmt: skip
     lines += [
-        f"| {PEER_NAMES[peer]} | {r['seed']} | {r['updates']} | {r['env_steps']} | {float(r['cpu_hours']):.2f} | "
+        f"| {PEER_NAMES[peer]} | {r['seed']} | {r['updates']} | {r['env_steps']} | {hours(r, 'step budget')} | "
         f"| deterministic: {policy(r, PEER_COLUMNS[-3:])} | | | | |"
         for peer, mine in peers.items() for r in mine
     ]  # fmt: skip
@@ -330,7 +349,7 @@ def protocol_bar_table(rows: list[dict]) -> str:
     """Markdown: per variant each part of the bar (protocol_bar), its value and whether it is met, and the verdict;
     a variant without all of PROTOCOL_SEEDS is provisional."""
     lines = [
-        "| variant | seeds | " + " | ".join(label for label, _ in PROTOCOL_BAR_PARTS.values()) + " | bar |",
+        "| variant | seeds | " + " | ".join(PROTOCOL_BAR_PARTS.values()) + " | bar |",
         "|---|---|" + "---|" * len(PROTOCOL_BAR_PARTS) + "---|",
     ]
     for variant in VARIANTS:
@@ -338,8 +357,8 @@ def protocol_bar_table(rows: list[dict]) -> str:
         if not mine:
             continue
         parts = protocol_bar(mine)
-        cells = [f"{value:{PROTOCOL_BAR_PARTS[part][1]}} {'met' if met else 'not met'}"
-                 for part, (value, met) in parts.items()]  # fmt: skip
+        # (shown whole, so that a value never reads as its threshold when it misses it: 799.996, not 800.00)
+        cells = [f"{value:.10g} {'met' if met else 'not met'}" for value, met in parts.values()]
         failed = [part for part, (_, met) in parts.items() if not met]
         verdict = "met" if not failed else "not met: " + ", ".join(failed)
         missing = sorted(set(PROTOCOL_SEEDS) - {int(r["seed"]) for r in mine})
@@ -388,12 +407,33 @@ def protocol_why(why_rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+COMPARISONS_TEXT = (
+    "\nThe comparisons (independent runs): the first beats the second when the exact permutation test's one-sided p "
+    "that it is higher is below 0.05 and Welch's t 95% interval of the difference lies above 0; it is behind when "
+    "the same holds the other way; otherwise no detectable difference. Each comparison is judged at 0.05 on its own "
+    "(no correction for their number, as fixed before the results).\n\n"
+)
+
+
+def comparison_verdict(claim: dict) -> str:
+    """The final protocol's word for a comparison (stats.two_group_claim's verdict): "beats" when the first is
+    higher by both the exact test (p < 0.05) and Welch's interval (above 0), "behind" when it is lower by both,
+    else "no detectable difference" (or too few runs to judge)."""
+    verdict = claim["verdict"]
+    if verdict == "supported":
+        return "beats"
+    if verdict.startswith("contradicted"):
+        return "behind"
+    return verdict if verdict.startswith("too few") else "no detectable difference"
+
+
 def protocol_comparisons(rows: list[dict], peers: dict[str, list[dict]]) -> str:
     """Markdown: the LSTM minus the GRU with each policy, and each variant with each policy minus each peer (its
-    deterministic policy), over independent runs: the difference of the means, its exact permutation test's
-    one-sided p and Welch's t 95% interval, and the verdict (stats.two_group_claim: with 6 runs a side or fewer no
-    bootstrap judges a claim). A comparison a side of which has no row is left out."""
-    from stats import describe, two_group_claim
+    deterministic policy), over independent runs: the difference of the means, Welch's t 95% interval, the exact
+    permutation test's one-sided p that the first is higher and that it is lower, and the verdict
+    (comparison_verdict: with 6 runs a side or fewer no bootstrap judges a claim). A comparison a side of which has
+    no row is left out."""
+    from stats import two_group_claim
 
     returns = {(variant, p): column([r for r in rows if r["variant"] == variant], keys[0])
                for variant in VARIANTS for p, keys in PROTOCOL_POLICY_COLUMNS.items()}  # fmt: skip
@@ -402,12 +442,15 @@ def protocol_comparisons(rows: list[dict], peers: dict[str, list[dict]]) -> str:
         (f"{POLICY_NAMES[p]}: {variant} - {PEER_NAMES[peer]}", returns[variant, p], column(theirs, "final_return"))
         for variant in VARIANTS for p in PROTOCOL_POLICY_COLUMNS for peer, theirs in peers.items()
     ]  # fmt: skip
-    lines = ["| comparison | difference of means | test (one-sided p of the claim) | the first is higher |",
-             "|---|---|---|---|"]  # fmt: skip
+    lines = ["| comparison | runs | difference of means | Welch t 95% | permutation p: higher / lower | verdict |",
+             "|---|---|---|---|---|---|"]  # fmt: skip
     for name, x, y in sides:
         if x.size and y.size:
             claim = two_group_claim(x, y)
-            lines.append(f"| {name} | {claim['estimate']:+.1f} | {describe(claim)} | {claim['verdict']} |")
+            low, high = claim["ci"]
+            interval = "none (a side has one run)" if np.isnan(low) else f"[{low:+.1f}, {high:+.1f}]"
+            lines.append(f"| {name} | {claim['sizes']} | {claim['estimate']:+.1f} | {interval} "
+                         f"| {claim['p']:.3f} / {claim['p_opposite']:.3f} | {comparison_verdict(claim)} |")
     return "\n".join(lines) + "\n"
 
 
@@ -427,10 +470,13 @@ def curve_means(curve: list[dict]) -> dict[int, tuple[float, int]]:
     return {n: (float(x.mean()), x.size) for n, x in returns.items()}
 
 
-def reached_at(means: dict[int, tuple[float, int]], target: float) -> str:
-    """The first snapshot whose mean return (curve_means) reaches `target`, or "not within" the last one."""
+def reached_at(means: dict[int, tuple[float, int]], target: float, seeds: int) -> str:
+    """The first snapshot whose mean return (curve_means) reaches `target`, with how many of the peer's `seeds` that
+    mean is over, or "not within" the last one."""
     reached = [n for n, (mean, _) in means.items() if mean >= target]
-    return steps_label(reached[0]) if reached else f"not within {steps_label(max(means))}"
+    if not reached:
+        return f"not within {steps_label(max(means))}"
+    return f"{steps_label(reached[0])} ({means[reached[0]][1]} of {seeds} seeds)"
 
 
 def sample_efficiency(rows: list[dict], curves: dict[str, list[dict]]) -> str:
@@ -438,6 +484,7 @@ def sample_efficiency(rows: list[dict], curves: dict[str, list[dict]]) -> str:
     snapshot after which each peer's mean return (curve_means: over the seeds that have it) first reaches that
     return (reached_at); then each peer's curve. "" while no peer has a curve."""
     means = {peer: curve_means(curve) for peer, curve in curves.items() if curve}
+    seeds = {peer: len({r["seed"] for r in curve}) for peer, curve in curves.items() if curve}
     if not means:
         return ""
     lines = [
@@ -457,7 +504,8 @@ def sample_efficiency(rows: list[dict], curves: dict[str, list[dict]]) -> str:
         for policy, keys in PROTOCOL_POLICY_COLUMNS.items():
             target = column(mine, keys[0]).mean()
             lines.append(f"| {variant} | {POLICY_NAMES[policy]} | {target:.1f} | {steps:,.0f} | "
-                         + " | ".join(reached_at(curve, target) for curve in means.values()) + " |")  # fmt: skip
+                         + " | ".join(reached_at(curve, target, seeds[peer]) for peer, curve in means.items())
+                         + " |")  # fmt: skip
     snapshots = sorted({n for curve in means.values() for n in curve})
     lines += ["", "| peer snapshot: mean return (seeds) | " + " | ".join(map(steps_label, snapshots)) + " |",
               "|---|" + "---|" * len(snapshots)]  # fmt: skip
@@ -544,8 +592,9 @@ def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
         f"of process CPU time; its final policy (latest.pt then) drove the {REPORT_TRACKS[1]} report tracks "
         f"{track_block(*REPORT_TRACKS)} sampled and with its mean action. The peers (benchmarks/ppo_peer.py, their "
         f"deterministic policy) had the same CPU time and tracks. Means and IQMs over seeds carry rliable's "
-        f"stratified-bootstrap 95% intervals (descriptions); the comparisons are judged by the exact permutation "
-        f"test and Welch's t interval (benchmarks/stats.py).\n\n"
+        f"stratified-bootstrap 95% intervals, which describe: over 5 seeds a percentile bootstrap is too narrow to "
+        f"judge, and the comparisons are judged by the exact permutation test and Welch's t interval "
+        f"(benchmarks/stats.py).\n\n"
     )
     if not rows:
         text = header + "No run measured yet.\n"
@@ -555,7 +604,7 @@ def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
             header + protocol_summary(rows, peers, reps) + "\n" + protocol_references(results_dir)
             + "\nThe bar, per variant over its seeds:\n\n"
             + protocol_bar_table(rows) + "\nEvery run:\n\n" + protocol_seeds(rows, peers)
-            + "\nThe comparisons (independent runs):\n\n" + protocol_comparisons(rows, peers)
+            + COMPARISONS_TEXT + protocol_comparisons(rows, peers)
             + sample_efficiency(rows, curves)
         )  # fmt: skip
         why_rows = read_table(os.path.join(results_dir, WHY_CSV), WHY_COLUMNS, WHY_ADVICE)

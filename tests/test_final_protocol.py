@@ -27,10 +27,12 @@ from test_learning_report import write_sitting  # noqa: E402
 BUDGET_SECONDS = 3600 * final_protocol.PROTOCOL_CPU_HOURS
 
 
-def fake_trial(trials, variant="lstm", seed=21, cpu_seconds=BUDGET_SECONDS + 36.0, updates=7421, steps=61234):
+def fake_trial(trials, variant="lstm", seed=21, cpu_seconds=BUDGET_SECONDS + 36.0, updates=7421, steps=61234,
+               nonfinite_in_a_row=0):  # fmt: skip
     """A single-stage trial as experiment.py leaves it under <storage>/trials: a run directory with event files of
     two sittings and a checkpoints/latest.pt that the real checkpoint reader accepts (no networks: the evaluation is
-    replaced by known readings), and a later run killed before its first checkpoint (ignored, as run_of does)."""
+    replaced by known readings; its agent's last `nonfinite_in_a_row` updates were non-finite, of the scripts'
+    --max-nonfinite-updates 20), and a later run killed before its first checkpoint (ignored, as run_of does)."""
     trial = os.path.join(trials, f"single_{variant}_seed{seed}")
     run = os.path.join(trial, f"multi_car_racing__{variant}_single__{seed}__1700000000")
     os.makedirs(os.path.join(run, "checkpoints"))
@@ -47,7 +49,8 @@ def fake_trial(trials, variant="lstm", seed=21, cpu_seconds=BUDGET_SECONDS + 36.
         writer = csv.DictWriter(f, fieldnames=sorted({key for row in logged for key in row}))
         writer.writeheader()
         writer.writerows(logged)
-    checkpoint = {"variant": variant, "args": {}, "rng": {}, "agents": [{"num_updates": updates}],
+    checkpoint = {"variant": variant, "args": {"max_nonfinite_updates": 20}, "rng": {},
+                  "agents": [{"num_updates": updates, "nonfinite_in_a_row": nonfinite_in_a_row}],
                   "counters": {"global_step": steps, "episode": 250},
                   "extra": {"cpu_seconds": cpu_seconds}}  # fmt: skip
     torch.save(checkpoint, os.path.join(run, "checkpoints", "latest.pt"))
@@ -185,10 +188,37 @@ def test_a_run_short_of_its_cpu_budget_is_refused_naming_it_and_how_far_it_got(t
                       "--results-dir", str(results)])  # fmt: skip
     assert str(exit_info.value) == f"learning.py: error: {message}"
     assert not (results / "learning_final.csv").exists()
+    fake_trial(trials, "gru", 22, cpu_seconds=2.5 * 3600, updates=5200, nonfinite_in_a_row=19)  # not yet stopped
+    with pytest.raises(ValueError, match="has spent 2.50 of its 3.1 CPU-hours"):
+        final_protocol.protocol_row("gru", 22, trials)
     for variant, seed, text in [("gru", 24, f"no run with checkpoints/latest.pt under {trials}/single_gru_seed24"),
                                 ("gru", 11, "the final protocol's seeds are 21, 22, 23, 24, 25, got 11")]:  # fmt: skip
         with pytest.raises(ValueError, match=re.escape(text)):
             final_protocol.protocol_row(variant, seed, trials)
+
+
+def test_a_run_the_non_finite_guard_stopped_counts_with_its_last_policy_and_the_report_says_so(tmp_path, monkeypatch):
+    trials, results = str(tmp_path / "trials"), tmp_path / "results"
+    results.mkdir()
+    fake_trial(trials, "gru", 23, cpu_seconds=2.5 * 3600, updates=5200, nonfinite_in_a_row=20)  # the guard's stop
+    monkeypatch.setattr(evaluate, "evaluate_checkpoint", known_readings)
+    row = final_protocol.protocol_row("gru", 23, trials)
+    assert row["cpu_hours"] == 2.5 and row["updates"] == 5200 and row["mean_action_return"] == pytest.approx(780.0)
+    final_protocol.write_protocol_row(row, str(results / "learning_final.csv"))
+    peer = {**{c: "1" for c in final_protocol.PEER_COLUMNS}, "variant": "ppo", "cpu_hours": "2.9"}
+    cells = [line.split("|")[5].strip() for line in final_protocol.protocol_seeds([row], {"ppo": [peer]}).splitlines()]
+    assert cells[2:] == ["2.50 (non-finite stop)", "2.90 (step budget)"]
+    assert final_protocol.protocol_seeds([EXPECTED], {}).splitlines()[2].split("|")[5].strip() == "3.11"
+
+
+def test_a_comparison_beats_is_behind_or_shows_no_detectable_difference():
+    from stats import two_group_claim
+
+    high, low = [800.0, 850.0, 900.0, 950.0, 1000.0], [100.0, 200.0, 300.0]  # every split but one is closer: p 1/56
+    assert final_protocol.comparison_verdict(two_group_claim(high, low)) == "beats"
+    assert final_protocol.comparison_verdict(two_group_claim(low, high)) == "behind"
+    assert final_protocol.comparison_verdict(two_group_claim(high[:3], high[1:4])) == "no detectable difference"
+    assert final_protocol.comparison_verdict(two_group_claim([900.0], low)) == "too few runs to judge (n = 1)"
 
 
 def protocol_row(variant, seed, mean_action=800.0, sampled=700.0, progress=0.875, steer=0.25):
@@ -254,11 +284,26 @@ def test_the_bar_is_met_only_when_every_part_is():
     assert failing_parts(changed(final_return=699.0)) == {"sampled return"}
     table = final_protocol.protocol_bar_table(low_seed + changed(variant="gru")).splitlines()
     lstm = next(line for line in table if line.startswith("| lstm |")).split("|")
-    assert lstm[4].strip() == "649.0 not met" and lstm[-2].strip() == "not met: every seed"
+    assert lstm[4].strip() == "649 not met" and lstm[-2].strip() == "not met: every seed"
     gru = next(line for line in table if line.startswith("| gru |")).split("|")
-    assert gru[3].strip() == "800.0 met" and gru[-2].strip() == "met"
+    assert gru[3].strip() == "800 met" and gru[-2].strip() == "met"
     partial = final_protocol.protocol_bar_table(passing[:3]).splitlines()[-1]  # seeds 24 and 25 not measured yet
     assert partial.endswith("| met (provisional: seeds 24, 25 missing) |")
+
+
+def test_a_mean_exactly_at_a_threshold_meets_it_and_a_value_just_short_never_reads_as_the_threshold():
+    seeds = final_protocol.PROTOCOL_SEEDS
+    returns, progress = (702.91, 846.15, 905.62, 753.47, 791.85), (0.8415, 0.823, 0.8707, 0.8526, 0.8622)
+    exact = [protocol_row("lstm", s, r, progress=p) for s, r, p in zip(seeds, returns, progress)]
+    assert np.mean(returns) < 800 and np.mean(progress) < 0.85  # (in floating point)
+    bar = final_protocol.protocol_bar(exact)  # the means are 800 and 0.85 exactly: both met
+    assert bar["return"] == (800.0, True) and bar["progress"] == (0.85, True)
+    short = [protocol_row("gru", s, r, sampled=699.98, progress=0.84998, steer=0.30002)
+             for s, r in zip(seeds, (799.98, 800.0, 800.0, 800.0, 799.98))]  # fmt: skip
+    assert failing_parts(short) == {"return", "progress", "steer", "sampled return"}
+    cells = final_protocol.protocol_bar_table(short).splitlines()[-1].split("|")[3:8]
+    assert [c.strip() for c in cells] == ["799.992 not met", "799.98 met", "0.84998 not met", "0.30002 not met",
+                                          "699.98 not met"]  # fmt: skip
 
 
 def permutation_p(x, y):
@@ -304,6 +349,9 @@ def test_the_report_gives_mean_iqm_and_exact_tests_on_the_same_tracks_only(tmp_p
         assert cells[2] == str(len(scores)) and cells[5] == f"{min(scores):.1f}"
         assert cells[3].startswith(f"{sum(scores) / len(scores):.1f} [")
         assert cells[4].startswith(f"{sum(middle) / len(middle):.1f} [")
+        for cell in cells[3:5]:  # each interval holds its estimate, within the seeds' range
+            point, low, high = map(float, re.fullmatch(r"(\S+) \[(\S+), (\S+)\]", cell).groups())
+            assert min(scores) <= low <= point <= high <= max(scores) and low < high
     assert "5000.0" not in text and "6000.0" not in text and "RecurrentPPO" not in text  # other tracks: out
     assert "Sample efficiency" not in text  # no peer has a curve
     comparisons = {line.split("|")[1].strip(): line.split("|") for line in text.splitlines()
@@ -313,14 +361,16 @@ def test_the_report_gives_mean_iqm_and_exact_tests_on_the_same_tracks_only(tmp_p
         if name.startswith("sampled"):
             x, y = [v / 2 for v in x], [v / 2 for v in y]
         welch = sps.ttest_ind(x, y, equal_var=False).confidence_interval(0.95)
-        p, (low, high) = permutation_p(x, y), (welch.low, welch.high)
-        assert float(comparisons[name][2]) == pytest.approx(np.mean(x) - np.mean(y), abs=0.05)
-        assert comparisons[name][3].strip() == (
-            f"permutation p={p:.3f}, Welch t 95% [{low:+.1f}, {high:+.1f}], n={len(x)}+{len(y)}"
-        )
-    # lstm - gru = +110 with the mean action: 77 of the 252 splits reach it (p = 0.306): weak, not a finding
+        (low, high), higher, lower = (welch.low, welch.high), permutation_p(x, y), permutation_p(y, x)
+        cells = [cell.strip() for cell in comparisons[name][2:-1]]
+        assert cells[0] == f"{len(x)}+{len(y)}" and float(cells[1]) == pytest.approx(np.mean(x) - np.mean(y), abs=0.05)
+        assert cells[2:4] == [f"[{low:+.1f}, {high:+.1f}]", f"{higher:.3f} / {lower:.3f}"]
+    # lstm - gru = +110 with the mean action: 77 of the 252 splits reach it (p = 0.306): no detectable difference
     assert permutation_p(lstm, gru) == pytest.approx(77 / 252)
-    assert comparisons["mean action: LSTM - GRU"][4].strip().startswith("weak (positive, but the exact test's p")
+    assert comparisons["mean action: LSTM - GRU"][6].strip() == "no detectable difference"
+    # gru - PPO = 350 - 600: 2 of the 56 splits are as low (p = 0.036) and Welch's interval [-474.5, -25.5]: behind
+    assert permutation_p(ppo, gru) == pytest.approx(2 / 56)
+    assert comparisons["mean action: gru - SB3 PPO"][6].strip() == "behind"
     with open(results / "ppo_peer.csv", "a") as f:  # more rows measured on other tracks: the same report
         f.write("ppo,24,4800,3900000,3.1,800.0,0.9,0.1,10200..10219\nppo,25,4800,3900000,3.1,900.0,0.9,0.1,\n")
     assert final_protocol.write_protocol_report(str(results), reps=200) == text
@@ -378,10 +428,10 @@ def test_the_sample_efficiency_table_gives_the_first_snapshot_whose_mean_reaches
         "| Dreamer | its policy | its final mean return | its mean env steps | SB3 PPO snapshots reach it at "
         "| RecurrentPPO snapshots reach it at |\n"
         "|---|---|---|---|---|---|\n"
-        "| lstm | mean action | 700.0 | 55,000 | 500k | not within 250k |\n"
-        "| lstm | sampled | 950.0 | 55,000 | 1M | not within 250k |\n"
+        "| lstm | mean action | 700.0 | 55,000 | 500k (2 of 2 seeds) | not within 250k |\n"
+        "| lstm | sampled | 950.0 | 55,000 | 1M (1 of 2 seeds) | not within 250k |\n"
         "| gru | mean action | 980.0 | 61,234 | not within 1M | not within 250k |\n"
-        "| gru | sampled | 300.0 | 61,234 | 100k | 100k |\n"
+        "| gru | sampled | 300.0 | 61,234 | 100k (2 of 2 seeds) | 100k (2 of 2 seeds) |\n"
         "\n"
         "| peer snapshot: mean return (seeds) | 50k | 100k | 250k | 500k | 1M |\n"
         "|---|---|---|---|---|---|\n"
