@@ -31,16 +31,21 @@ import numpy as np
 
 
 def interval_estimates(scores: dict[str, np.ndarray], reps: int = 2000, seed: int = 0) -> dict[str, dict]:
-    """Per method: ``iqm`` and ``mean`` with ``iqm_ci`` and ``mean_ci`` (stratified bootstrap, 95%)."""
+    """Per method: ``iqm`` and ``mean`` with ``iqm_ci`` and ``mean_ci`` (stratified bootstrap, 95%), the same for
+    the same `seed`; numpy's global random stream is left as it was."""
     from rliable import library as rly
     from rliable import metrics
 
     def aggregate(x: np.ndarray) -> np.ndarray:
         return np.array([metrics.aggregate_iqm(x), metrics.aggregate_mean(x)])
 
-    np.random.seed(seed)  # rliable draws its bootstrap samples from numpy's global stream
     scores = {k: np.asarray(v, float) for k, v in scores.items()}
-    points, intervals = rly.get_interval_estimates(scores, aggregate, reps=reps)
+    caller_state = np.random.get_state()  # rliable draws its bootstrap samples from numpy's global stream:
+    np.random.seed(seed)  # seeded here, and given back to the caller as it was
+    try:
+        points, intervals = rly.get_interval_estimates(scores, aggregate, reps=reps)
+    finally:
+        np.random.set_state(caller_state)
     return {
         name: {
             "iqm": float(points[name][0]), "mean": float(points[name][1]),

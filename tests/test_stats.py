@@ -127,3 +127,16 @@ def test_the_pairs_a_paired_t_test_needs():
         t = d.mean(axis=1) / (d.std(axis=1, ddof=1) / math.sqrt(n))
         crit = {10: 2.262157, 9: 2.306004}[n]  # t_.975 with 9 and 8 degrees of freedom
         assert lowest < np.mean(np.abs(t) > crit) < highest
+
+
+def test_the_bootstrap_intervals_repeat_for_a_seed_and_leave_the_callers_random_stream_alone():
+    scores = {"a": np.array([[100.0], [300.0], [250.0], [900.0], [640.0]])}
+    np.random.seed(123)
+    expected_next = np.random.random_sample()
+    np.random.seed(123)
+    first = stats.interval_estimates(scores, reps=200, seed=7)
+    assert np.random.random_sample() == expected_next  # the caller's stream goes on where it was
+    assert stats.interval_estimates(scores, reps=200, seed=7) == first
+    assert first["a"]["mean"] == 438.0 and first["a"]["iqm"] == (300.0 + 250.0 + 640.0) / 3
+    low, high = first["a"]["mean_ci"]
+    assert 100.0 <= low < 438.0 < high <= 900.0
