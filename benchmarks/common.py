@@ -47,8 +47,8 @@ def read_table(
 ) -> list[dict]:
     """The rows of the CSV at `path`, by column name (none while it does not exist or is empty). With `other_header`
     (advice for the user), a file whose header is not `columns` is refused as check_header refuses it: rows of two
-    protocols must not be read as one table. A column a row lacks or leaves empty takes its value in `defaults` (else
-    it stays as it is)."""
+    protocols must not be read as one table (without it, `columns` is not read). A column a row lacks or leaves empty
+    takes its value in `defaults` (else it stays as it is)."""
     if not os.path.exists(path):
         return []
     with open(path, newline="") as f:

@@ -40,6 +40,7 @@ import dataclasses
 import glob
 import importlib
 import json
+import math
 import os
 import shutil
 import signal
@@ -578,7 +579,8 @@ def progress_text(name: str, run: str | None, done: int, target: int | None,
     if run is None:
         return f"{name} (not started)"
     if budget is not None:
-        return f"{name} ({done} updates, {budget[0]:.2f} of {budget[1]:g} CPU-hours)"
+        spent = math.floor(budget[0] * 100) / 100  # rounded down: a trial short of its budget never reads as at it
+        return f"{name} ({done} updates, {spent:.2f} of {budget[1]:g} CPU-hours)"
     return f"{name} ({done} of {target} updates)"
 
 

@@ -8,11 +8,12 @@ protocol (``learning.py --final`` until commit 32c3b4c), whose ``learning_final.
   process CPU time over all its sittings (PROTOCOL_CPU_HOURS, the peers' budget), whatever its updates; found under
   ``<storage>/trials/single_<variant>_seed<S>/`` (``--runs-dir <storage>/trials``).
 * A run's row of ``learning_final.csv`` (protocol_row, PROTOCOL_COLUMNS): its final policy, latest.pt once the
-  budget is spent (refused before), driven sampled (``final_*``) and with its mean action (``mean_action_*``, with
-  the share of tracks whose lap it finished and its mean speed) on the 30 report tracks 10300..10329
-  (REPORT_TRACKS), which serve no choice; beside them its updates, env steps, CPU-hours and wall hours, and the best
-  and last-three-average returns of its own evaluations (tracks 10000..10009). ``learning_final.csv`` holds one
-  protocol's rows at a time: a file with the 8,000-update protocol's columns is refused.
+  budget is spent (refused before, unless the non-finite guard stopped the run: numerical_stop), driven sampled
+  (``final_*``) and with its mean action (``mean_action_*``, with the share of tracks whose lap it finished and its
+  mean speed) on the 30 report tracks 10300..10329 (REPORT_TRACKS), which serve no choice; beside them its updates,
+  env steps, CPU-hours and wall hours, and the best and last-three-average returns of its own evaluations (tracks
+  10000..10009). ``learning_final.csv`` holds one protocol's rows at a time: a file with the 8,000-update protocol's
+  columns is refused.
 * The peers (PROTOCOL_PEERS: ``ppo_peer.py --algo ppo`` and ``--algo recurrent-ppo``): their deterministic policy
   after the same CPU time on the same tracks: the rows of ``<peer>_peer.csv`` beside learning_final.csv whose
   ``tracks`` are the report tracks (protocol_peer_path, read_peer_rows); the rows of other tracks (the fresh tracks
@@ -137,13 +138,13 @@ def track_means(readings: dict[str, list[float]]) -> dict[str, float]:
 
 
 def protocol_row(variant: str, seed: int, runs_dir: str) -> dict:
-    """The final protocol's row of one run (PROTOCOL_COLUMNS): its latest.pt, refused unless the run has spent its
-    CPU budget (protocol_cpu_hours), driven on the REPORT_TRACKS sampled (``final_*``) and with its mean action
-    (``mean_action_*``), each a mean over the tracks of evaluate.py's readings; ``mean_action_laps_finished`` is
-    the share of tracks whose lap the mean action finished within the time limit and ``mean_speed`` the mean
-    action's mean speed. Beside them agent 0's updates, the env steps (``counters["global_step"]``), the CPU-hours
-    of latest.pt, the wall hours of the sittings (training_hours), and the best and last-three-average returns of
-    the run's own evaluations (eval_summary)."""
+    """The final protocol's row of one run (PROTOCOL_COLUMNS): its latest.pt, refused unless the run has spent its CPU
+    budget or the non-finite guard stopped it (protocol_cpu_hours), driven on the REPORT_TRACKS sampled (``final_*``)
+    and with its mean action (``mean_action_*``), each a mean over the tracks of evaluate.py's readings;
+    ``mean_action_laps_finished`` is the share of tracks whose lap the mean action finished within the time limit and
+    ``mean_speed`` the mean action's mean speed. Beside them agent 0's updates, the env steps
+    (``counters["global_step"]``), the CPU-hours of latest.pt, the wall hours of the sittings (training_hours), and the
+    best and last-three-average returns of the run's own evaluations (eval_summary)."""
     return protocol_measure(variant, seed, runs_dir)[0]
 
 
@@ -314,7 +315,8 @@ def protocol_references(results_dir: str) -> str:
 def protocol_seeds(rows: list[dict], peers: dict[str, list[dict]]) -> str:
     """Markdown: every run's row, both policies side by side (the variants), then the peers' runs. A run short of
     PROTOCOL_CPU_HOURS says why: a Dreamer run was stopped by the non-finite guard (protocol_cpu_hours admits no
-    other), a peer ended at its step budget (ppo_peer.py --budget-steps) first."""
+    other); a peer's is marked short of the budget (its step budget, ppo_peer.py --budget-steps, may have ended it
+    first, or it was measured with --evaluate-only before its budget was spent)."""
 
     def policy(row: dict, keys: tuple) -> str:
         ret, progress, steer = (float(row[key]) for key in keys)
@@ -338,7 +340,7 @@ def protocol_seeds(rows: list[dict], peers: dict[str, list[dict]]) -> str:
         for r in rows
     ]  # fmt: skip
     lines += [
-        f"| {PEER_NAMES[peer]} | {r['seed']} | {r['updates']} | {r['env_steps']} | {hours(r, 'step budget')} | "
+        f"| {PEER_NAMES[peer]} | {r['seed']} | {r['updates']} | {r['env_steps']} | {hours(r, 'short of the budget')} | "
         f"| deterministic: {policy(r, PEER_COLUMNS[-3:])} | | | | |"
         for peer, mine in peers.items() for r in mine
     ]  # fmt: skip
@@ -411,7 +413,7 @@ COMPARISONS_TEXT = (
     "\nThe comparisons (independent runs): the first beats the second when the exact permutation test's one-sided p "
     "that it is higher is below 0.05 and Welch's t 95% interval of the difference lies above 0; it is behind when "
     "the same holds the other way; otherwise no detectable difference. Each comparison is judged at 0.05 on its own "
-    "(no correction for their number, as fixed before the results).\n\n"
+    "(the protocol names no correction for their number).\n\n"
 )
 
 
@@ -630,7 +632,8 @@ SHIP_COLUMNS = ("variant", "candidate", "checkpoint", "return", "progress", "abs
 
 
 def ship_rows(variant: str, runs_dir: str, shipped: str, seeds: tuple[int, ...] = PROTOCOL_SEEDS) -> list[dict]:
-    """The shipped agent and every seed's final policy (refused, naming it, while a run is short of its budget)
+    """The shipped agent and every seed's final policy (refused, naming it, while a run is short of its budget and
+    not stopped by the non-finite guard: protocol_cpu_hours)
     driven with SHIP_POLICY on SHIP_TRACKS: one row each (SHIP_COLUMNS, ``shipped`` False), the shipped agent first.
     A missing shipped file is a candidate that lost already."""
     import evaluate

@@ -253,7 +253,6 @@ def eval_summary(curve: list[dict]) -> tuple[float, float]:
     return round(max(evals), 2), round(float(np.mean(evals[-3:])), 2)
 
 
-
 # --- Command line ----------------------------------------------------------------------------
 @dataclasses.dataclass
 class Args:
@@ -277,7 +276,8 @@ class Args:
     is learning_<variant>, else an experiment trial <variant>_single (e.g. --runs-dir runs/final/trials --seed 21)"""
     protocol_row: bool = False
     """mode: only measure the final protocol's run of --variant and --seed (21..25: the single-stage trial of
-    experiment.py --single-cpu-hours 3.1 under --runs-dir <storage>/trials, refused before its budget is spent),
+    experiment.py --single-cpu-hours 3.1 under --runs-dir <storage>/trials, refused before its budget is spent
+    unless the non-finite guard stopped it),
     its latest.pt sampled and with its mean action on the 30 report tracks 10300..10329: its row of
     learning_final.csv; its readings (benchmarks/readings.py: the same drives, its training logs, its model on
     sampled drives of those tracks, its view of the pedal) in learning_final_readings.csv; then learning_final.md"""

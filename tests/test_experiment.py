@@ -803,7 +803,6 @@ def test_a_cpu_hour_budget_ends_a_single_trial_whatever_its_updates(tmp_path, mo
     def train(*args):
         raise Trains
 
-    monkeypatch.setattr(experiment, "updates_of", lambda path, script: 4321)
     assert experiment.unfinished(spec, "single", ["gru"], [12]) == []  # the next stage may start from it
     monkeypatch.setattr(script, "main", train)
     spent["extra"]["cpu_seconds"] = 3.0 * 3600

@@ -207,7 +207,7 @@ def test_a_run_the_non_finite_guard_stopped_counts_with_its_last_policy_and_the_
     final_protocol.write_protocol_row(row, str(results / "learning_final.csv"))
     peer = {**{c: "1" for c in final_protocol.PEER_COLUMNS}, "variant": "ppo", "cpu_hours": "2.9"}
     cells = [line.split("|")[5].strip() for line in final_protocol.protocol_seeds([row], {"ppo": [peer]}).splitlines()]
-    assert cells[2:] == ["2.50 (non-finite stop)", "2.90 (step budget)"]
+    assert cells[2:] == ["2.50 (non-finite stop)", "2.90 (short of the budget)"]
     assert final_protocol.protocol_seeds([EXPECTED], {}).splitlines()[2].split("|")[5].strip() == "3.11"
 
 
