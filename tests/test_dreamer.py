@@ -428,7 +428,13 @@ def test_return_norm_scales_the_task_part_of_the_actor_objective(script, monkeyp
     agent.world_model.cont = _Constant(100.0)  # sigmoid(100) = 1 in float32
     agent.targets["critic"] = _Column(1, pair=True)
     agent.return_scale.fill_(scale_before)
-    actor_loss, _, metrics = agent.behaviour_losses(post, terminated)
+    actor_loss, critic_loss, metrics = agent.behaviour_losses(post, terminated)
+    # the critic learns the unscaled return R_i = r_i + gamma V(s_1) + alpha (-log pi_i), its Gaussian NLL at s_0
+    # weighted by the start's continue flag (the terminal fifth start counts 0)
+    returns = torch.tensor(rewards) + 0.5 * 1.0 + 0.2 * torch.arange(1.0, 6.0)
+    value_mean, value_std = agent.critic(features[:1])
+    nll = -torch.distributions.Normal(value_mean, value_std).log_prob(returns[None])
+    torch.testing.assert_close(critic_loss, (start_cont * nll).mean())
     torch.testing.assert_close(agent.return_scale, torch.tensor(scale_after), rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(metrics["return_scale"], torch.tensor(scale_after), rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(actor_loss, torch.tensor(loss), rtol=1e-5, atol=1e-5)
@@ -551,21 +557,50 @@ def test_soft_update_moves_targets_by_tau(script):
 
 def test_update_soft_updates_targets_and_targets_get_no_gradient(script):
     agent = script.Agent(tiny_args(script, tau=0.25))
-    # Hard copy at the start
-    for key, value in agent.targets["encoder"].state_dict().items():
-        assert torch.equal(value, agent.world_model.encoder.state_dict()[key])
-    old_target = {k: v.clone() for k, v in agent.targets["transition"].state_dict().items()}
+    sources = {"encoder": agent.world_model.encoder, "representation": agent.world_model.representation,
+               "transition": agent.world_model.transition, "critic": agent.critic}  # fmt: skip
+    for name, source in sources.items():  # a hard copy at the start
+        for key, value in agent.targets[name].state_dict().items():
+            assert torch.equal(value, source.state_dict()[key]), (name, key)
+    old = {name: {k: v.clone() for k, v in agent.targets[name].state_dict().items()} for name in sources}
     agent.update(random_batch())
-    new_source = agent.world_model.transition.state_dict()
-    for key, value in agent.targets["transition"].state_dict().items():
-        if value.dtype.is_floating_point:  # parameters and BatchNorm statistics alike
-            torch.testing.assert_close(value, old_target[key] + 0.25 * (new_source[key] - old_target[key]))
+    for name, source in sources.items():  # every target, the critic's too: old + tau (new - old)
+        new_source = source.state_dict()
+        for key, value in agent.targets[name].state_dict().items():
+            if value.dtype.is_floating_point:  # parameters and BatchNorm statistics alike
+                torch.testing.assert_close(value, old[name][key] + 0.25 * (new_source[key] - old[name][key]))
+        assert any(not torch.equal(v, old[name][k]) for k, v in agent.targets[name].state_dict().items()), name
     assert all(p.grad is None and not p.requires_grad for p in agent.targets.parameters())
 
 
+def test_the_critic_target_bootstraps_the_returns_unless_target_critic_is_off(script):
+    """The lambda-returns bootstrap from the slow critic (target_critic, the default): changing the online critic's
+    weights leaves them alone; with --no-target-critic they move with it."""
+    batch = random_batch()
+    obs = torch.as_tensor(batch["obs"])
+    args = [torch.as_tensor(batch[k]) for k in ("action", "reward")]
+    is_first, terminated = torch.as_tensor(batch["is_first"]), torch.as_tensor(batch["terminated"]).float()
+    returns = {}
+    for target_critic in (True, False):
+        returns[target_critic] = []
+        for shift in (0.0, 5.0):  # the same agent made twice, its online critic shifted the second time
+            torch.manual_seed(0)
+            agent = script.Agent(tiny_args(script, target_critic=target_critic))
+            _, _, post = agent.world_model_loss(obs, *args, is_first, terminated)
+            with torch.no_grad():
+                for p in agent.critic.parameters():
+                    p.add_(shift)
+            torch.manual_seed(1)
+            returns[target_critic].append(agent.behaviour_losses(post, terminated)[2]["imagined_return"].item())
+    assert returns[True][0] == returns[True][1]  # the target critic bootstraps: unmoved
+    assert returns[False][0] != pytest.approx(returns[False][1], abs=1e-3)
+
+
 def test_actor_loss_leaves_world_model_and_critic_alone(script):
+    """The actor's gradient comes through the imagined states (dynamics backpropagation): without the entropy term
+    (alpha 0) it is the only path, and it reaches the actor; the world model and the critic get none."""
     torch.manual_seed(0)
-    agent = script.Agent(tiny_args(script))
+    agent = script.Agent(tiny_args(script, entropy_coef=0.0))
     batch = random_batch()
     obs = torch.as_tensor(batch["obs"])
     args = [torch.as_tensor(batch[k]) for k in ("action", "reward")]
@@ -580,6 +615,34 @@ def test_actor_loss_leaves_world_model_and_critic_alone(script):
     assert all(p.grad is None for p in agent.critic.parameters())
     assert sum(p.grad.abs().sum() for p in actor_params) > 0
     assert all(p.requires_grad for p in agent.world_model.parameters())  # unfrozen again
+
+
+def test_the_kl_terms_train_the_prior_and_the_posterior_apart_and_add_up_to_the_model_loss(script):
+    """L_dyn = KL(sg(posterior) || prior) trains the transition (prior) only, L_rep = KL(posterior || sg(prior)) the
+    encoder and representation only (the stop-gradient sides are the target networks); on a one-step batch the
+    recurrence adds no other path. Without free bits the model loss is reconstruction + reward + continue +
+    kl_dyn_scale L_dyn + kl_rep_scale L_rep."""
+    torch.manual_seed(0)
+    agent = script.Agent(tiny_args(script, free_bits=0.0, kl_dyn_scale=0.5, kl_rep_scale=0.1))
+    batch = random_batch(length=1)
+    obs = torch.as_tensor(batch["obs"])
+    args = [torch.as_tensor(batch[k]) for k in ("action", "reward")]
+    is_first, terminated = torch.as_tensor(batch["is_first"]), torch.as_tensor(batch["terminated"]).float()
+    wm = agent.world_model
+
+    def grads(term: str) -> dict[str, float]:
+        wm.zero_grad(set_to_none=True)
+        _, metrics, _ = agent.world_model_loss(obs, *args, is_first, terminated)
+        metrics[term].backward()
+        return {name: sum(float(p.grad.abs().sum()) for p in getattr(wm, name).parameters() if p.grad is not None)
+                for name in ("encoder", "representation", "transition")}  # fmt: skip
+
+    dyn, rep = grads("kl_dyn"), grads("kl_rep")
+    assert dyn["transition"] > 0 and dyn["encoder"] == 0 and dyn["representation"] == 0
+    assert rep["transition"] == 0 and rep["encoder"] > 0 and rep["representation"] > 0
+    loss, metrics, _ = agent.world_model_loss(obs, *args, is_first, terminated)
+    parts = metrics["reconstruction"] + metrics["reward"] + metrics["continue"]
+    torch.testing.assert_close(loss, parts + 0.5 * metrics["kl_dyn"] + 0.1 * metrics["kl_rep"])
 
 
 def test_update_returns_the_logged_losses(script):
