@@ -1043,6 +1043,21 @@ def test_drive_races_reads_gas_brakes_speed_and_how_each_race_ended(script):
     assert readings["speed"][0, 0] > 10 and readings["speed"][0, 1] < 1e-3  # (physics leaves ~1e-7)
     assert readings["eliminated"][0].tolist() == [1.0, 1.0] and readings["lap_finished"][0].tolist() == [0.0, 0.0]
     assert readings["abs_steer"][0].tolist() == [1.0, 0.0] and readings["progress"][0, 0] > readings["progress"][0, 1]
+    # return and progress, against the env stepped directly on the same track with the same actions (no collector)
+    from envs import MultiCarRacing
+
+    env = MultiCarRacing(**script.env_kwargs(args, args.dead_zone_end))
+    env.reset(seed=args.eval_seed)
+    actions = {"car_0": np.array([1.0, 1.0], np.float32), "car_1": np.array([0.0, -1.0], np.float32)}
+    returns, progress = {agent: 0.0 for agent in actions}, {}
+    while env.agents:
+        _, rewards, _, _, infos = env.step({agent: actions[agent] for agent in env.agents})
+        for agent, reward in rewards.items():
+            returns[agent] += reward
+            progress[agent] = infos[agent]["progress"]
+    env.close()
+    np.testing.assert_allclose(readings["return"][0], [returns["car_0"], returns["car_1"]], rtol=1e-6, atol=1e-4)
+    np.testing.assert_allclose(readings["progress"][0], [progress["car_0"], progress["car_1"]], rtol=1e-6)
 
 
 class _ConstantDriver:

@@ -2,6 +2,7 @@
 
 import dataclasses
 
+import cv2
 import numpy as np
 import pytest
 
@@ -141,19 +142,26 @@ def test_dashboard_shows_speed_and_steering():
 
 
 def test_every_car_is_visible_in_every_view():
-    env = MultiCarRacing(num_agents=2)
-    obs, _ = env.reset(seed=1)
-    for _ in range(20):
-        obs, *_ = env.step({a: np.array([0.0, 0.0]) for a in env.agents})
-    ahead = max(env.agents, key=lambda a: env.car_state(a)["tile"])
-    behind = min(env.agents, key=lambda a: env.car_state(a)["tile"])
-    view = obs[behind][:84].astype(int)
-    blue = (view[..., 2] > 150) & (view[..., 0] < 60) & (view[..., 1] < 60)
-    red = (view[..., 0] > 150) & (view[..., 1] < 60) & (view[..., 2] < 60)
-    assert blue.sum() > 15  # the other car, drawn in front of this one
-    assert red.sum() > 15  # this car, in the ego colour
-    assert np.argwhere(blue)[:, 0].mean() < np.argwhere(red)[:, 0].mean()  # higher in the frame
-    assert ahead != behind
+    """In each grid order the car behind sees the car ahead drawn in front of itself; between the two orders each
+    car is once the one behind (so neither car's view is left unchecked)."""
+    behind_cars = set()
+    for grid in ([0, 1], [1, 0]):
+        env = MultiCarRacing(num_agents=2)
+        obs, _ = env.reset(seed=1, options={"grid": grid})
+        for _ in range(20):
+            obs, *_ = env.step({a: np.array([0.0, 0.0]) for a in env.agents})
+        ahead = max(env.agents, key=lambda a: env.car_state(a)["tile"])
+        behind = min(env.agents, key=lambda a: env.car_state(a)["tile"])
+        view = obs[behind][:84].astype(int)
+        blue = (view[..., 2] > 150) & (view[..., 0] < 60) & (view[..., 1] < 60)
+        red = (view[..., 0] > 150) & (view[..., 1] < 60) & (view[..., 2] < 60)
+        assert blue.sum() > 15  # the other car, drawn in front of this one
+        assert red.sum() > 15  # this car, in the ego colour
+        assert np.argwhere(blue)[:, 0].mean() < np.argwhere(red)[:, 0].mean()  # higher in the frame
+        assert ahead != behind
+        behind_cars.add(behind)
+        env.close()
+    assert behind_cars == {"car_0", "car_1"}
 
 
 def test_views_are_deterministic_and_per_car():
@@ -185,11 +193,18 @@ def test_ghost_is_drawn(fast_ghost):
 
 
 def test_rgb_array_frame_shows_track_and_views():
+    """The frame: the track on the left, and each car's own view (its observation, scaled) in its panel on the right,
+    car_0's on top."""
     env = MultiCarRacing(num_agents=2, render_mode="rgb_array")
     obs, _ = env.reset(seed=0)
     frame = env.render()
     assert frame.dtype == np.uint8 and frame.shape == (400, 600, 3)
     assert frame.std() > 10
+    for i, agent in enumerate(("car_0", "car_1")):
+        panel = frame[200 * i : 200 * i + 200, 400:600][20:].astype(float)  # (its top rows: the panel's label)
+        own = cv2.resize(obs[agent], (200, 200))[20:].astype(float)
+        other = cv2.resize(obs[f"car_{1 - i}"], (200, 200))[20:].astype(float)
+        assert np.abs(panel - own).mean() < 2 and np.abs(panel - other).mean() > 5
 
 
 def test_rgb_array_frame_keeps_its_size_when_a_car_leaves_the_race():

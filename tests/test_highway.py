@@ -92,10 +92,13 @@ def test_matches_highway_env_stepped_directly():
         for i, agent in enumerate(AGENTS):
             assert rewards[agent] == infos[agent]["agents_rewards"][i] == raw_rewards[i]
             assert raw_rewards[i] == raw_info["agents_rewards"][i]
+            assert terminations[agent] == bool(raw.unwrapped._is_terminated())  # highway-env's episode rule
             assert truncations[agent] == (raw_truncated and not terminations[agent])
             assert infos[agent]["crashed"] == raw.unwrapped.controlled_vehicles[i].crashed
         if not env.agents:
             break
+    for i, agent in enumerate(AGENTS):  # the last step's images too
+        np.testing.assert_array_equal(observations[agent][..., 0], raw_obs[i][0].T)
     env.close()
     raw.close()
 

@@ -395,6 +395,19 @@ def test_a_replay_that_cannot_fit_in_memory_is_refused(script, tmp_path, capsys)
 def test_available_memory_reads_meminfo_or_falls_back(monkeypatch):
     available, source = run_tools.available_memory()
     assert available > 0 and ("MemAvailable" in source or "cgroup" in source)
+    files = {"/proc/meminfo": "MemTotal: 9999 kB\nMemFree: 10 kB\nMemAvailable: 1000 kB\n"}
+
+    def served(path, *args, **kwargs):  # the files of a machine made up here
+        if path not in files:
+            raise OSError(f"{path}: not here")
+        return io.StringIO(files[path])
+
+    monkeypatch.setattr(run_tools, "open", served, raising=False)
+    assert run_tools.available_memory() == (1_024_000, "MemAvailable in /proc/meminfo")  # kB, and not MemTotal
+    files |= {"/sys/fs/cgroup/memory.max": "500000\n", "/sys/fs/cgroup/memory.current": "100000\n"}
+    assert run_tools.available_memory() == (400_000, "cgroup limit /sys/fs/cgroup/memory.max")  # the tighter
+    files["/sys/fs/cgroup/memory.max"] = "max\n"  # no limit: meminfo's
+    assert run_tools.available_memory() == (1_024_000, "MemAvailable in /proc/meminfo")
 
     def no_proc(path, *args, **kwargs):
         raise OSError(f"{path}: not here")

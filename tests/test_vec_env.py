@@ -211,10 +211,26 @@ def test_seed_reproduces_observations_and_race_k_gets_seed_plus_k():
     venv.close()
 
 
-def test_set_options_one_dict_per_race():
+def test_set_options_one_dict_per_race_used_by_the_next_reset_only():
+    """Race k resets with its own options (here the start grid: race 0 swaps the cars, race 1 keeps them), as the env
+    reset directly with them; the reset after it uses none."""
+    venv = make_vec_env("multi_car_racing", 2, 5, num_agents=2)
+    grids = [{"grid": [1, 0]}, {"grid": [0, 1]}]
+    venv.set_options(grids)
+    with_options = venv.reset()
+    venv.seed(5)
+    without = venv.reset()
+    venv.close()
+    for k, options in enumerate(grids):
+        env = MultiCarRacing(num_agents=2)
+        swapped, _ = env.reset(seed=5 + k, options=options)
+        plain, _ = env.reset(seed=5 + k)
+        env.close()
+        for j, agent in enumerate(("car_0", "car_1")):
+            np.testing.assert_array_equal(with_options[2 * k + j], swapped[agent])
+            np.testing.assert_array_equal(without[2 * k + j], plain[agent])
+    assert not np.array_equal(with_options[0], without[0])  # the swapped grid shows car_0 another view
     venv = MultiAgentVecEnv(scripted(num_races=2, num_agents=2))
-    venv.set_options([{"a": 1}, {"b": 2}])
-    assert venv._options == [{"a": 1}, {"a": 1}, {"b": 2}, {"b": 2}]
     with pytest.raises(ValueError, match="one options dict per race"):
         venv.set_options([{}, {}, {}])
     venv.close()
