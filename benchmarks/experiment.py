@@ -239,8 +239,12 @@ def trial_args(spec: dict, stage: str, variant: str, seed: int):
 
 def dreamer_trial(config: dict) -> None:
     """A single, ghost or control trial: the dreamer script's run, in chunks of report_every updates, each resumed
-    from latest.pt, with the latest evaluation reported to Tune after every chunk."""
+    from latest.pt, with the latest evaluation reported to Tune after every chunk. It ends when trial_progress says
+    it is finished: its updates made, its CPU budget spent, or the scripts' non-finite guard stopped the run (that
+    stop is kept: the run is not resumed, by this loop or by Tune's retries)."""
     from ray import tune
+
+    from utils.run import NumericalFault
 
     config = config["trial"]  # (the grid puts each trial's settings under "trial")
     spec = restored_spec(config["spec"])
@@ -249,23 +253,25 @@ def dreamer_trial(config: dict) -> None:
     directory = trial_dir(spec, stage, variant, seed)
     goal = (first or 0) + spec["report_every"]
     while True:
-        run = run_of(directory)
-        done = updates_of(os.path.join(run, "checkpoints", "latest.pt"), script) if run else 0
-        if run is None:
-            script.main(dataclasses.replace(args, total_updates=min(goal, target)))
-        elif done < min(goal, target):
-            script.main(script.Args(resume=run, total_updates=min(goal, target)), {"total_updates"})
-        run = run_of(directory)
-        tune.report(latest_metrics(run))
         # latest.pt, not progress.csv, says what is done: a kill between its save and the csv row (the end of a
         # race) leaves the csv a race behind, and the trial must still end
-        done = updates_of(os.path.join(run, "checkpoints", "latest.pt"), script)
+        run, done, end, _ = trial_progress(spec, stage, variant, seed)
+        if run is None or done < end:  # (a trial restored after its end trains no more)
+            try:
+                if run is None:
+                    script.main(dataclasses.replace(args, total_updates=min(goal, target)))
+                elif done < min(goal, target):
+                    script.main(script.Args(resume=run, total_updates=min(goal, target)), {"total_updates"})
+            except NumericalFault:  # the guard stopped the run and saved latest.pt: the trial ends with it
+                pass
+            run, done, end, _ = trial_progress(spec, stage, variant, seed)
+        tune.report(latest_metrics(run))
         chaos = spec["chaos_kill_after_updates"]
         marker = os.path.join(directory, "chaos_killed")
         if chaos and stage == "single" and done >= chaos and not os.path.exists(marker):
             open(marker, "w").close()
             os.kill(os.getpid(), signal.SIGKILL)  # a dying worker: Ray retries the trial, which resumes
-        if done >= target or spent_budget(os.path.join(run, "checkpoints", "latest.pt"), script, args):
+        if done >= end:
             return
         goal = max(goal, done) + spec["report_every"]
 
@@ -279,11 +285,11 @@ def cpu_hours_of(checkpoint: dict) -> float:
     return float((checkpoint.get("extra") or {}).get("cpu_seconds", 0.0)) / 3600
 
 
-def spent_budget(path: str, script, args) -> bool:
-    """Whether the run of checkpoint `path` has used its --cpu-hours-limit (no limit: never)."""
-    if args.cpu_hours_limit <= 0:
-        return False
-    return cpu_hours_of(script.load_checkpoint(path)) >= args.cpu_hours_limit
+def numerical_stop(checkpoint: dict) -> bool:
+    """Whether the run of `checkpoint` was stopped by the dreamer scripts' guard: an agent had
+    --max-nonfinite-updates updates in a row with a non-finite loss or gradient (utils.run.NumericalFault)."""
+    limit = (checkpoint.get("args") or {}).get("max_nonfinite_updates")
+    return limit is not None and any(agent.get("nonfinite_in_a_row", 0) >= limit for agent in checkpoint["agents"])
 
 
 def latest_metrics(run: str) -> dict:
@@ -545,7 +551,7 @@ def check_spec(spec: Spec) -> None:
 
 
 class Progress(NamedTuple):
-    """How far a dreamer trial got (trial_progress)."""
+    """How far a dreamer trial got (trial_progress). It is finished when `done` reaches `target`."""
 
     run: str | None
     """its run directory; None for a trial not started"""
@@ -553,7 +559,8 @@ class Progress(NamedTuple):
     """the updates its latest.pt has made"""
     target: int | None
     """the updates it ends at (None before it starts: a ghost or control trial's depends on the best.pt it will start
-    from); a trial that a CPU budget ends has NO_UPDATE_TARGET, or its own updates once the budget is spent"""
+    from); a trial that a CPU budget ends has NO_UPDATE_TARGET; a trial whose budget is spent, or whose run the
+    non-finite guard stopped (numerical_stop), has its own updates"""
     budget: tuple[float, float] | None = None
     """(CPU-hours its latest.pt has spent, the budget) of a trial that a CPU budget ends (--single-cpu-hours)"""
 
@@ -566,11 +573,10 @@ def trial_progress(spec: dict, kind: str, variant: str, seed: int) -> Progress:
     script, args, _, target = trial_args(spec, kind, variant, seed)
     checkpoint = script.load_checkpoint(os.path.join(run, "checkpoints", "latest.pt"))
     done = int(checkpoint["agents"][0]["num_updates"])
-    if args.cpu_hours_limit <= 0:
-        return Progress(run, done, target)
-    spent = cpu_hours_of(checkpoint)
-    # a spent CPU budget ends a trial, whatever its updates
-    return Progress(run, done, done if spent >= args.cpu_hours_limit else target, (spent, args.cpu_hours_limit))
+    budget = (cpu_hours_of(checkpoint), args.cpu_hours_limit) if args.cpu_hours_limit > 0 else None
+    # a spent CPU budget, or the guard's stop, ends a trial whatever its updates
+    finished = numerical_stop(checkpoint) or (budget is not None and budget[0] >= budget[1])
+    return Progress(run, done, done if finished else target, budget)
 
 
 def progress_text(name: str, run: str | None, done: int, target: int | None,

@@ -110,19 +110,12 @@ def protocol_run(variant: str, seed: int, runs_dir: str) -> str:
     return run
 
 
-def numerical_stop(checkpoint: dict) -> bool:
-    """Whether the run of `checkpoint` was stopped by the dreamer scripts' guard: an agent had
-    --max-nonfinite-updates updates in a row with a non-finite loss or gradient (utils.run.NumericalFault)."""
-    limit = checkpoint["args"].get("max_nonfinite_updates")
-    return limit is not None and any(agent.get("nonfinite_in_a_row", 0) >= limit for agent in checkpoint["agents"])
-
-
 def protocol_cpu_hours(run: str, checkpoint: dict) -> float:
     """The CPU-hours the run of `checkpoint` (its latest.pt) has spent over all its sittings. A run short of
     PROTOCOL_CPU_HOURS is refused (ValueError naming the run, its CPU-hours and updates: no final policy yet),
     unless the scripts' non-finite guard stopped it (numerical_stop): every seed counts, so its last policy is its
     final one, and its row's CPU-hours show it stopped short (protocol_seeds says so)."""
-    from experiment import cpu_hours_of
+    from experiment import cpu_hours_of, numerical_stop
 
     hours = cpu_hours_of(checkpoint)
     if hours < PROTOCOL_CPU_HOURS and not numerical_stop(checkpoint):

@@ -770,7 +770,8 @@ def test_a_trial_whose_checkpoint_is_done_ends_though_its_csv_is_a_race_behind(t
             raise RuntimeError("the trial did not end")
 
     monkeypatch.setattr(tune, "report", report)
-    monkeypatch.setattr(experiment, "updates_of", lambda path, script: 1000)  # the checkpoint: done
+    monkeypatch.setattr(dreamer_lstm_or_gru("gru"), "load_checkpoint",
+                        lambda path: {"agents": [{"num_updates": 1000}]})  # the checkpoint: done
     monkeypatch.setattr(experiment, "latest_metrics", lambda run: {"updates": 900})  # its csv: a race behind
     monkeypatch.setattr(dreamer_lstm_or_gru("gru"), "main", lambda *a: pytest.fail("nothing is left to train"))
     experiment.dreamer_trial({"trial": {"spec": spec, "stage": "single", "variant": "gru", "seed": 12}})
@@ -810,6 +811,41 @@ def test_a_cpu_hour_budget_ends_a_single_trial_whatever_its_updates(tmp_path, mo
         experiment.dreamer_trial({"trial": {"spec": spec, "stage": "single", "variant": "gru", "seed": 12}})
     assert experiment.unfinished(spec, "single", ["gru"], [12]) == ["single_gru_seed12 (4321 updates, 3.00 of 3.1 "
                                                                     "CPU-hours)"]  # fmt: skip
+
+
+def test_a_trial_whose_run_the_non_finite_guard_stopped_ends_with_it_and_is_not_resumed(tmp_path, monkeypatch):
+    """The scripts' guard stops a run (NumericalFault, latest.pt saved): the trial ends without an error (Tune would
+    resume it), counts as finished for the next stage, and a restored trial does not train it again."""
+    pytest.importorskip("ray")
+    from ray import tune
+
+    from utils.run import NumericalFault
+
+    spec = dataclasses.asdict(experiment.Spec(storage=str(tmp_path), single_cpu_hours=3.1, report_every=500))
+    script = experiment.trial_args(spec, "single", "lstm", 12)[0]
+    checkpoints = os.path.join(experiment.trial_dir(spec, "single", "lstm", 12), "run", "checkpoints")
+    saved = {"args": {"max_nonfinite_updates": 20}, "agents": [{"num_updates": 700, "nonfinite_in_a_row": 3}],
+             "extra": {"cpu_seconds": 0.5 * 3600}}  # fmt: skip
+    reports, trained = [], []
+
+    def main(*args):  # the guard's stop: 20 faulty updates in a row, latest.pt saved, then the error
+        trained.append(args)
+        os.makedirs(checkpoints, exist_ok=True)
+        open(os.path.join(checkpoints, "latest.pt"), "w").close()
+        saved["agents"][0].update(num_updates=740, nonfinite_in_a_row=20)
+        raise NumericalFault("car_0: 20 updates in a row had a non-finite loss or gradient")
+
+    monkeypatch.setattr(tune, "report", reports.append)
+    monkeypatch.setattr(experiment, "latest_metrics", lambda run: {"run": run})
+    monkeypatch.setattr(script, "load_checkpoint", lambda path: saved)
+    monkeypatch.setattr(script, "main", main)
+    trial = {"trial": {"spec": spec, "stage": "single", "variant": "lstm", "seed": 12}}
+    experiment.dreamer_trial(trial)  # returns: the trial ends with the stopped run
+    assert len(trained) == 1 and len(reports) == 1
+    assert experiment.unfinished(spec, "single", ["lstm"], [12]) == []  # finished for the next stage
+    monkeypatch.setattr(script, "main", lambda *a: pytest.fail("the guard's stop is kept: no more training"))
+    experiment.dreamer_trial(trial)  # restored (Tune's retry): nothing trained
+    assert len(reports) == 2
 
 
 GHOST_TABLE = ("variant,seed,updates_at_start,updates,return_before,return_after_ghost,return_after_control\n"

@@ -512,22 +512,19 @@ def test_the_shipped_agent_is_replaced_only_by_a_better_seed_on_the_screening_tr
         final_protocol.ship("lstm", str(tmp_path / "short"), str(shipped), results)
 
 
-def test_the_cpu_hours_of_a_checkpoint_are_its_cpu_seconds_over_3600_and_a_budget_is_spent_at_them(tmp_path):
-    """experiment.cpu_hours_of is what the protocol, the sweeps' --cpu-hours and a trial's end read."""
+def test_the_cpu_hours_of_a_checkpoint_are_its_cpu_seconds_over_3600_and_the_guards_stop_is_read_from_it():
+    """experiment.cpu_hours_of is what the protocol, the sweeps' --cpu-hours and a trial's end read; numerical_stop
+    reads the scripts' guard: --max-nonfinite-updates faulty updates in a row, of any agent."""
     import experiment
 
     assert experiment.cpu_hours_of({"extra": {"cpu_seconds": 7200.0}}) == 2.0
     assert experiment.cpu_hours_of({"extra": None}) == 0.0 == experiment.cpu_hours_of({})  # before it was recorded
-    path = str(tmp_path / "latest.pt")
-    torch.save({"extra": {"cpu_seconds": 3600.0 * 3.1}}, path)
 
-    class Script:
-        load_checkpoint = staticmethod(lambda p: torch.load(p, weights_only=True))
+    def checkpoint(*in_a_row):
+        return {"args": {"max_nonfinite_updates": 20}, "agents": [{"nonfinite_in_a_row": n} for n in in_a_row]}
 
-    def spent(limit):
-        return experiment.spent_budget(path, Script, type("A", (), {"cpu_hours_limit": limit}))
-
-    assert spent(3.1) and spent(3.0) and not spent(3.2) and not spent(0.0)  # 0: no limit
+    assert experiment.numerical_stop(checkpoint(0, 20)) and experiment.numerical_stop(checkpoint(21))
+    assert not experiment.numerical_stop(checkpoint(19, 0)) and not experiment.numerical_stop({"agents": [{}]})
 
 
 def test_the_readings_table_gives_each_variants_mean_lowest_and_highest_seed_leaving_nans_out():
