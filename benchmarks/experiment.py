@@ -255,17 +255,20 @@ def dreamer_trial(config: dict) -> None:
     while True:
         # latest.pt, not progress.csv, says what is done: a kill between its save and the csv row (the end of a
         # race) leaves the csv a race behind, and the trial must still end
-        run, done, end, _ = trial_progress(spec, stage, variant, seed)
-        if run is None or done < end:  # (a trial restored after its end trains no more)
+        progress = trial_progress(spec, stage, variant, seed)
+        if progress.run is None or progress.done < progress.target:  # (a trial restored after its end trains no more)
             try:
-                if run is None:
+                if progress.run is None:
                     script.main(dataclasses.replace(args, total_updates=min(goal, target)))
-                elif done < min(goal, target):
-                    script.main(script.Args(resume=run, total_updates=min(goal, target)), {"total_updates"})
-            except NumericalFault:  # the guard stopped the run and saved latest.pt: the trial ends with it
-                pass
-            run, done, end, _ = trial_progress(spec, stage, variant, seed)
-        tune.report(latest_metrics(run))
+                elif progress.done < min(goal, target):
+                    script.main(script.Args(resume=progress.run, total_updates=min(goal, target)), {"total_updates"})
+            except NumericalFault as fault:  # the guard stopped the run and saved latest.pt: the trial ends with it
+                print(f"experiment.py: {stage}_{variant}_seed{seed}: {fault}", flush=True)
+                if not trial_progress(spec, stage, variant, seed).stopped:  # (a stop its latest.pt does not show)
+                    raise
+            progress = trial_progress(spec, stage, variant, seed)
+        run, done, end = progress.run, progress.done, progress.target
+        tune.report({**latest_metrics(run), "numerical_stop": int(progress.stopped)})
         chaos = spec["chaos_kill_after_updates"]
         marker = os.path.join(directory, "chaos_killed")
         if chaos and stage == "single" and done >= chaos and not os.path.exists(marker):
@@ -563,6 +566,8 @@ class Progress(NamedTuple):
     non-finite guard stopped (numerical_stop), has its own updates"""
     budget: tuple[float, float] | None = None
     """(CPU-hours its latest.pt has spent, the budget) of a trial that a CPU budget ends (--single-cpu-hours)"""
+    stopped: bool = False
+    """whether the non-finite guard stopped its run (numerical_stop): finished, with its last policy"""
 
 
 def trial_progress(spec: dict, kind: str, variant: str, seed: int) -> Progress:
@@ -574,25 +579,28 @@ def trial_progress(spec: dict, kind: str, variant: str, seed: int) -> Progress:
     checkpoint = script.load_checkpoint(os.path.join(run, "checkpoints", "latest.pt"))
     done = int(checkpoint["agents"][0]["num_updates"])
     budget = (cpu_hours_of(checkpoint), args.cpu_hours_limit) if args.cpu_hours_limit > 0 else None
-    # a spent CPU budget, or the guard's stop, ends a trial whatever its updates
-    finished = numerical_stop(checkpoint) or (budget is not None and budget[0] >= budget[1])
-    return Progress(run, done, done if finished else target, budget)
+    stopped = numerical_stop(checkpoint)
+    finished = stopped or (budget is not None and budget[0] >= budget[1])  # either ends it, whatever its updates
+    return Progress(run, done, done if finished else target, budget, stopped)
 
 
 def progress_text(name: str, run: str | None, done: int, target: int | None,
-                  budget: tuple[float, float] | None = None) -> str:  # fmt: skip
-    """How far a trial got (trial_progress's fields): its updates against its target or its CPU budget."""
+                  budget: tuple[float, float] | None = None, stopped: bool = False) -> str:  # fmt: skip
+    """How far a trial got (trial_progress's fields): its updates against its target or its CPU budget, and whether
+    the non-finite guard stopped it."""
     if run is None:
         return f"{name} (not started)"
+    guard = ", stopped by the non-finite guard" if stopped else ""
     if budget is not None:
         spent = math.floor(budget[0] * 100) / 100  # rounded down: a trial short of its budget never reads as at it
-        return f"{name} ({done} updates, {spent:.2f} of {budget[1]:g} CPU-hours)"
-    return f"{name} ({done} of {target} updates)"
+        return f"{name} ({done} updates, {spent:.2f} of {budget[1]:g} CPU-hours{guard})"
+    return f"{name} ({done} of {target} updates{guard})"
 
 
 def unfinished(spec: dict, stage: str, variants, seeds) -> list[str]:
     """The trials of a single or ghost stage that the next stage starts from (the ghost stage's ghosts, not their
-    controls) and that have not made all their updates, each named with how far it got."""
+    controls) that are not finished (trial_progress: all their updates made, their CPU budget spent, or stopped by
+    the non-finite guard), each named with how far it got."""
     names = []
     for variant in variants:
         for seed in seeds:

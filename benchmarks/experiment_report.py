@@ -31,7 +31,8 @@ HEAD_COLUMNS = ("seed_pair", "races_trained", "eval_races", "lstm_wins", "gru_wi
 def aggregate(spec: Spec) -> str:
     """ghost_vs_control.csv, head_to_head.csv and experiment.md from the trials there are; returns the summary.
 
-    Only finished trials are results: a single, ghost or control trial that has made all its updates, and a seed
+    Only finished trials are results: a single, ghost or control trial that is finished (experiment.trial_progress:
+    its updates made, its CPU budget spent, or stopped by the non-finite guard; the summary names it), and a seed
     pair whose tournament after the last head-to-head race exists. head_to_head.csv lists every tournament held so
     far; the statistics use the finished pairs, and the summary names what it left out. An experiment without
     controls keeps the ghost_vs_control.csv in spec.results and says how its ghost agents made again compare."""
@@ -39,13 +40,16 @@ def aggregate(spec: Spec) -> str:
     os.makedirs(spec.results, exist_ok=True)
     plain, first = dataclasses.asdict(spec), common.TRACKS["fresh"][0]
     single_returns: dict[str, list[float]] = {}
-    ghost_rows, left_out = [], []
+    ghost_rows, left_out, stopped = [], [], []
     for variant in spec.variants:
         for seed in spec.seeds:
-            run, done, target, budget = trial_progress(plain, "single", variant, seed)
-            if run is None or done < target:
-                left_out.append(progress_text(f"single_{variant}_seed{seed}", run, done, target, budget))
+            progress = trial_progress(plain, "single", variant, seed)
+            run = progress.run
+            if run is None or progress.done < progress.target:
+                left_out.append(progress_text(f"single_{variant}_seed{seed}", *progress))
                 continue
+            if progress.stopped:  # finished by the non-finite guard: counted, and named in the summary
+                stopped.append(progress_text(f"single_{variant}_seed{seed}", *progress))
 
             def fresh(run: str, name: str) -> float:
                 return fresh_return(spec, os.path.join(run, "checkpoints", name), first)
@@ -56,6 +60,7 @@ def aggregate(spec: Spec) -> str:
                 left_out += [progress_text(f"{k}_{variant}_seed{seed}", *p) for k, p in stage.items()
                              if p.run is None or p.done < p.target]  # fmt: skip
                 continue
+            stopped += [progress_text(f"{k}_{variant}_seed{seed}", *p) for k, p in stage.items() if p.stopped]
             best = os.path.join(run, "checkpoints", "best.pt")
             start = updates_of(best, importlib.import_module(f"dreamer_{variant}"))
             ghost_rows.append({
@@ -94,6 +99,8 @@ def aggregate(spec: Spec) -> str:
         summary += second_policy_claims(spec, head_rows)
     if left_out:
         summary += "\nNot finished, left out of the statistics: " + "; ".join(left_out) + ".\n"
+    if stopped:
+        summary += "\nCounted with their last policies: " + "; ".join(stopped) + ".\n"
     with open(os.path.join(spec.results, "experiment.md"), "w") as f:
         f.write(summary)
     return summary

@@ -123,12 +123,13 @@ def report(sweep) -> str:
         with open(cache_path) as f:
             cache = json.load(f)
     rows, waiting = [], []
-    for config, run, done, hours, finished in sweeps.trial_status(sweep):
+    for config, run, done, hours, finished, stopped in sweeps.trial_status(sweep):
         name = f"{config['tag']}_{config['variant']}_seed{config['seed']}"
         if not finished:
             waiting.append(f"{name} ({sweeps.progress_text(sweep, run, done, hours)})")
             continue
-        updates = done if sweep.cpu_hours > 0 else sweep.updates  # a budget: latest.pt, where the budget ran out
+        # a budget, or the non-finite guard's stop: latest.pt, where the run ended
+        updates = done if sweep.cpu_hours > 0 or stopped else sweep.updates
         try:
             path = checkpoint_at(run, updates)
         except ValueError as e:  # e.g. updates per race that do not divide --updates: said, not measured

@@ -181,9 +181,10 @@ def save_fields(sweep: Sweep) -> None:
     os.replace(path + ".tmp", path)
 
 
-def trial_status(sweep: Sweep) -> list[tuple[dict, str | None, int, float, bool]]:
-    """(config, run directory or None, updates and CPU-hours its latest.pt holds, whether it is finished) of every
-    trial. A trial is finished at --updates updates, or with --cpu-hours once its budget is spent."""
+def trial_status(sweep: Sweep) -> list[tuple[dict, str | None, int, float, bool, bool]]:
+    """(config, run directory or None, updates and CPU-hours its latest.pt holds, whether it is finished, whether the
+    non-finite guard stopped it) of every trial. A trial is finished at --updates updates, or with --cpu-hours once
+    its budget is spent, or when the guard stopped its run (experiment.numerical_stop: its last policy counts)."""
     import importlib
 
     rows = []
@@ -191,13 +192,13 @@ def trial_status(sweep: Sweep) -> list[tuple[dict, str | None, int, float, bool]
         script = importlib.import_module(f"dreamer_{config['variant']}")
         directory = experiment.trial_dir(config["spec"], "single", config["variant"], config["seed"])
         run = experiment.run_of(directory)
-        done, hours = 0, 0.0
+        done, hours, stopped = 0, 0.0, False
         if run:
             checkpoint = script.load_checkpoint(os.path.join(run, "checkpoints", "latest.pt"))
             done = int(checkpoint["agents"][0]["num_updates"])
-            hours = experiment.cpu_hours_of(checkpoint)
-        finished = hours >= sweep.cpu_hours if sweep.cpu_hours > 0 else done >= sweep.updates
-        rows.append((config, run, done, hours, run is not None and finished))
+            hours, stopped = experiment.cpu_hours_of(checkpoint), experiment.numerical_stop(checkpoint)
+        finished = stopped or (hours >= sweep.cpu_hours if sweep.cpu_hours > 0 else done >= sweep.updates)
+        rows.append((config, run, done, hours, run is not None and finished, stopped))
     return rows
 
 
@@ -218,9 +219,9 @@ def progress_text(sweep: Sweep, run: str | None, done: int, hours: float) -> str
 def status_text(sweep: Sweep) -> str:
     """One line per trial: 'done (...)' once finished (a shell may count the ': done' lines), else progress_text."""
     lines = [f"sweep {sweep.name} ({os.path.join(sweep.storage, sweep.name)}), {budget_text(sweep)} per trial:"]
-    for config, run, done, hours, finished in trial_status(sweep):
+    for config, run, done, hours, finished, stopped in trial_status(sweep):
         name = f"{config['tag']}_{config['variant']}_seed{config['seed']}"
-        state = progress_text(sweep, run, done, hours)
+        state = progress_text(sweep, run, done, hours) + (", stopped by the non-finite guard" if stopped else "")
         lines.append(f"  {name}: {'done (' + state + ')' if finished else state}")
     return "\n".join(lines)
 

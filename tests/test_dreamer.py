@@ -556,6 +556,7 @@ def test_soft_update_moves_targets_by_tau(script):
 
 
 def test_update_soft_updates_targets_and_targets_get_no_gradient(script):
+    torch.manual_seed(0)
     agent = script.Agent(tiny_args(script, tau=0.25))
     sources = {"encoder": agent.world_model.encoder, "representation": agent.world_model.representation,
                "transition": agent.world_model.transition, "critic": agent.critic}  # fmt: skip
@@ -641,8 +642,8 @@ def test_the_kl_terms_train_the_prior_and_the_posterior_apart_and_add_up_to_the_
     assert dyn["transition"] > 0 and dyn["encoder"] == 0 and dyn["representation"] == 0
     assert rep["transition"] == 0 and rep["encoder"] > 0 and rep["representation"] > 0
     loss, metrics, _ = agent.world_model_loss(obs, *args, is_first, terminated)
-    parts = metrics["reconstruction"] + metrics["reward"] + metrics["continue"]
-    torch.testing.assert_close(loss, parts + 0.5 * metrics["kl_dyn"] + 0.1 * metrics["kl_rep"])
+    parts = metrics["reconstruction"] + metrics["reward"] + metrics["continue"]  # ~1.2e4, the KL part ~0.15
+    torch.testing.assert_close(loss - parts, 0.5 * metrics["kl_dyn"] + 0.1 * metrics["kl_rep"], rtol=0, atol=5e-3)
 
 
 def test_update_returns_the_logged_losses(script):

@@ -775,7 +775,7 @@ def test_a_trial_whose_checkpoint_is_done_ends_though_its_csv_is_a_race_behind(t
     monkeypatch.setattr(experiment, "latest_metrics", lambda run: {"updates": 900})  # its csv: a race behind
     monkeypatch.setattr(dreamer_lstm_or_gru("gru"), "main", lambda *a: pytest.fail("nothing is left to train"))
     experiment.dreamer_trial({"trial": {"spec": spec, "stage": "single", "variant": "gru", "seed": 12}})
-    assert reports == [{"updates": 900}]
+    assert reports == [{"updates": 900, "numerical_stop": 0}]
 
 
 def test_a_cpu_hour_budget_ends_a_single_trial_whatever_its_updates(tmp_path, monkeypatch):
@@ -841,11 +841,18 @@ def test_a_trial_whose_run_the_non_finite_guard_stopped_ends_with_it_and_is_not_
     monkeypatch.setattr(script, "main", main)
     trial = {"trial": {"spec": spec, "stage": "single", "variant": "lstm", "seed": 12}}
     experiment.dreamer_trial(trial)  # returns: the trial ends with the stopped run
-    assert len(trained) == 1 and len(reports) == 1
+    assert len(trained) == 1 and reports == [{"run": os.path.dirname(checkpoints), "numerical_stop": 1}]
     assert experiment.unfinished(spec, "single", ["lstm"], [12]) == []  # finished for the next stage
+    progress = experiment.trial_progress(spec, "single", "lstm", 12)
+    text = experiment.progress_text("t", *progress)
+    assert text == "t (740 updates, 0.50 of 3.1 CPU-hours, stopped by the non-finite guard)"
     monkeypatch.setattr(script, "main", lambda *a: pytest.fail("the guard's stop is kept: no more training"))
     experiment.dreamer_trial(trial)  # restored (Tune's retry): nothing trained
     assert len(reports) == 2
+    saved["agents"][0]["nonfinite_in_a_row"] = 0  # a NumericalFault that latest.pt does not show: not swallowed
+    monkeypatch.setattr(script, "main", lambda *a: (_ for _ in ()).throw(NumericalFault("not saved")))
+    with pytest.raises(NumericalFault, match="not saved"):
+        experiment.dreamer_trial(trial)
 
 
 GHOST_TABLE = ("variant,seed,updates_at_start,updates,return_before,return_after_ghost,return_after_control\n"

@@ -406,6 +406,8 @@ def test_available_memory_reads_meminfo_or_falls_back(monkeypatch):
     assert run_tools.available_memory() == (1_024_000, "MemAvailable in /proc/meminfo")  # kB, and not MemTotal
     files |= {"/sys/fs/cgroup/memory.max": "500000\n", "/sys/fs/cgroup/memory.current": "100000\n"}
     assert run_tools.available_memory() == (400_000, "cgroup limit /sys/fs/cgroup/memory.max")  # the tighter
+    files["/sys/fs/cgroup/memory.max"] = "5000000\n"  # a looser limit: meminfo's
+    assert run_tools.available_memory() == (1_024_000, "MemAvailable in /proc/meminfo")
     files["/sys/fs/cgroup/memory.max"] = "max\n"  # no limit: meminfo's
     assert run_tools.available_memory() == (1_024_000, "MemAvailable in /proc/meminfo")
 

@@ -95,8 +95,8 @@ def test_a_cpu_budget_ends_each_trial_and_the_report_reads_its_last_policy(finis
         sweeps.main(budget)
     finally:
         ray.shutdown()
-    [(config, run, done, hours, ended)] = sweeps.trial_status(budget)
-    assert ended and done < 50 and hours >= budget.cpu_hours
+    [(config, run, done, hours, ended, stopped)] = sweeps.trial_status(budget)
+    assert ended and not stopped and done < 50 and hours >= budget.cpu_hours
     assert f": done ({hours:.3f} of 1e-06 CPU-hours, {done} updates)" in sweeps.status_text(budget)
     unfinished = sweeps.status_text(dataclasses.replace(budget, cpu_hours=0.0))  # (the same trial: short of 50)
     assert unfinished.endswith(f": {done} of 50 updates, {hours:.3f} CPU-hours") and ": done" not in unfinished
