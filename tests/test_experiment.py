@@ -439,13 +439,18 @@ def test_the_aggregation_counts_finished_trials_only_and_replaces_old_tables(tmp
                            results=str(tmp_path / "results"))  # fmt: skip
     plain = dataclasses.asdict(spec)
     progress = {("single", "lstm", 11): 8000, ("single", "lstm", 12): 5000, ("single", "gru", 11): 8000,
-                ("single", "gru", 12): 8000, ("ghost", "lstm", 11): 9000, ("control", "lstm", 11): 9000,
+                ("single", "gru", 12): 6000, ("ghost", "lstm", 11): 9000, ("control", "lstm", 11): 9000,
                 ("ghost", "gru", 11): 9000, ("control", "gru", 11): 9000, ("ghost", "gru", 12): 7500,
                 ("control", "gru", 12): 9000}  # fmt: skip
+    stopped = {("single", "gru", 12)}  # the non-finite guard stopped it at 6,000 updates: finished, counted
     returns = {"single": 100.0, "ghost": 300.0, "control": 200.0}
-    monkeypatch.setattr(experiment_report, "trial_progress", lambda spec, kind, variant, seed: experiment.Progress(
-        f"/runs/{kind}_{variant}_{seed}" if (kind, variant, seed) in progress else None,
-        progress.get((kind, variant, seed), 0), 8000 if kind == "single" else 9000))  # fmt: skip
+
+    def trial_progress(spec, *trial):
+        done, target = progress.get(trial, 0), 8000 if trial[0] == "single" else 9000
+        return experiment.Progress(f"/runs/{'_'.join(map(str, trial))}" if trial in progress else None, done,
+                                   done if trial in stopped else target, None, trial in stopped)  # fmt: skip
+
+    monkeypatch.setattr(experiment_report, "trial_progress", trial_progress)
     monkeypatch.setattr(experiment_report, "updates_of", lambda path, script: 7000)  # every best.pt at 7,000 updates
 
     def fresh_return(spec, path, first):
@@ -477,6 +482,8 @@ def test_the_aggregation_counts_finished_trials_only_and_replaces_old_tables(tmp
     assert "the share of 1 seed pair(s)" in summary and "1.00 [1.00, 1.00]" in summary  # pair 11 only: 0.7 > 0.3
     assert ("Not finished, left out of the statistics: single_lstm_seed12 (5000 of 8000 updates); ghost_gru_seed12 "
             "(7500 of 9000 updates); race pair 12,12 (tournaments up to 50 of 100 races).") in summary
+    assert ("Counted with their last policies: single_gru_seed12 (6000 of 6000 updates, stopped by the non-finite "
+            "guard).") in summary
     progress.pop(("ghost", "gru", 12))  # trials not started yet are named too: a ghost trial, a race pair
     shutil.rmtree(experiment.trial_dir(plain, "race", "lstm_gru", 12))
     assert "ghost_gru_seed12 (not started); race pair 12,12 (not started)." in experiment_report.aggregate(spec)
