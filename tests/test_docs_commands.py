@@ -96,9 +96,34 @@ def test_code_fences_open_and_close_on_their_own_lines(page):
 def test_links_and_images_point_at_files_that_exist(page):
     text = open(os.path.join(ROOT, page)).read()
     targets = re.findall(r"\]\(([^)#\s]+)(?:#[^)]*)?\)", text)  # [text](path#anchor) and ![alt](path)
+    targets += re.findall(r'<img src="([^"]+)"', text)
     local = [t for t in targets if not re.match(r"[a-z]+://", t)]
     missing = [t for t in local if not os.path.exists(os.path.join(ROOT, os.path.dirname(page), t))]
     assert not missing, f"{page}: links to files that do not exist: {missing}"
+
+
+def heading_anchors(path: str) -> set[str]:
+    """The anchors GitHub gives a Markdown page's headings: lower case, spaces to hyphens, every character but
+    letters, digits, hyphens and underscores dropped (code fences' comment lines are not headings)."""
+    text = re.sub(r"```.*?```", "", open(path).read(), flags=re.S)
+    headings = re.findall(r"^#{1,6} +(.+?) *$", text, flags=re.M)
+    return {re.sub(r"[^\w\- ]", "", h.lower()).replace(" ", "-") for h in headings}
+
+
+def test_heading_anchors_follow_github():
+    page = os.path.join(ROOT, "docs", "deviations.md")
+    assert "the-cpu-preset---preset-cpu" in heading_anchors(page)  # "## The CPU preset (`--preset cpu`)"
+    assert "the-8000-update-protocols-results" in heading_anchors(os.path.join(ROOT, "docs", "learning.md"))
+
+
+@pytest.mark.parametrize("page", PAGES + LAB_PAGES)
+def test_links_to_a_section_name_one_that_exists(page):
+    text = open(os.path.join(ROOT, page)).read()
+    links = re.findall(r"\]\(([^)#\s]*)#([^)\s]+)\)", text)  # [text](path#anchor), [text](#anchor)
+    broken = [f"{target}#{anchor}" for target, anchor in links if not re.match(r"[a-z]+://", target)
+              and anchor not in heading_anchors(os.path.join(ROOT, os.path.dirname(page), target) if target
+                                         else os.path.join(ROOT, page))]
+    assert not broken, f"{page}: links to sections that do not exist: {broken}"
 
 
 # --- The reference pages (issue 41): short, and the lab notebook's notes in docs/lab/ ------------------------------
