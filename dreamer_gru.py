@@ -1,12 +1,13 @@
 # GRU-Dreamer (the Dreamer-v3 baseline) for decentralized multi-car racing, in one file (CleanRL style).
-# Method: "Deep Latent Competition V1: Decentralized multi-car racing with LSTM-Dreamer-V3" (DLC-v1).
+# Method: "Deep Latent Competition V1: Decentralized multi-car racing with LSTM-Dreamer-V3" (DLC-v1, "the paper"),
+# built on DreamerV3 (Hafner et al., "Mastering Diverse Domains through World Models", arXiv:2301.04104).
 # Usage: `python dreamer_gru.py --seed 1` (or `--preset cpu`), then `tensorboard --logdir runs`; docs/agent.md.
 """GRU-Dreamer: a world model learned from pixels, an actor and a critic trained in its imagination.
 
 Read top to bottom:
 
 1. Args ............ every hyperparameter (the paper's defaults) and the CPU preset
-2. Environment ..... the vectorized race (one slot per car), its options, dead-zone schedule, track seeds
+2. Environment ..... the racing env's options, dead-zone schedule, track seeds
 3. Networks ........ encoder, recurrent core (GRU with a learned initial h), posterior/prior,
                      decoder, reward, continue, actor, critic (paper appendix)
 4. Losses .......... Gaussian likelihoods and KL, free bits, lambda-returns (paper 3.8-3.9)
@@ -18,7 +19,8 @@ Read top to bottom:
 What is around the method is shared by both scripts: the collector that drives the cars and records their
 episodes (utils/collector.py: `Races`, frame preprocessing, what a race reads), and the run plumbing (arguments'
 checks, memory, run directory and resume, logging, atomic checkpoints and replay saves, the command line:
-utils/run.py, utils/checkpoint.py).
+utils/run.py, utils/checkpoint.py). utils/run.py reads this module's Args, PRESETS, VARIANT, LOG_SIGMA_RANGE,
+Replay, Agent, env_kwargs, dead_zone_at and main by name.
 
 Everything that depends on the recurrent cell is inside `RecurrentCell` (its state is a tuple of
 tensors; the model state fed to every head is z||h). The LSTM script (dreamer_lstm.py) is this file
@@ -433,8 +435,9 @@ class Decoder(nn.Module):
         return x.float().reshape(*lead, *x.shape[1:])  # float32 for the loss, also under --amp
 
     def sigma(self) -> torch.Tensor:
-        # A floor at 0 with log sigma starting at 0 fixes sigma = 1: the pixel term keeps its weight
-        # against the KL instead of growing as the reconstructions sharpen (docs/deviations.md, --preset cpu).
+        # A floor at 0 with log sigma starting at 0 fixes sigma = 1: pixels lie in [-0.5, 0.5], so a pixel's squared
+        # error is at most 1 and the likelihood always pulls log sigma down onto the floor. The pixel term keeps its
+        # weight against the KL instead of growing as the reconstructions sharpen (docs/deviations.md, --preset cpu).
         return self.log_sigma.clamp(self.min_log_sigma, LOG_SIGMA_RANGE[1]).exp()
 
 
@@ -895,7 +898,9 @@ class Agent:
         reward_loss = beta_nll(rewards, reward_mean.squeeze(-1), reward_std.squeeze(-1), args.reward_nll_beta)
         cont_logits = wm.cont(features).float().squeeze(-1)
         cont_nll = F.binary_cross_entropy_with_logits(cont_logits, 1.0 - terminated, reduction="none")
-        # Stop-gradient sides of the KL terms come from the target networks, computed once per update.
+        # The KL terms' stop-gradient sides, sg(.), come from slowly updated copies of the encoder, posterior and
+        # prior (the paper's target networks; DreamerV3 uses the live networks under a stop-gradient). L_dyn pulls the
+        # prior toward the target posterior, L_rep the posterior toward the target prior, both at the live h.
         with torch.no_grad():
             target_embed = self.targets["encoder"](obs)
             target_representation = self.targets["representation"]
@@ -956,13 +961,14 @@ class Agent:
             values = bootstrap(features[1:])[0]  # V(s_1..s_H)
             weights = discount_weights(continues, args.gamma, start_cont)
             returns, objective = self.returns_and_objective(rewards, continues, values, log_pi, samples)
-            actor_loss = -(weights * objective).mean()
+            actor_loss = -(weights * objective).mean()  # its gradient flows back through the imagined dynamics
         wm.train()
         self.actor.train()
         value_mean, value_std = self.critic(features[:-1].detach())  # V(s_0..s_{H-1}) on detached states
         critic_loss = (weights * gaussian_nll(returns.detach(), value_mean, value_std)).mean()
         metrics = {
-            "actor": actor_loss, "critic": critic_loss, "entropy": -log_pi.mean(), "actor_std": stds.mean(),
+            "actor": actor_loss, "critic": critic_loss, "actor_std": stds.mean(),
+            "entropy": -log_pi.mean(),  # -log pi with the extreme-action term: an entropy estimate plus that penalty
             "imagined_return": returns.mean(),
         }  # fmt: skip
         if args.return_norm:
