@@ -884,6 +884,41 @@ def single_run(request, tmp_path_factory):
     return script, run_dir
 
 
+def test_an_evaluation_logs_each_cars_means_over_the_tracks(monkeypatch):
+    """evaluate_and_keep_best logs per car the mean over the held-out tracks of what drive_races measured (made-up
+    readings of 3 tracks x 2 cars, means by hand), and leaves best.pt alone when the return is not the best."""
+    from types import SimpleNamespace
+
+    from utils import run as run_module
+    from utils.collector import READINGS
+
+    readings = {key: np.zeros((3, 2)) for key in READINGS}
+    readings["return"] = np.array([[100.0, -50.0], [200.0, 30.0], [600.0, 80.0]])
+    readings["progress"] = np.array([[0.2, 0.1], [0.4, 0.3], [1.0, 0.5]])
+    readings["abs_steer"] = np.array([[0.1, 0.9], [0.2, 0.6], [0.3, 0.3]])
+    readings["speed"] = np.array([[40.0, 10.0], [50.0, 20.0], [90.0, 60.0]])
+    readings["lap_finished"] = np.array([[0.0, 0.0], [0.0, 0.0], [1.0, 0.0]])
+    readings["eliminated"] = np.array([[1.0, 1.0], [1.0, 0.0], [0.0, 0.0]])
+    monkeypatch.setattr(run_module, "drive_races", lambda agents, args, envs: readings)
+    logged = {}
+    run = SimpleNamespace(
+        args=SimpleNamespace(env_id="multi_car_racing", eval_policy="mean-action", eval_checkpoints=False),
+        counters={"episode": 5, "global_step": 900, "best_eval_return": 1e9}, method=None, eval_envs=object(),
+        agents=[SimpleNamespace(num_updates=7)] * 2, logger=SimpleNamespace(record=logged.__setitem__),
+        print=lambda message: None, ghosts={}, manifests=[], wins=[[], []], cpu_seconds=lambda: 1.0,
+        checkpoint_dir="/nonexistent",  # best.pt would be written here: the return is not the best
+    )  # fmt: skip
+    run_module.evaluate_and_keep_best(run)
+    expected = {
+        "episodic_return": (300.0, 20.0), "progress": (1.6 / 3, 0.3), "mean_abs_steer": (0.2, 0.6),
+        "speed": (60.0, 30.0), "laps_finished": (1 / 3, 0.0), "eliminated": (2 / 3, 1 / 3),
+    }  # fmt: skip
+    assert set(logged) == {f"car_{j}/eval/{tag}" for tag in expected for j in (0, 1)}
+    for tag, values in expected.items():
+        for j, value in enumerate(values):
+            assert logged[f"car_{j}/eval/{tag}"] == pytest.approx(value), (tag, j)
+
+
 def test_single_stage_writes_scalars_video_and_checkpoints(single_run):
     script, run_dir = single_run
     scalars, images = read_events(run_dir)
@@ -899,6 +934,8 @@ def test_single_stage_writes_scalars_video_and_checkpoints(single_run):
     assert {"car_0/eval/episodic_return", "car_0/eval/progress", "car_0/eval/mean_abs_steer"} <= set(scalars)
     assert all(0.0 <= value <= 1.0 for _, value in scalars["car_0/eval/progress"])
     assert all(0.0 <= value <= 1.0 for _, value in scalars["car_0/eval/mean_abs_steer"])
+    for tag in ("speed", "laps_finished", "eliminated"):  # what they hold: test_an_evaluation_logs_...
+        assert len(scalars[f"car_0/eval/{tag}"]) == len(scalars["car_0/eval/progress"]), tag
     for name in ("latest.pt", "best.pt"):
         checkpoint = torch.load(os.path.join(run_dir, "checkpoints", name), weights_only=True)
         assert checkpoint["variant"] == script.VARIANT and len(checkpoint["agents"]) == 1

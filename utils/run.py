@@ -570,8 +570,11 @@ def evaluate_and_keep_best(run: Run) -> None:
     for j in range(len(run.agents)):
         run.logger.record(f"car_{j}/eval/episodic_return", float(returns[:, j].mean()))
         run.logger.record(f"car_{j}/eval/progress", float(progress[:, j].mean()))
-        if args.env_id == "multi_car_racing":  # highway-env's action 0 is the acceleration
+        if args.env_id == "multi_car_racing":  # highway-env's action 0 is the acceleration, and it has no laps
             run.logger.record(f"car_{j}/eval/mean_abs_steer", float(abs_steer[:, j].mean()))
+            run.logger.record(f"car_{j}/eval/speed", float(readings["speed"][:, j].mean()))  # racing, not cruising
+            run.logger.record(f"car_{j}/eval/laps_finished", float(readings["lap_finished"][:, j].mean()))
+            run.logger.record(f"car_{j}/eval/eliminated", float(readings["eliminated"][:, j].mean()))
     updates = run.agents[0].num_updates
     run.print(f"evaluation after race {counters['episode']} ({updates} updates, {counters['global_step']} env steps):"
               f" return {returns.mean():.1f}, progress {progress.mean():.2f}, |steer| {abs_steer.mean():.2f}"
