@@ -483,7 +483,7 @@ def sample_efficiency(rows: list[dict], curves: dict[str, list[dict]]) -> str:
     if not means:
         return ""
     lines = [
-        "\nSample efficiency: the peers' snapshots (model_<N>.zip, kept when their env steps first passed N), their "
+        "\nSample efficiency: the peers' snapshots (model_<N>.zip, the weights that took their N-th env step), their "
         "deterministic policy on the same report tracks, against the Dreamer's final mean return over its seeds. A "
         "peer reaches it at the first N whose mean return over the seeds that have that snapshot is at least as "
         "high.\n",

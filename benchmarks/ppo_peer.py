@@ -19,10 +19,11 @@ rate 3e-5, GELU (inert: that policy has no hidden layer), log-std init -2. The e
 (``dreamer_lstm.Args``' defaults at their final dead zone, -0.5). Each gets the final protocol's budget per Dreamer
 run (common.PROTOCOL_CPU_HOURS, 3.1) on one torch thread, counted as this process's CPU time
 (``--cpu-hours`` over all sittings), so that other processes on the same cores neither shorten nor lengthen it.
-While it trains, the model and its VecNormalize statistics are kept as ``model_<N>.zip`` and
-``vecnormalize_<N>.pkl`` when the env steps first pass N = 50k, 100k, 250k, 500k, 1M (sample efficiency);
-``--curve`` evaluates every snapshot on the given tracks and writes a row per snapshot (its N, the env steps it had
-taken, its tracks) to ``benchmarks/results/<variant>_peer_curve.csv``.
+While it trains, the weights in force at env step N = 50k, 100k, 250k, 500k, 1M (the policy that takes the N-th
+env step; sample efficiency) and their VecNormalize statistics are kept as ``model_<N>.zip`` and
+``vecnormalize_<N>.pkl``; ``--curve`` evaluates every snapshot on the given tracks and writes a row per snapshot (its
+N, the env steps its weights were trained on, at most N, its tracks) to ``benchmarks/results/<variant>_peer_curve.csv``.
+A later sitting continues a run with new seeds (``sitting_seed``): it races other tracks than the sittings before.
 
 A model is evaluated with its deterministic policy (an LSTM's state carried from step to step and reset at each
 race's start) on tracks ``--first-track`` .. + ``--tracks`` - 1: by default the final protocol's 30 report tracks
@@ -61,7 +62,7 @@ COLUMNS = (
     "variant", "seed", "updates", "env_steps", "cpu_hours", "final_return", "final_progress", "final_mean_abs_steer",
     "tracks",
 )  # fmt: skip
-# a snapshot's row: its N (model_<N>.zip), the env steps it had taken, its deterministic policy on `tracks`
+# a snapshot's row: its N (model_<N>.zip), the env steps its weights were trained on, its deterministic policy on `tracks`
 CURVE_COLUMNS = ("variant", "seed", "snapshot", "env_steps", "return", "progress", "mean_abs_steer", "tracks")
 # rl-baselines3-zoo, hyperparams/ppo.yml, CarRacing-v3
 ZOO = dict(
@@ -175,6 +176,13 @@ def write_json(data: dict, path: str) -> None:
         json.dump(data, f)
 
 
+def sitting_seed(seed: int, env_steps: int) -> int:
+    """The seed of a sitting that continues run `seed` at `env_steps`. Loading a model reseeds it with the run's seed
+    (SB3's set_random_seed: python, numpy, torch, the action space and the envs' next reset), so without a seed of its
+    own every later sitting would race the first sitting's tracks again, with the same noise."""
+    return int(np.random.SeedSequence([seed, env_steps]).generate_state(1)[0] % 2**31)
+
+
 def snapshot_paths(run_dir: str) -> list[tuple[int, str]]:
     """The run's snapshots (threshold, model_<threshold>.zip), by threshold."""
     found = glob.glob(os.path.join(run_dir, "model_*.zip"))
@@ -188,13 +196,13 @@ def train(
 ) -> dict:  # fmt: skip
     """Train `algo` until the run has used `hours` of CPU time in all (time.process_time: every thread of this
     process, the envs included; or until `budget_steps` PPO steps), saving model, normaliser and record every
-    `save_every` rollouts and at the end (atomic renames); a later sitting continues from them, with PPO's learning
-    rate still decaying over the whole budget. At the first rollout start (weights trained on every rollout before)
-    or the end of a sitting at which the env steps (PPO steps x frame skip) have passed a threshold of `snapshots`,
-    the model and normaliser are kept as model_<threshold>.zip and vecnormalize_<threshold>.pkl (the zip, written
-    last, carries the steps actually taken); a snapshot on disk is never rewritten, so each is written once over
-    every sitting. Returns the record: env steps, updates (SB3's ``_n_updates``, epochs over a rollout of
-    n_steps * n_envs / batch_size gradient steps each) and CPU hours."""
+    `save_every` rollouts and at the end (atomic renames); a later sitting continues from them with its own seeds
+    (sitting_seed), PPO's learning rate still decaying over the whole budget. The weights change only between
+    rollouts: at a rollout's start, every threshold of `snapshots` the rollout's env steps (PPO steps x frame skip)
+    will reach gets these weights and the normaliser as model_<threshold>.zip and vecnormalize_<threshold>.pkl (the
+    zip, written last, carries the steps they were trained on); a snapshot on disk is never rewritten, so each is
+    written once over every sitting. Returns the record: env steps, updates (SB3's ``_n_updates``, epochs over a
+    rollout of n_steps * n_envs / batch_size gradient steps each) and CPU hours."""
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.vec_env import VecNormalize
 
@@ -210,6 +218,7 @@ def train(
             record["cpu_hours"] = record.pop("hours")
         norm = VecNormalize.load(paths["vecnormalize.pkl"], venv)
         model = algo_class(algo).load(paths["model.zip"], env=norm, device="cpu", tensorboard_log=run_dir)
+        model.set_random_seed(sitting_seed(seed, record["env_steps"]))  # (load reseeded it with `seed`)
         print(
             f"continuing from {paths['model.zip']} at {record['env_steps']} env steps, {record['cpu_hours']:.2f} CPU-h"
         )
@@ -231,14 +240,17 @@ def train(
         print(f"{record['env_steps']} env steps, {record['updates']} epochs ({steps} gradient steps), "
               f"{record['cpu_hours']:.2f} CPU-h")  # fmt: skip
 
-    def snapshot() -> None:
+    rollout_env_steps = config["n_steps"] * config["n_envs"] * config["frame_skip"]
+
+    def snapshot(ahead: int) -> None:
+        """Keep the weights for every threshold up to `ahead` env steps past the steps taken."""
         env_steps = int(model.num_timesteps) * config["frame_skip"]
         for threshold in sorted(snapshots):
             path = os.path.join(run_dir, f"model_{threshold}.zip")
-            if threshold <= env_steps and not os.path.exists(path):
+            if threshold <= env_steps + ahead and not os.path.exists(path):
                 atomic_save(norm.save, os.path.join(run_dir, f"vecnormalize_{threshold}.pkl"))
                 atomic_save(model.save, path)
-                print(f"snapshot {path} at {env_steps} env steps")
+                print(f"snapshot {path}: the weights trained on {env_steps} env steps")
 
     class Budget(BaseCallback):
         """Stop at the sitting's CPU-time budget; keep snapshots; save every `save_every` rollouts."""
@@ -247,7 +259,7 @@ def train(
             return time.process_time() - started < 3600 * hours
 
         def _on_rollout_start(self) -> None:
-            snapshot()
+            snapshot(ahead=rollout_env_steps)  # these weights take the rollout's env steps
 
         def _on_rollout_end(self) -> None:
             self.rollouts = getattr(self, "rollouts", 0) + 1
@@ -258,7 +270,7 @@ def train(
     if remaining > 0 and hours > 0:
         # PPO's learning rate 1e-4 * (1 - steps / budget) across sittings (SB3's progress_remaining)
         model.learn(remaining, callback=Budget(), reset_num_timesteps=False, tb_log_name=variant)
-    snapshot()
+    snapshot(ahead=0)
     save()
     return record
 
@@ -322,7 +334,7 @@ def write_row(row: dict, path: str = os.path.join(RESULTS, "ppo_peer.csv")) -> N
 def curve(algo: str, seed: int, run_dir: str, first_track: int, tracks: int, path: str) -> list[dict]:
     """Evaluate every snapshot of the run (model_<threshold>.zip) on the same tracks and write one row per snapshot
     to `path` (replacing the seed's earlier rows on those tracks): snapshot is its threshold, env_steps the steps
-    it had taken."""
+    its weights were trained on."""
     variant, config = ALGOS[algo]
     rows = []
     for threshold, snapshot in snapshot_paths(run_dir):

@@ -128,7 +128,7 @@ def test_a_recurrent_run_resumes_writes_its_row_and_its_curve(tmp_path, monkeypa
     assert files == [
         "model.zip", "model_100.zip", "model_300.zip", "record.json", "vecnormalize.pkl", "vecnormalize_100.pkl",
         "vecnormalize_300.pkl",
-    ]  # fmt: skip  (100: at the end of the first sitting, 128 steps; 300: at the rollout start at 384)
+    ]  # fmt: skip  (100: the weights of the rollout over env steps 1..128; 300: of the rollout over 257..384)
     seen = []
     monkeypatch.setattr(ppo_peer, "evaluate", lambda model, first, n: seen.append((model.num_timesteps, first, n))
                         or {"return": 1.0, "progress": 0.5, "abs_steer": 0.25})  # fmt: skip
@@ -137,13 +137,13 @@ def test_a_recurrent_run_resumes_writes_its_row_and_its_curve(tmp_path, monkeypa
     for _ in range(2):  # a second time replaces the seed's rows on those tracks
         ppo_peer.main([*curve_argv, "--first-track", "10100", "--tracks", "20"])
     ppo_peer.main(curve_argv)  # the default tracks (the report tracks): rows beside them
-    assert seen[:2] == [(64, 10_100, 20), (192, 10_100, 20)] and seen[4:] == [(64, 10_300, 30), (192, 10_300, 30)]
+    assert seen[:2] == [(0, 10_100, 20), (128, 10_100, 20)] and seen[4:] == [(0, 10_300, 30), (128, 10_300, 30)]
     with open(tmp_path / "recurrent_ppo_peer_curve.csv") as f:
         curve = list(csv.DictReader(f))
     assert tuple(curve[0]) == ppo_peer.CURVE_COLUMNS
     assert [(r["variant"], r["snapshot"], r["env_steps"], r["tracks"]) for r in curve] == [
-        ("recurrent_ppo", "100", "128", "10100..10119"), ("recurrent_ppo", "300", "384", "10100..10119"),
-        ("recurrent_ppo", "100", "128", "10300..10329"), ("recurrent_ppo", "300", "384", "10300..10329"),
+        ("recurrent_ppo", "100", "0", "10100..10119"), ("recurrent_ppo", "300", "256", "10100..10119"),
+        ("recurrent_ppo", "100", "0", "10300..10329"), ("recurrent_ppo", "300", "256", "10300..10329"),
     ]  # fmt: skip
 
 
@@ -184,9 +184,33 @@ def test_snapshots_are_written_once_at_the_thresholds_over_sittings(tmp_path, mo
     from stable_baselines3.common.vec_env import VecNormalize
 
     steps = {n: PPO.load(path).num_timesteps * 2 for n, path in ppo_peer.snapshot_paths(str(tmp_path))}
-    assert steps == {100: 128, 128: 128, 300: 384}  # taken at the first rollout start past each threshold
+    # the weights that took the threshold's env step (rollouts of 128 env steps: 1..128, 129..256, 257..384, ...),
+    # saved at their rollout's start with the env steps they were trained on
+    assert steps == {100: 0, 128: 0, 300: 256}
     assert VecNormalize.load(str(tmp_path / "vecnormalize_300.pkl"), ppo_peer.make_venv(0, 2)).norm_reward
     assert not [name for name in os.listdir(tmp_path) if ".tmp" in name]
+
+
+def test_a_later_sitting_races_other_tracks_than_the_first(tmp_path, monkeypatch):
+    """Loading a model reseeds it with the run's seed: a later sitting must not race the first sitting's tracks
+    again (the seeds its envs reset with)."""
+    tiny(monkeypatch, ppo_peer.ZOO, race_steps=40)
+    seeds, make_env = [], ppo_peer.make_env
+
+    class RecordSeeds(gymnasium.Wrapper):
+        def reset(self, *, seed=None, options=None):
+            seeds.append(seed)
+            return self.env.reset(seed=seed, options=options)
+
+    monkeypatch.setattr(ppo_peer, "make_env", lambda seed=None: RecordSeeds(make_env()))
+    sittings = []
+    for budget in (64, 128, 192):  # a rollout (64 PPO steps) per sitting
+        seeds.clear()
+        ppo_peer.train(3, hours=1.0, budget_steps=budget, run_dir=str(tmp_path))
+        sittings.append({s for s in seeds if s is not None})
+    assert len(sittings[0]) == 2 and all(len(s) == 2 for s in sittings)  # each sitting seeds its 2 envs once
+    assert sittings[0].isdisjoint(sittings[1]) and sittings[1].isdisjoint(sittings[2])
+    assert sittings[0].isdisjoint(sittings[2])
 
 
 def test_the_evaluation_tracks_are_parameters(tmp_path, monkeypatch):
