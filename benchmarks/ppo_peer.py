@@ -62,7 +62,8 @@ COLUMNS = (
     "variant", "seed", "updates", "env_steps", "cpu_hours", "final_return", "final_progress", "final_mean_abs_steer",
     "tracks",
 )  # fmt: skip
-# a snapshot's row: its N (model_<N>.zip), the env steps its weights were trained on, its deterministic policy on `tracks`
+# a snapshot's row: its N (model_<N>.zip), the env steps its weights were trained on, its deterministic policy on
+# `tracks`
 CURVE_COLUMNS = ("variant", "seed", "snapshot", "env_steps", "return", "progress", "mean_abs_steer", "tracks")
 # rl-baselines3-zoo, hyperparams/ppo.yml, CarRacing-v3
 ZOO = dict(
