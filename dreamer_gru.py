@@ -435,8 +435,8 @@ class Decoder(nn.Module):
         return x.float().reshape(*lead, *x.shape[1:])  # float32 for the loss, also under --amp
 
     def sigma(self) -> torch.Tensor:
-        # A floor at 0 with log sigma starting at 0 fixes sigma = 1: pixels lie in [-0.5, 0.5], so a pixel's squared
-        # error is at most 1 and the likelihood always pulls log sigma down onto the floor. The pixel term keeps its
+        # A floor at 0 with log sigma starting at 0 fixes sigma = 1: at sigma = 1 the likelihood pulls log sigma down
+        # while the mean squared error per pixel is below 1 (pixels lie in [-0.5, 0.5]). The pixel term keeps its
         # weight against the KL instead of growing as the reconstructions sharpen (docs/deviations.md, --preset cpu).
         return self.log_sigma.clamp(self.min_log_sigma, LOG_SIGMA_RANGE[1]).exp()
 
@@ -968,7 +968,7 @@ class Agent:
         critic_loss = (weights * gaussian_nll(returns.detach(), value_mean, value_std)).mean()
         metrics = {
             "actor": actor_loss, "critic": critic_loss, "actor_std": stds.mean(),
-            "entropy": -log_pi.mean(),  # -log pi with the extreme-action term: an entropy estimate plus that penalty
+            "entropy": -log_pi.mean(),  # -log pi with the extreme-action term: an entropy estimate minus that penalty
             "imagined_return": returns.mean(),
         }  # fmt: skip
         if args.return_norm:

@@ -38,6 +38,7 @@ A row of a file written before that column was measured on the old default track
 from __future__ import annotations
 
 import argparse
+import contextlib
 import glob
 import json
 import os
@@ -198,11 +199,11 @@ def train(
     """Train `algo` until the run has used `hours` of CPU time in all (time.process_time: every thread of this
     process, the envs included; or until `budget_steps` PPO steps), saving model, normaliser and record every
     `save_every` rollouts and at the end (atomic renames); a later sitting continues from them with its own seeds
-    (sitting_seed), PPO's learning rate still decaying over the whole budget. The weights change only between
-    rollouts: at a rollout's start, every threshold of `snapshots` the rollout's env steps (PPO steps x frame skip)
-    will reach gets these weights and the normaliser as model_<threshold>.zip and vecnormalize_<threshold>.pkl (the
-    zip, written last, carries the steps they were trained on); a snapshot on disk is never rewritten, so each is
-    written once over every sitting. Returns the record: env steps, updates (SB3's ``_n_updates``, epochs over a
+    (sitting_seed), PPO's learning rate still decaying over the whole budget. When the env steps (PPO steps x frame
+    skip) reach a threshold of `snapshots`, the weights that took that step (they change only between rollouts) and
+    the normaliser are kept as model_<threshold>.zip and vecnormalize_<threshold>.pkl (the zip written last). A
+    snapshot is written once over every sitting; a resumed run deletes those past its saved steps (a killed sitting's
+    lost stretch) and takes them again. Returns the record: env steps, updates (SB3's ``_n_updates``, epochs over a
     rollout of n_steps * n_envs / batch_size gradient steps each) and CPU hours."""
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.vec_env import VecNormalize
@@ -220,6 +221,11 @@ def train(
         norm = VecNormalize.load(paths["vecnormalize.pkl"], venv)
         model = algo_class(algo).load(paths["model.zip"], env=norm, device="cpu", tensorboard_log=run_dir)
         model.set_random_seed(sitting_seed(seed, record["env_steps"]))  # (load reseeded it with `seed`)
+        for threshold, path in snapshot_paths(run_dir):  # taken after the last save by a sitting that was killed
+            if threshold > record["env_steps"]:
+                os.remove(path)
+                with contextlib.suppress(FileNotFoundError):
+                    os.remove(os.path.join(run_dir, f"vecnormalize_{threshold}.pkl"))
         print(
             f"continuing from {paths['model.zip']} at {record['env_steps']} env steps, {record['cpu_hours']:.2f} CPU-h"
         )
@@ -241,26 +247,25 @@ def train(
         print(f"{record['env_steps']} env steps, {record['updates']} epochs ({steps} gradient steps), "
               f"{record['cpu_hours']:.2f} CPU-h")  # fmt: skip
 
-    rollout_env_steps = config["n_steps"] * config["n_envs"] * config["frame_skip"]
+    taken = int(model.num_timesteps) * config["frame_skip"]
+    kept = {threshold for threshold, _ in snapshot_paths(run_dir)}
+    pending = sorted(n for n in set(snapshots) if n > taken and n not in kept)
 
-    def snapshot(ahead: int) -> None:
-        """Keep the weights for every threshold up to `ahead` env steps past the steps taken."""
+    def snapshot() -> None:
+        """Keep the weights that took the env step of every threshold passed since the last call."""
         env_steps = int(model.num_timesteps) * config["frame_skip"]
-        for threshold in sorted(snapshots):
-            path = os.path.join(run_dir, f"model_{threshold}.zip")
-            if threshold <= env_steps + ahead and not os.path.exists(path):
-                atomic_save(norm.save, os.path.join(run_dir, f"vecnormalize_{threshold}.pkl"))
-                atomic_save(model.save, path)
-                print(f"snapshot {path}: the weights trained on {env_steps} env steps")
+        while pending and pending[0] <= env_steps:
+            path = os.path.join(run_dir, f"model_{pending[0]}.zip")
+            atomic_save(norm.save, os.path.join(run_dir, f"vecnormalize_{pending.pop(0)}.pkl"))
+            atomic_save(model.save, path)
+            print(f"snapshot {path} at {env_steps} env steps")
 
     class Budget(BaseCallback):
-        """Stop at the sitting's CPU-time budget; keep snapshots; save every `save_every` rollouts."""
+        """Keep snapshots; stop at the sitting's CPU-time budget; save every `save_every` rollouts."""
 
-        def _on_step(self) -> bool:
+        def _on_step(self) -> bool:  # (after each step of the n_envs envs)
+            snapshot()
             return time.process_time() - started < 3600 * hours
-
-        def _on_rollout_start(self) -> None:
-            snapshot(ahead=rollout_env_steps)  # these weights take the rollout's env steps
 
         def _on_rollout_end(self) -> None:
             self.rollouts = getattr(self, "rollouts", 0) + 1
@@ -271,7 +276,6 @@ def train(
     if remaining > 0 and hours > 0:
         # PPO's learning rate 1e-4 * (1 - steps / budget) across sittings (SB3's progress_remaining)
         model.learn(remaining, callback=Budget(), reset_num_timesteps=False, tb_log_name=variant)
-    snapshot(ahead=0)
     save()
     return record
 
@@ -335,15 +339,17 @@ def write_row(row: dict, path: str = os.path.join(RESULTS, "ppo_peer.csv")) -> N
 def curve(algo: str, seed: int, run_dir: str, first_track: int, tracks: int, path: str) -> list[dict]:
     """Evaluate every snapshot of the run (model_<threshold>.zip) on the same tracks and write one row per snapshot
     to `path` (replacing the seed's earlier rows on those tracks): snapshot is its threshold, env_steps the steps
-    its weights were trained on."""
+    its weights were trained on (whole rollouts: a sitting's unfinished one is never trained on)."""
     variant, config = ALGOS[algo]
+    rollout_env_steps = config["n_steps"] * config["n_envs"] * config["frame_skip"]
     rows = []
     for threshold, snapshot in snapshot_paths(run_dir):
         model = algo_class(algo).load(snapshot, device="cpu")
         result = evaluate(model, first_track, tracks)
         rows.append({
             "variant": variant, "seed": seed, "snapshot": threshold,
-            "env_steps": int(model.num_timesteps) * config["frame_skip"], "return": round(result["return"], 2),
+            "env_steps": model._n_updates // config["n_epochs"] * rollout_env_steps,
+            "return": round(result["return"], 2),
             "progress": round(result["progress"], 4), "mean_abs_steer": round(result["abs_steer"], 4),
             "tracks": track_block(first_track, tracks),
         })  # fmt: skip

@@ -137,7 +137,7 @@ def test_a_recurrent_run_resumes_writes_its_row_and_its_curve(tmp_path, monkeypa
     for _ in range(2):  # a second time replaces the seed's rows on those tracks
         ppo_peer.main([*curve_argv, "--first-track", "10100", "--tracks", "20"])
     ppo_peer.main(curve_argv)  # the default tracks (the report tracks): rows beside them
-    assert seen[:2] == [(0, 10_100, 20), (128, 10_100, 20)] and seen[4:] == [(0, 10_300, 30), (128, 10_300, 30)]
+    assert seen[:2] == [(50, 10_100, 20), (150, 10_100, 20)] and seen[4:] == [(50, 10_300, 30), (150, 10_300, 30)]
     with open(tmp_path / "recurrent_ppo_peer_curve.csv") as f:
         curve = list(csv.DictReader(f))
     assert tuple(curve[0]) == ppo_peer.CURVE_COLUMNS
@@ -176,17 +176,21 @@ def test_snapshots_are_written_once_at_the_thresholds_over_sittings(tmp_path, mo
     monkeypatch.setattr(ppo_peer, "atomic_save", lambda save, path: writes.append(path) or atomic_save(save, path))
     thresholds = (100, 128, 300, 10_000)
     ppo_peer.train(3, hours=1.0, budget_steps=128, run_dir=str(tmp_path), snapshots=thresholds)  # 0 .. 256 env steps
+    lost = tmp_path / "model_10000.zip"  # as if a killed sitting had passed 10,000 after its last save
+    lost.write_bytes((tmp_path / "model.zip").read_bytes())
     ppo_peer.train(3, hours=1.0, budget_steps=256, run_dir=str(tmp_path), snapshots=thresholds)  # 256 .. 512
+    assert not lost.exists()  # a resumed run takes it again when it gets there (here: never)
     snapshots = [os.path.basename(p) for p in writes if "_" in os.path.basename(p)]
     assert snapshots == ["vecnormalize_100.pkl", "model_100.zip", "vecnormalize_128.pkl", "model_128.zip",
                          "vecnormalize_300.pkl", "model_300.zip"]  # fmt: skip  (10_000 is never passed)
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import VecNormalize
 
-    steps = {n: PPO.load(path).num_timesteps * 2 for n, path in ppo_peer.snapshot_paths(str(tmp_path))}
-    # the weights that took the threshold's env step (rollouts of 128 env steps: 1..128, 129..256, 257..384, ...),
-    # saved at their rollout's start with the env steps they were trained on
-    assert steps == {100: 0, 128: 0, 300: 256}
+    models = {n: PPO.load(path) for n, path in ppo_peer.snapshot_paths(str(tmp_path))}
+    # kept right after the step that passed each threshold (4 env steps per step of the 2 envs), by the weights that
+    # took it: rollouts of 128 env steps (1..128, 129..256, 257..384, ...) of the weights trained on those before
+    assert {n: m.num_timesteps * 2 for n, m in models.items()} == {100: 100, 128: 128, 300: 300}
+    assert {n: m._n_updates * 128 for n, m in models.items()} == {100: 0, 128: 0, 300: 256}  # (1 epoch a rollout)
     assert VecNormalize.load(str(tmp_path / "vecnormalize_300.pkl"), ppo_peer.make_venv(0, 2)).norm_reward
     assert not [name for name in os.listdir(tmp_path) if ".tmp" in name]
 
@@ -211,6 +215,17 @@ def test_a_later_sitting_races_other_tracks_than_the_first(tmp_path, monkeypatch
     assert len(sittings[0]) == 2 and all(len(s) == 2 for s in sittings)  # each sitting seeds its 2 envs once
     assert sittings[0].isdisjoint(sittings[1]) and sittings[1].isdisjoint(sittings[2])
     assert sittings[0].isdisjoint(sittings[2])
+
+
+def test_a_sitting_the_budget_stops_keeps_no_snapshot_of_a_step_it_did_not_take(tmp_path, monkeypatch):
+    """The CPU budget ends the sitting 12 env steps into its first rollout (a clock of 20 CPU-minutes a reading):
+    a threshold the rollout would have reached is not kept; one it reached is."""
+    tiny(monkeypatch, ppo_peer.ZOO)
+    readings = iter(range(10**6))
+    monkeypatch.setattr(ppo_peer.time, "process_time", lambda: 1200.0 * next(readings))
+    record = ppo_peer.train(3, hours=1.0, budget_steps=256, run_dir=str(tmp_path), snapshots=(8, 100))
+    assert record["env_steps"] == 12
+    assert [n for n, _ in ppo_peer.snapshot_paths(str(tmp_path))] == [8]
 
 
 def test_the_evaluation_tracks_are_parameters(tmp_path, monkeypatch):
