@@ -586,14 +586,15 @@ def trial_progress(spec: dict, kind: str, variant: str, seed: int) -> Progress:
 
 def progress_text(name: str, run: str | None, done: int, target: int | None,
                   budget: tuple[float, float] | None = None, stopped: bool = False) -> str:  # fmt: skip
-    """How far a trial got (trial_progress's fields): its updates against its target or its CPU budget, and whether
-    the non-finite guard stopped it."""
+    """How far a trial got (trial_progress's fields): its updates against its target or its CPU budget (and that it
+    is finished when the budget is spent), and whether the non-finite guard stopped it."""
     if run is None:
         return f"{name} (not started)"
     guard = ", stopped by the non-finite guard" if stopped else ""
     if budget is not None:
         spent = math.floor(budget[0] * 100) / 100  # rounded down: a trial short of its budget never reads as at it
-        return f"{name} ({done} updates, {spent:.2f} of {budget[1]:g} CPU-hours{guard})"
+        end = guard or (", finished" if target is not None and done >= target else "")
+        return f"{name} ({done} updates, {spent:.2f} of {budget[1]:g} CPU-hours{end})"
     return f"{name} ({done} of {target} updates{guard})"
 
 

@@ -812,6 +812,8 @@ def test_a_cpu_hour_budget_ends_a_single_trial_whatever_its_updates(tmp_path, mo
         raise Trains
 
     assert experiment.unfinished(spec, "single", ["gru"], [12]) == []  # the next stage may start from it
+    progress = experiment.trial_progress(spec, "single", "gru", 12)
+    assert experiment.progress_text("t", *progress) == "t (4321 updates, 3.10 of 3.1 CPU-hours, finished)"
     monkeypatch.setattr(script, "main", train)
     spent["extra"]["cpu_seconds"] = 3.0 * 3600
     with pytest.raises(Trains):
