@@ -213,7 +213,7 @@ def train(
     paths = {name: os.path.join(run_dir, name) for name in ("model.zip", "vecnormalize.pkl", "record.json")}
     record = {"env_steps": 0, "cpu_hours": 0.0, "updates": 0}
     venv = make_venv(seed, config["n_envs"])
-    if all(os.path.exists(path) for path in paths.values()):  # (the record is written last: a save is whole)
+    if all(os.path.exists(path) for path in paths.values()):  # (a kill between a save's renames: a newer model)
         with open(paths["record.json"]) as f:
             record = json.load(f)
         if "hours" in record:  # a record of the first version, which named the same CPU hours "hours"
@@ -221,11 +221,6 @@ def train(
         norm = VecNormalize.load(paths["vecnormalize.pkl"], venv)
         model = algo_class(algo).load(paths["model.zip"], env=norm, device="cpu", tensorboard_log=run_dir)
         model.set_random_seed(sitting_seed(seed, record["env_steps"]))  # (load reseeded it with `seed`)
-        for threshold, path in snapshot_paths(run_dir):  # taken after the last save by a sitting that was killed
-            if threshold > record["env_steps"]:
-                os.remove(path)
-                with contextlib.suppress(FileNotFoundError):
-                    os.remove(os.path.join(run_dir, f"vecnormalize_{threshold}.pkl"))
         print(
             f"continuing from {paths['model.zip']} at {record['env_steps']} env steps, {record['cpu_hours']:.2f} CPU-h"
         )
@@ -247,7 +242,12 @@ def train(
         print(f"{record['env_steps']} env steps, {record['updates']} epochs ({steps} gradient steps), "
               f"{record['cpu_hours']:.2f} CPU-h")  # fmt: skip
 
-    taken = int(model.num_timesteps) * config["frame_skip"]
+    taken = int(model.num_timesteps) * config["frame_skip"]  # by the weights this sitting starts from
+    for threshold, path in snapshot_paths(run_dir):  # kept after those weights by a sitting that was killed
+        if threshold > taken:
+            os.remove(path)
+            with contextlib.suppress(FileNotFoundError):
+                os.remove(os.path.join(run_dir, f"vecnormalize_{threshold}.pkl"))
     kept = {threshold for threshold, _ in snapshot_paths(run_dir)}
     pending = sorted(n for n in set(snapshots) if n > taken and n not in kept)
 
@@ -339,7 +339,8 @@ def write_row(row: dict, path: str = os.path.join(RESULTS, "ppo_peer.csv")) -> N
 def curve(algo: str, seed: int, run_dir: str, first_track: int, tracks: int, path: str) -> list[dict]:
     """Evaluate every snapshot of the run (model_<threshold>.zip) on the same tracks and write one row per snapshot
     to `path` (replacing the seed's earlier rows on those tracks): snapshot is its threshold, env_steps the steps
-    its weights were trained on (whole rollouts: a sitting's unfinished one is never trained on)."""
+    its weights were trained on (whole rollouts: a sitting's unfinished one is never trained on; each train() makes
+    n_epochs updates, as no target_kl stops one early)."""
     variant, config = ALGOS[algo]
     rollout_env_steps = config["n_steps"] * config["n_envs"] * config["frame_skip"]
     rows = []

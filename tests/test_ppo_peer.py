@@ -228,6 +228,16 @@ def test_a_sitting_the_budget_stops_keeps_no_snapshot_of_a_step_it_did_not_take(
     assert [n for n, _ in ppo_peer.snapshot_paths(str(tmp_path))] == [8]
 
 
+def test_a_run_killed_before_its_first_save_starts_again_without_its_snapshots(tmp_path, monkeypatch):
+    tiny(monkeypatch, ppo_peer.ZOO)
+    stale = tmp_path / "model_100.zip"  # kept by a first sitting killed before it saved model.zip
+    stale.write_bytes(b"from the killed sitting")
+    ppo_peer.train(3, hours=1.0, budget_steps=64, run_dir=str(tmp_path), snapshots=(100,))  # 128 env steps
+    from stable_baselines3 import PPO
+
+    assert PPO.load(str(stale)).num_timesteps * 2 == 100  # taken again by this run
+
+
 def test_the_evaluation_tracks_are_parameters(tmp_path, monkeypatch):
     from stable_baselines3.common.vec_env import VecNormalize
 
