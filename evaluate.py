@@ -23,8 +23,6 @@ from typing import Literal
 import numpy as np
 import tyro
 
-POLICIES = ("stochastic", "mean-action", "deterministic")
-
 
 @dataclasses.dataclass
 class Args:
@@ -55,8 +53,9 @@ def evaluate_checkpoint(path: str, first_track: int = 10_000, tracks: int = 10, 
     from utils import make_vec_env
     from utils.collector import drive_races
 
-    if tracks < 1:
-        raise ValueError(f"tracks must be >= 1, got {tracks}")
+    if tracks < 1 or first_track < 0:
+        raise ValueError(f"--tracks must be >= 1 and --first-track >= 0 (a track's seed), got {tracks} and "
+                         f"{first_track}")  # fmt: skip
     script, checkpoint = read_checkpoint(path)
     args = script.args_from_checkpoint(checkpoint, path, num_agents=1)
     agent = script.agent_from_checkpoint(path, index)

@@ -31,6 +31,8 @@ it runs longer than the others). Figures (one PNG each):
 * ``single_agent_eval_{return,progress}.png`` - stage ``single``: the evaluation on the held-out tracks
   (the dreamer scripts' ``--eval-policy``: the mean action by default, sampled in runs begun before; when
   logged)
+* a figure above whose runs are counted in env steps (the dreamer scripts) and in races (``race.py --train``)
+  is drawn once for each: the races one is ``<name>_races.png``
 * ``losses.png``               - actor, critic, reconstruction, KL (dyn) for every group against steps
 * ``losses_race.png``          - the same for ``race.py --train`` runs, against races
 * ``head_to_head.png``         - with ``--head-to-head CSV [CSV ...]``: the tournaments of
@@ -234,6 +236,15 @@ def group_runs(runs: list[Run]) -> dict[tuple[str, str], list[Run]]:
     return groups
 
 
+X_LABELS = ("step", "races")  # a run's x unit: env steps (the dreamer scripts), races (race.py --train)
+
+
+def same_x(groups: dict[tuple[str, str], list[Run]], x_label: str) -> dict[tuple[str, str], list[Run]]:
+    """The groups' runs counted in `x_label` (one axis never mixes env steps and races)."""
+    kept = {k: [r for r in runs if r.x_label == x_label] for k, runs in groups.items()}
+    return {k: runs for k, runs in kept.items() if runs}
+
+
 def smooth(values: np.ndarray, sigma: float) -> np.ndarray:
     """Gaussian smoothing over logged points; edges repeat the end values."""
     if sigma <= 0 or len(values) < 2:
@@ -341,18 +352,17 @@ def make_figures(logdir: str, out: str, sigma: float = 2.0, head_to_head: str | 
     os.makedirs(out, exist_ok=True)
     figures = {name: head_to_head_figure(path) for name, path in zip(names, csvs)}
     for name, (stage, tag, ylabel) in FIGURES.items():
-        fig, ax = plt.subplots(figsize=(6, 4))
-        if plot_metric(ax, groups, tag, sigma, stage=stage):
-            ax.set_ylabel(ylabel)
-            ax.set_title(f"{stage if isinstance(stage, str) else ' vs '.join(stage)}: {ylabel}")
-            figures[name] = fig
-        else:
-            plt.close(fig)
-    for x_label, name in (("step", "losses.png"), ("races", "losses_race.png")):  # one x unit per figure
-        same_x = {k: [r for r in runs if r.x_label == x_label] for k, runs in groups.items()}
-        same_x = {k: runs for k, runs in same_x.items() if runs}
+        for x_label in X_LABELS:  # one x unit per figure: the races one is <name>_races.png beside a steps one
+            fig, ax = plt.subplots(figsize=(6, 4))
+            if plot_metric(ax, same_x(groups, x_label), tag, sigma, stage=stage):
+                ax.set_ylabel(ylabel)
+                ax.set_title(f"{stage if isinstance(stage, str) else ' vs '.join(stage)}: {ylabel}")
+                figures[name if name not in figures else name.replace(".png", f"_{x_label}.png")] = fig
+            else:
+                plt.close(fig)
+    for x_label, name in zip(X_LABELS, ("losses.png", "losses_race.png")):
         fig, axes = plt.subplots(1, len(LOSSES), figsize=(5 * len(LOSSES), 4))
-        if any([plot_metric(ax, same_x, tag, sigma) for ax, tag in zip(axes, LOSSES)]):
+        if any([plot_metric(ax, same_x(groups, x_label), tag, sigma) for ax, tag in zip(axes, LOSSES)]):
             for ax, tag in zip(axes, LOSSES):
                 ax.set_title(tag)
             figures[name] = fig

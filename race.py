@@ -284,7 +284,8 @@ def parse_args(argv=None) -> Args:
     args = tyro.cli(Args, args=argv, description=__doc__)
     racers = len(args.checkpoints) + len(args.opponent)
     if racers < 1 or (racers < 2 and not args.train):
-        usage_error(f"need at least two racers (checkpoints plus --opponent), got {racers}")
+        fewest = "one racer with --train" if args.train else "two racers"
+        usage_error(f"need at least {fewest} (checkpoints plus --opponent), got {racers}")
     for name, minimum in (("torch_threads", 0), ("races", 1), ("seed", 0), ("episodes", 1), ("train_steps", 0),
                           ("max_steps", 1)):  # fmt: skip
         value = getattr(args, name)
@@ -384,8 +385,7 @@ def train(args: Args, racers: list, device) -> str:
     config = {"variant": "+".join(racers[i].variant for i in learners), "stage": "race", "seed": args.seed}
     hyperparameters = {**dataclasses.asdict(args), "racers": [r.name for r in racers]}
     logger = configure_logger(run_dir, hyperparameters, ("csv", "tensorboard"))
-    with open(os.path.join(run_dir, "config.json"), "w") as f:
-        json.dump(config, f)
+    saved.atomic_write(os.path.join(run_dir, "config.json"), lambda f: f.write(json.dumps(config).encode()))
     replays, train_args = {}, {}
     for i in learners:
         r = racers[i]
@@ -397,9 +397,10 @@ def train(args: Args, racers: list, device) -> str:
         steps = r.args.train_steps_per_episode if args.train_steps is None else args.train_steps
         train_args[i] = dataclasses.replace(r.args, train_steps_per_episode=steps)
     wins = {i: [] for i in range(len(racers))}
-    env_steps = 0
-    # A later sitting continues the schedule of tracks (and the random stream) where the racers' last one stopped.
+    # A later sitting continues the schedule of tracks (and the random stream) where the racers' last one stopped,
+    # and counts env steps on from theirs (the x of its TensorBoard scalars)
     done_before = max(int(racers[i].counters.get("race_episodes", 0)) for i in learners)
+    env_steps = max(int(racers[i].counters.get("race_env_steps", 0)) for i in learners)
     stream = args.seed * 100_003 + done_before  # seeds every random stream of training: actions, replay batches
     torch.manual_seed(stream)
     np.random.seed(stream % 2**32)
@@ -444,13 +445,17 @@ def save_racers(learning: dict, checkpoint_dir: str, races: int, env_steps: int)
     as one pair: each replay is saved first, then a pending checkpoint naming that save, and only when all are
     written do the pending checkpoints replace the previous ones, back to back. A kill while saving leaves the
     previous pair (a later sitting continues from racers saved after the same race) except in the microseconds
-    between those renames; the replay chunks that no checkpoint names any more are deleted last."""
+    between those renames; the replay chunks that no checkpoint names any more are deleted last.
+
+    Its counters: those the racer started with (``episode``, ``global_step``: its training before the head-to-head
+    races) and, over every sitting so far, the head-to-head races (``race_episodes``: this sitting's `races` added)
+    and env steps (``race_env_steps``: `env_steps`, counted on from the last sitting's)."""
     pending = {}
     for i, (racer, replay) in learning.items():
         path = os.path.join(checkpoint_dir, f"racer_{i}.pt")
         manifest = saved.save_replay(replay, f"{os.path.splitext(path)[0]}_replay_car_0")
         before = int(racer.counters.get("race_episodes", 0))  # races of earlier head-to-head sittings
-        counters = {**racer.counters, "episode": races, "race_episodes": before + races, "race_env_steps": env_steps}
+        counters = {**racer.counters, "race_episodes": before + races, "race_env_steps": env_steps}
         saved.save_checkpoint(path + ".pending", racer.variant, racer.args, [racer.agent], counters,
                               {"replays": [manifest]})  # fmt: skip
         pending[i] = (path, manifest)

@@ -11,7 +11,7 @@ import os
 
 import numpy as np
 
-from common import TRACKS, replace_rows, track_block
+from common import TRACKS, checkpoint_updates, replace_rows, track_block
 from learning import RESULTS
 
 
@@ -126,7 +126,7 @@ def calibrate_checkpoint(path: str, first_track: int = TRACKS["fresh"][0], track
             starts, horizon_starts = starts + len(g), horizon_starts + int(valid.sum())
     named = sorted({r for r in reasons if r is not None})
     return {
-        "checkpoint": path, "variant": checkpoint["variant"], "updates": int(checkpoint["agents"][0]["num_updates"]),
+        "checkpoint": path, "variant": checkpoint["variant"], "updates": checkpoint_updates(checkpoint),
         "tracks": track_block(first_track, tracks), "horizon": horizon, "starts": starts,
         **{k: round(float(sums[k] / max(starts, 1)), 3 if k == "bootstrap_weight" else 2)
            for k in ("value", "realised_return", "bootstrap_weight")},

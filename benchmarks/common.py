@@ -1,5 +1,6 @@
-"""What the benchmarks share: the blocks of tracks, with what each may decide, and how a results CSV is read
-(``read_table``) and written (``write_table``: whole, atomically; ``replace_rows``: some of its rows, locked) (as
+"""What the benchmarks share: the blocks of tracks, with what each may decide, how a results CSV is read
+(``read_table``) and written (``write_table``: whole, atomically; ``replace_rows``: some of its rows, locked), a
+JSON file written atomically (``write_json``) and the updates a checkpoint has made (``checkpoint_updates``) (as
 Stable-Baselines3's ``common/``: small pieces the scripts of ``benchmarks/`` import).
 
 A track is an env seed; a block is ``(first, count)``, tracks ``first .. first + count - 1``. A result is reported on
@@ -10,7 +11,9 @@ from __future__ import annotations
 
 import csv
 import fcntl
+import json
 import os
+import tempfile
 from typing import Callable, Iterable
 
 TRACKS = {
@@ -28,6 +31,25 @@ RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")  #
 # The final protocol's budget per run, in process CPU-hours on one torch thread: each Dreamer run's
 # (final_protocol.py) and each peer's (ppo_peer.py)
 PROTOCOL_CPU_HOURS = 3.1
+
+
+def checkpoint_updates(checkpoint: dict) -> int:
+    """The updates a dreamer checkpoint (a loaded dict) has made: its first agent's (every agent of a run updates
+    alike)."""
+    return int(checkpoint["agents"][0]["num_updates"])
+
+
+def write_json(path: str, data) -> None:
+    """Write `data` as indented JSON to `path` atomically: a temporary file of its own (two writers never share
+    one) replaces it once whole, so a reader or a kill never sees half of it."""
+    fd, tmp = tempfile.mkstemp(dir=os.path.dirname(os.path.abspath(path)), suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(data, f, indent=1)
+        os.replace(tmp, path)
+    except BaseException:
+        os.remove(tmp)
+        raise
 
 
 def track_block(first: int, count: int) -> str:
@@ -62,8 +84,9 @@ def write_table(path: str, rows: Iterable[dict], columns) -> None:
     """Write `rows` under the header `columns` as the CSV at `path` (no rows: the header alone), atomically: a
     temporary file replaces it once whole, so a reader or a kill never sees half a table. A row with a field outside
     `columns` raises csv's ValueError and leaves the file as it was."""
+    f = open(path + ".tmp", "w", newline="")  # (an open that fails leaves nothing to remove: its error is raised)
     try:
-        with open(path + ".tmp", "w", newline="") as f:
+        with f:
             writer = csv.DictWriter(f, fieldnames=list(columns))
             writer.writeheader()
             writer.writerows(rows)

@@ -55,6 +55,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import learning  # noqa: E402  (the single stage is the learning benchmark's run)
+from common import checkpoint_updates, write_json  # noqa: E402
 RESULTS = learning.RESULTS
 TOURNAMENT_SEED = 7_777  # held-out tracks of the tournaments (training races use the pair's seed)
 NO_UPDATE_TARGET = 10**12  # the update target of a trial that a CPU budget ends (--single-cpu-hours)
@@ -256,7 +257,7 @@ def dreamer_trial(config: dict) -> None:
         # latest.pt, not progress.csv, says what is done: a kill between its save and the csv row (the end of a
         # race) leaves the csv a race behind, and the trial must still end
         progress = trial_progress(spec, stage, variant, seed)
-        if progress.run is None or progress.done < progress.target:  # (a trial restored after its end trains no more)
+        if not progress.finished:  # (a trial restored after its end trains no more)
             try:
                 if progress.run is None:
                     script.main(dataclasses.replace(args, total_updates=min(goal, target)))
@@ -280,7 +281,8 @@ def dreamer_trial(config: dict) -> None:
 
 
 def updates_of(path: str, script) -> int:
-    return int(script.load_checkpoint(path)["agents"][0]["num_updates"])
+    """The updates the checkpoint at `path` has made (checkpoint_updates)."""
+    return checkpoint_updates(script.load_checkpoint(path))
 
 
 def cpu_hours_of(checkpoint: dict) -> float:
@@ -501,9 +503,22 @@ def trial_fields(spec: Spec) -> dict:
     return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(spec).items() if k in TRIAL_FIELDS}
 
 
+def refuse_below(prog: str, **flags: tuple[float, float]) -> None:
+    """Exit naming the first flag whose value is below its minimum (flags as name=(value, minimum)): a count of
+    updates or races below 1 would read as "no limit" to the scripts, and a trial would never end."""
+    for name, (value, minimum) in flags.items():
+        if not value >= minimum:
+            raise SystemExit(f"{prog}: --{name.replace('_', '-')} must be >= {minimum:g}, got {value}")
+
+
 def check_spec(spec: Spec) -> None:
-    """Refuse, before Ray starts, what cannot work: a bad override, a stage whose earlier stage has not run, or a
-    rerun that asks for other trials than the experiment in --storage holds (its spec is saved there)."""
+    """Refuse, before Ray starts, what cannot work: a bad count, a bad override, a stage whose earlier stage has not
+    run, or a rerun that asks for other trials than the experiment in --storage holds. Then record the experiment in
+    <storage>/spec.json: a new one's fields, or the fields that may still change (CHANGEABLE_UNTIL)."""
+    refuse_below("experiment.py", **{name: (getattr(spec, name), minimum) for name, minimum in (
+        ("single_updates", 1), ("single_cpu_hours", 0), ("ghost_updates", 1), ("race_episodes", 1),
+        ("tournament_every", 1), ("race_train_steps", 0), ("report_every", 1), ("fresh_tracks", 1),
+        ("torch_threads", 1), ("gpus_per_trial", 0), ("max_failures", 0), ("chaos_kill_after_updates", 0))})
     for variant in ("lstm", "gru"):
         parse_overrides(importlib.import_module(f"dreamer_{variant}"), spec.overrides)
     if spec.num_cpus is not None and spec.address is not None:
@@ -521,7 +536,7 @@ def check_spec(spec: Spec) -> None:
             if missing:
                 raise SystemExit(f"experiment.py: stage {stage} needs the {earlier} trials finished: "
                                  f"{', '.join(missing)}")  # fmt: skip
-    if spec.tournament_every < 1 or spec.race_episodes % spec.tournament_every:
+    if spec.race_episodes % spec.tournament_every:
         raise SystemExit(f"experiment.py: --race-episodes ({spec.race_episodes}) must be a multiple of "
                          f"--tournament-every ({spec.tournament_every})")  # fmt: skip
     if spec.tournament_races < 2 or spec.tournament_races % 2:
@@ -541,16 +556,13 @@ def check_spec(spec: Spec) -> None:
             # no trial has used them yet: they may change (and are written down)
             for k in changed:
                 print(f"experiment.py: --{k.replace('_', '-')} {wanted[k]} (was {saved[k]}) for {spec.storage}")
-            with open(path + ".tmp", "w") as f:
-                json.dump(wanted, f, indent=1)
-            os.replace(path + ".tmp", path)
+            write_json(path, wanted)
         elif changed:
             raise SystemExit(f"experiment.py: {spec.storage} holds an experiment with other {', '.join(changed)}; "
                              "use another --storage (or the same settings)")  # fmt: skip
     else:
         os.makedirs(spec.storage, exist_ok=True)
-        with open(path, "w") as f:
-            json.dump(wanted, f, indent=1)
+        write_json(path, wanted)
 
 
 class Progress(NamedTuple):
@@ -568,6 +580,13 @@ class Progress(NamedTuple):
     """(CPU-hours its latest.pt has spent, the budget) of a trial that a CPU budget ends (--single-cpu-hours)"""
     stopped: bool = False
     """whether the non-finite guard stopped its run (numerical_stop): finished, with its last policy"""
+    hours: float = 0.0
+    """the CPU-hours its latest.pt has spent (cpu_hours_of)"""
+
+    @property
+    def finished(self) -> bool:
+        """Started, and its latest.pt has reached its target (its updates, or the end a budget or a stop set)."""
+        return self.run is not None and self.target is not None and self.done >= self.target
 
 
 def trial_progress(spec: dict, kind: str, variant: str, seed: int) -> Progress:
@@ -577,25 +596,29 @@ def trial_progress(spec: dict, kind: str, variant: str, seed: int) -> Progress:
         return Progress(None, 0, None)
     script, args, _, target = trial_args(spec, kind, variant, seed)
     checkpoint = script.load_checkpoint(os.path.join(run, "checkpoints", "latest.pt"))
-    done = int(checkpoint["agents"][0]["num_updates"])
-    budget = (cpu_hours_of(checkpoint), args.cpu_hours_limit) if args.cpu_hours_limit > 0 else None
+    done, hours = checkpoint_updates(checkpoint), cpu_hours_of(checkpoint)
+    budget = (hours, args.cpu_hours_limit) if args.cpu_hours_limit > 0 else None
     stopped = numerical_stop(checkpoint)
     finished = stopped or (budget is not None and budget[0] >= budget[1])  # either ends it, whatever its updates
-    return Progress(run, done, done if finished else target, budget, stopped)
+    return Progress(run, done, done if finished else target, budget, stopped, hours)
 
 
-def progress_text(name: str, run: str | None, done: int, target: int | None,
-                  budget: tuple[float, float] | None = None, stopped: bool = False) -> str:  # fmt: skip
-    """How far a trial got (trial_progress's fields): its updates against its target or its CPU budget (and that it
-    is finished when the budget is spent), and whether the non-finite guard stopped it."""
-    if run is None:
+def trial_label(stage: str, variant: str, seed: int) -> str:
+    """A trial's name in messages and tables, and its directory's under <storage>/trials (trial_dir)."""
+    return f"{stage}_{variant}_seed{seed}"
+
+
+def progress_text(name: str, progress: Progress) -> str:
+    """How far a trial got (trial_progress): its updates against its target or its CPU budget (and that it is
+    finished when the budget is spent), and whether the non-finite guard stopped it."""
+    if progress.run is None:
         return f"{name} (not started)"
-    guard = ", stopped by the non-finite guard" if stopped else ""
-    if budget is not None:
-        spent = math.floor(budget[0] * 100) / 100  # rounded down: a trial short of its budget never reads as at it
-        end = guard or (", finished" if target is not None and done >= target else "")
-        return f"{name} ({done} updates, {spent:.2f} of {budget[1]:g} CPU-hours{end})"
-    return f"{name} ({done} of {target} updates{guard})"
+    guard = ", stopped by the non-finite guard" if progress.stopped else ""
+    if progress.budget is not None:
+        spent = math.floor(progress.budget[0] * 100) / 100  # rounded down: short of its budget never reads as at it
+        end = guard or (", finished" if progress.finished else "")
+        return f"{name} ({progress.done} updates, {spent:.2f} of {progress.budget[1]:g} CPU-hours{end})"
+    return f"{name} ({progress.done} of {progress.target} updates{guard})"
 
 
 def unfinished(spec: dict, stage: str, variants, seeds) -> list[str]:
@@ -606,8 +629,8 @@ def unfinished(spec: dict, stage: str, variants, seeds) -> list[str]:
     for variant in variants:
         for seed in seeds:
             progress = trial_progress(spec, stage, variant, seed)
-            if progress.run is None or progress.done < progress.target:
-                names.append(progress_text(f"{stage}_{variant}_seed{seed}", *progress))
+            if not progress.finished:
+                names.append(progress_text(trial_label(stage, variant, seed), progress))
     return names
 
 
@@ -637,7 +660,7 @@ def status(spec: Spec) -> str:
         if stage == "race":
             trials = [race_progress(plain, seed) for seed in spec.seeds]
         else:
-            trials = [progress_text(f"{kind}_{variant}_seed{seed}", *trial_progress(plain, kind, variant, seed))
+            trials = [progress_text(trial_label(kind, variant, seed), trial_progress(plain, kind, variant, seed))
                       for seed in spec.seeds for kind in trial_kinds(plain, stage) for variant in spec.variants]
         lines += [f"{stage}:"] + [f"  {trial}" for trial in trials]
     return "\n".join(lines)
@@ -675,9 +698,7 @@ def saved_spec(storage: str, write: bool = True) -> dict | None:
     missing = {k: FIELD_ORIGINS.get(k, v) for k, v in trial_fields(Spec()).items() if k not in saved}
     saved |= missing
     if missing and write:
-        with open(path + ".tmp", "w") as f:
-            json.dump(saved, f, indent=1)
-        os.replace(path + ".tmp", path)
+        write_json(path, saved)
     return saved
 
 

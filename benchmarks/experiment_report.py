@@ -10,7 +10,6 @@ import glob
 import importlib
 import json
 import os
-import tempfile
 
 import numpy as np
 
@@ -18,7 +17,7 @@ import common
 import learning
 from experiment import (
     Spec, progress_text, race_tournament, tournament_checkpoints, tournament_metrics, tournament_racers,
-    trial_dir, trial_kinds, trial_progress, updates_of,
+    trial_dir, trial_kinds, trial_label, trial_progress, updates_of,
 )  # fmt: skip
 
 GHOST_COLUMNS = ("variant", "seed", "updates_at_start", "updates", "return_before", "return_after_ghost",
@@ -45,32 +44,32 @@ def aggregate(spec: Spec) -> str:
         for seed in spec.seeds:
             progress = trial_progress(plain, "single", variant, seed)
             run = progress.run
-            if run is None or progress.done < progress.target:
-                left_out.append(progress_text(f"single_{variant}_seed{seed}", *progress))
+            if not progress.finished:
+                left_out.append(progress_text(trial_label("single", variant, seed), progress))
                 continue
             if progress.stopped:  # finished by the non-finite guard: counted, and named in the summary
-                stopped.append(progress_text(f"single_{variant}_seed{seed}", *progress))
+                stopped.append(progress_text(trial_label("single", variant, seed), progress))
 
             def fresh(run: str, name: str) -> float:
                 return fresh_return(spec, os.path.join(run, "checkpoints", name), first)
 
             single_returns.setdefault(variant, []).append(fresh(run, "latest.pt"))
             stage = {k: trial_progress(plain, k, variant, seed) for k in trial_kinds(plain, "ghost")}
-            if any(p.run is None or p.done < p.target for p in stage.values()):
-                left_out += [progress_text(f"{k}_{variant}_seed{seed}", *p) for k, p in stage.items()
-                             if p.run is None or p.done < p.target]  # fmt: skip
+            if not all(p.finished for p in stage.values()):
+                left_out += [progress_text(trial_label(k, variant, seed), p) for k, p in stage.items()
+                             if not p.finished]  # fmt: skip
                 continue
-            stopped += [progress_text(f"{k}_{variant}_seed{seed}", *p) for k, p in stage.items() if p.stopped]
+            stopped += [progress_text(trial_label(k, variant, seed), p) for k, p in stage.items() if p.stopped]
             best = os.path.join(run, "checkpoints", "best.pt")
             start = updates_of(best, importlib.import_module(f"dreamer_{variant}"))
             ghost_rows.append({
-                "variant": variant, "seed": seed, "updates_at_start": start, "updates": stage["ghost"][1] - start,
+                "variant": variant, "seed": seed, "updates_at_start": start, "updates": stage["ghost"].done - start,
                 "return_before": fresh(run, "best.pt"),
-                "return_after_ghost": fresh(stage["ghost"][0], "latest.pt"),
-                "return_after_control": fresh(stage["control"][0], "latest.pt") if "control" in stage else None,
+                "return_after_ghost": fresh(stage["ghost"].run, "latest.pt"),
+                "return_after_control": fresh(stage["control"].run, "latest.pt") if "control" in stage else None,
             })  # fmt: skip
     if kept is None:
-        write_csv(os.path.join(spec.results, "ghost_vs_control.csv"), GHOST_COLUMNS, ghost_rows)
+        common.write_table(os.path.join(spec.results, "ghost_vs_control.csv"), ghost_rows, GHOST_COLUMNS)
         remade = ""
     else:
         remade, ghost_rows = remade_note(kept, ghost_rows), kept
@@ -79,7 +78,7 @@ def aggregate(spec: Spec) -> str:
         tournaments = sorted(glob.glob(os.path.join(trial_dir(plain, "race", "lstm_gru", seed), "tournament_*[0-9]")))
         for tournament in tournaments:
             head_rows.append(head_row(seed, tournament_metrics(tournament, int(tournament.rsplit("_", 1)[1]))))
-    write_csv(os.path.join(spec.results, "head_to_head.csv"), HEAD_COLUMNS, head_rows)
+    common.write_table(os.path.join(spec.results, "head_to_head.csv"), head_rows, HEAD_COLUMNS)
     pairs = finished_pairs(head_rows, spec.race_episodes)
     final_rates = {v: [int(rs[-1][f"{v}_wins"]) / int(rs[-1]["eval_races"]) for rs in pairs.values()]
                    for v in ("lstm", "gru")}  # fmt: skip
@@ -177,7 +176,7 @@ def second_policy_claims(spec: Spec, head_rows: list[dict]) -> str:
                              f"({tournament_racers(held)}): remove it to race it again with the tournament's own "
                              f"checkpoints")  # fmt: skip
         rows.append(head_row(seed, tournament_metrics(out, trained)))
-    write_csv(os.path.join(spec.results, f"head_to_head_{policy}.csv"), HEAD_COLUMNS, rows)
+    common.write_table(os.path.join(spec.results, f"head_to_head_{policy}.csv"), rows, HEAD_COLUMNS)
     table = claims_table({}, [], rows, spec.race_episodes)
     again = finished_pairs(rows, spec.race_episodes)
     ends = [(rs[-1], again[pair][-1]) for pair, rs in finished_pairs(head_rows, spec.race_episodes).items()]
@@ -275,10 +274,7 @@ def fresh_return(spec: Spec, path: str, first: int) -> float:
     if key not in cache:
         cache[key] = learning.policy_summary(path, first, spec.fresh_tracks, spec.eval_policy)["eval_return"]
         os.makedirs(spec.storage, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=spec.storage, suffix=".tmp")  # two writers never share a temporary file
-        with os.fdopen(fd, "w") as f:
-            json.dump(cache, f, indent=1)
-        os.replace(tmp, cache_path)
+        common.write_json(cache_path, cache)
     return cache[key]
 
 
@@ -304,15 +300,6 @@ def summarize(single_returns: dict[str, list[float]], final_rates: dict[str, lis
     return "\n".join(lines) + "\n"
 
 
-def paired_mean(diffs: list[float]) -> dict:
-    """The claim "the mean of paired differences (one per run) is positive", judged by the exact sign-flip test over
-    all 2^n sign assignments and the t 95% interval of the differences (stats.paired_claim): ``estimate``, ``ci``,
-    ``p`` (one-sided), ``n`` and ``verdict``."""
-    from stats import paired_claim
-
-    return paired_claim(diffs)
-
-
 def claims_table(single_returns: dict[str, list[float]], ghost_rows: list[dict], head_rows: list[dict],
                  race_episodes: int) -> str:  # fmt: skip
     """Markdown: each claim of the paper, what measures it here, the estimate, its test (the exact one-sided p of the
@@ -327,7 +314,7 @@ def claims_table(single_returns: dict[str, list[float]], ghost_rows: list[dict],
     head_to_head.csv). Ghost: return after the ghost stage minus after its control, per variant and seed (paired
     likewise). A note under the table says when a row is over so few units that its exact test cannot reach 0.05
     (stats.SMALL_SAMPLE_NOTE)."""
-    from stats import ALPHA, MIN_RUNS, SMALL_SAMPLE_NOTE, describe, two_group_claim
+    from stats import ALPHA, MIN_RUNS, SMALL_SAMPLE_NOTE, describe, paired_claim, two_group_claim
 
     floors = []
 
@@ -355,7 +342,7 @@ def claims_table(single_returns: dict[str, list[float]], ghost_rows: list[dict],
             "the LSTM-Dreamer beats the GRU-Dreamer head to head",
             f"last tournament (after {race_episodes} races): LSTM win rate - GRU win rate, mean over {len(ends)} seed "
             f"pairs; the LSTM's Wilson interval above 0.5 in {above} of {len(ends)}",
-            paired_mean([rate["lstm"](rs[-1]) - rate["gru"](rs[-1]) for rs in ends]), digits=2,
+            paired_claim([rate["lstm"](rs[-1]) - rate["gru"](rs[-1]) for rs in ends]), digits=2,
         ))  # fmt: skip
         # the first tournament after head-to-head training began (the one at 0 is before it)
         firsts = [next(r for r in rs if int(r["races_trained"]) > 0) for rs in ends]
@@ -365,14 +352,14 @@ def claims_table(single_returns: dict[str, list[float]], ghost_rows: list[dict],
                 f"head-to-head training first perturbs both agents: the {name}",
                 f"the {name}'s mean progress in the tournament before head-to-head training - in the first after it "
                 f"(races 0 to {firsts[0]['races_trained']}), mean over {len(before)} seed pairs",
-                paired_mean([float(r0[f"{v}_progress"]) - float(r1[f"{v}_progress"]) for r0, r1 in before]),
+                paired_claim([float(r0[f"{v}_progress"]) - float(r1[f"{v}_progress"]) for r0, r1 in before]),
                 digits=2,
             ))  # fmt: skip
         lines.append(row(
             "trained against each other, the LSTM recovers (about race 120) and outperforms",
             f"LSTM win rate at the last tournament - at the first after training began (races "
             f"{firsts[0]['races_trained']} to {race_episodes}), mean over {len(ends)} seed pairs",
-            paired_mean([rate["lstm"](rs[-1]) - rate["lstm"](first) for rs, first in zip(ends, firsts)]), digits=2,
+            paired_claim([rate["lstm"](rs[-1]) - rate["lstm"](first) for rs, first in zip(ends, firsts)]), digits=2,
         ))  # fmt: skip
     if ghost_rows:
         diffs = [float(r["return_after_ghost"]) - float(r["return_after_control"]) for r in ghost_rows]
@@ -380,14 +367,9 @@ def claims_table(single_returns: dict[str, list[float]], ghost_rows: list[dict],
             "racing a ghost of its best run improves an agent (the curriculum's second stage)",
             f"return on the fresh tracks after the ghost stage - after its control (same start, same updates), "
             f"{len(diffs)} (variant, seed) pairs",
-            paired_mean(diffs),
+            paired_claim(diffs),
         ))  # fmt: skip
     if any(floor >= ALPHA for floor in floors):
         lines += ["", SMALL_SAMPLE_NOTE]
     return "\n".join(lines) + "\n"
 
-
-def write_csv(path: str, columns: tuple[str, ...], rows: list[dict]) -> None:
-    """The rows under a fixed header (no rows: the header alone, so no table of an earlier experiment survives),
-    atomically (common.write_table)."""
-    common.write_table(path, rows, columns)

@@ -52,7 +52,9 @@ import os
 import numpy as np
 
 import readings
-from common import PROTOCOL_CPU_HOURS, TRACKS, read_table, replace_rows, track_block, write_table
+from common import (
+    PROTOCOL_CPU_HOURS, TRACKS, checkpoint_updates, read_table, replace_rows, track_block, write_table,
+)  # fmt: skip
 from learning import RESULTS, VARIANTS, eval_curve, eval_summary, training_hours
 from learning_report import baselines
 from ppo_peer import COLUMNS as PEER_CSV_COLUMNS, CURVE_COLUMNS, read_rows as read_peer_csv
@@ -76,6 +78,7 @@ PROTOCOL_COLUMNS = (
 )  # fmt: skip
 PROTOCOL_PEERS = ("ppo", "recurrent_ppo")  # benchmarks/ppo_peer.py's variants (--algo ppo, recurrent-ppo)
 PEER_COLUMNS = tuple(c for c in PEER_CSV_COLUMNS if c != "tracks")  # a peer's row (ppo_peer.py's), its tracks aside
+PEER_POLICY_COLUMNS = ("final_return", "final_progress", "final_mean_abs_steer")  # its deterministic policy's driving
 # Why a run drives as it does: benchmarks/readings.py's readings of its final policy on the report tracks, per policy,
 # kept beside learning_final.csv (the driving from the row's own drives, not driven again; the training logs' last
 # readings.SCREEN_WINDOW updates; the model on real episodes; its view of the pedal)
@@ -119,15 +122,15 @@ def protocol_cpu_hours(run: str, checkpoint: dict) -> float:
 
     hours = cpu_hours_of(checkpoint)
     if hours < PROTOCOL_CPU_HOURS and not numerical_stop(checkpoint):
-        updates = int(checkpoint["agents"][0]["num_updates"])
+        updates = checkpoint_updates(checkpoint)
         raise ValueError(f"{run} has spent {hours:.2f} of its {PROTOCOL_CPU_HOURS} CPU-hours ({updates} updates): "
                          f"not a final policy yet")  # fmt: skip
     return hours
 
 
-def track_means(readings: dict[str, list[float]]) -> dict[str, float]:
+def track_means(per_track: dict[str, list[float]]) -> dict[str, float]:
     """The mean over the tracks of each reading of one policy (evaluate.evaluate_checkpoint's per-track values)."""
-    return {key: float(np.mean(values)) for key, values in readings.items()}
+    return {key: float(np.mean(values)) for key, values in per_track.items()}
 
 
 def protocol_row(variant: str, seed: int, runs_dir: str) -> dict:
@@ -157,7 +160,7 @@ def protocol_measure(variant: str, seed: int, runs_dir: str) -> tuple[dict, dict
     sampled, mean_action = (track_means(driven[policy]) for policy in PROTOCOL_POLICIES)
     best_eval, last3_eval = eval_summary(eval_curve(run))
     row = {
-        "variant": variant, "seed": seed, "updates": int(checkpoint["agents"][0]["num_updates"]),
+        "variant": variant, "seed": seed, "updates": checkpoint_updates(checkpoint),
         "env_steps": int(checkpoint["counters"]["global_step"]), "cpu_hours": round(cpu_hours, 4),
         "wall_hours": training_hours(run),
         "final_return": round(sampled["return"], 2), "final_progress": round(sampled["progress"], 4),
@@ -266,7 +269,7 @@ def groups(rows: list[dict], peers: dict[str, list[dict]]) -> list[tuple[str, st
         for variant in VARIANTS if (mine := [r for r in rows if r["variant"] == variant])
         for policy in PROTOCOL_POLICY_COLUMNS
     ]  # fmt: skip
-    return out + [(PEER_NAMES[peer], "deterministic", mine, PEER_COLUMNS[-3:]) for peer, mine in peers.items() if mine]
+    return out + [(PEER_NAMES[peer], "deterministic", mine, PEER_POLICY_COLUMNS) for peer, mine in peers.items() if mine]
 
 
 def protocol_summary(rows: list[dict], peers: dict[str, list[dict]], reps: int = 2000) -> str:
@@ -334,7 +337,7 @@ def protocol_seeds(rows: list[dict], peers: dict[str, list[dict]]) -> str:
     ]  # fmt: skip
     lines += [
         f"| {PEER_NAMES[peer]} | {r['seed']} | {r['updates']} | {r['env_steps']} | {hours(r, 'short of the budget')} | "
-        f"| deterministic: {policy(r, PEER_COLUMNS[-3:])} | | | | |"
+        f"| deterministic: {policy(r, PEER_POLICY_COLUMNS)} | | | | |"
         for peer, mine in peers.items() for r in mine
     ]  # fmt: skip
     return "\n".join(lines) + "\n"
@@ -414,12 +417,8 @@ def comparison_verdict(claim: dict) -> str:
     """The final protocol's word for a comparison (stats.two_group_claim's verdict): "beats" when the first is
     higher by both the exact test (p < 0.05) and Welch's interval (above 0), "behind" when it is lower by both,
     else "no detectable difference" (or too few runs to judge)."""
-    verdict = claim["verdict"]
-    if verdict == "supported":
-        return "beats"
-    if verdict.startswith("contradicted"):
-        return "behind"
-    return verdict if verdict.startswith("too few") else "no detectable difference"
+    words = {"supported": "beats", "contradicted": "behind", "too few runs": claim["verdict"]}
+    return words.get(claim["outcome"], "no detectable difference")
 
 
 def protocol_comparisons(rows: list[dict], peers: dict[str, list[dict]]) -> str:
@@ -522,7 +521,7 @@ def figure_data(rows: list[dict], peers: dict[str, list[dict]], curves: dict[str
     finals, steps = {}, {}
     for name, policy, mine, keys in groups(rows, peers):
         returns = column(mine, keys[0])
-        mean, ci = t_interval(returns) if returns.size > 1 else (float(returns.mean()), (np.nan, np.nan))
+        mean, ci = t_interval(returns)  # (one seed: no interval)
         label = f"{name.upper() if name in VARIANTS else name}, {policy}"
         finals[label] = {"returns": returns.tolist(), "mean": float(mean), "ci": tuple(map(float, ci))}
         steps[label] = (float(column(mine, "env_steps").mean()), float(returns.mean()))
@@ -648,9 +647,10 @@ def ship_rows(variant: str, runs_dir: str, shipped: str, seeds: tuple[int, ...] 
 
 
 def ship(variant: str, runs_dir: str, shipped: str, results_dir: str = RESULTS) -> str:
-    """Measure the candidates (ship_rows) and write them to ``ship_<variant>.csv`` in `results_dir` (its ``shipped``
-    column marks the winner); then, if the best seed's return beats the shipped agent's, export it over `shipped`
-    (atomically; refused above SHIP_MAX_BYTES, the shipped file unchanged). Returns a markdown table of the rows."""
+    """Measure the candidates (ship_rows); if the best seed's return beats the shipped agent's, export it over
+    `shipped` (atomically; refused above SHIP_MAX_BYTES, the shipped file unchanged). ``ship_<variant>.csv`` in
+    `results_dir` keeps the rows, its ``shipped`` column marking the agent `shipped` holds afterwards. Returns a
+    markdown table of the rows."""
     import race
     from utils.checkpoint import export_policy
 
@@ -658,17 +658,22 @@ def ship(variant: str, runs_dir: str, shipped: str, results_dir: str = RESULTS) 
     current = next((r for r in rows if r["candidate"] == "shipped"), None)
     best = max((r for r in rows if r["candidate"] != "shipped"), key=lambda r: r["return"])
     winner = best if current is None or best["return"] > current["return"] else current
-    winner["shipped"] = True
     os.makedirs(results_dir, exist_ok=True)
-    write_table(os.path.join(results_dir, f"ship_{variant}.csv"), rows, SHIP_COLUMNS)  # the record first
+    record = os.path.join(results_dir, f"ship_{variant}.csv")
     if winner is best:
         script = race.read_checkpoint(best["checkpoint"])[0]
         os.makedirs(os.path.dirname(os.path.abspath(shipped)), exist_ok=True)
         size = export_policy(script, best["checkpoint"], shipped + ".new")
         if size > SHIP_MAX_BYTES:
             os.remove(shipped + ".new")
+            if current is not None:  # the record says what stays shipped
+                current["shipped"] = True
+            write_table(record, rows, SHIP_COLUMNS)
             raise ValueError(f"{best['checkpoint']} exports to {size / 1e6:.1f} MB, over the {SHIP_MAX_BYTES / 1e6:g}"
-                             f" MB a shipped agent may take; ship_{variant}.csv names it, {shipped} is unchanged")
+                             f" MB a shipped agent may take; {shipped} is unchanged (ship_{variant}.csv)")
+    winner["shipped"] = True
+    write_table(record, rows, SHIP_COLUMNS)  # the record before the file it names
+    if winner is best:
         os.replace(shipped + ".new", shipped)
     lines = [f"{variant}: {POLICY_NAMES[SHIP_POLICY]} on tracks {track_block(*SHIP_TRACKS)}", "",
              "| candidate | return | progress | \\|steer\\| | shipped |", "|---|---|---|---|---|"]  # fmt: skip

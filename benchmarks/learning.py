@@ -231,7 +231,7 @@ def policy_summary(
     result = {
         "checkpoint": path,
         "variant": variant,
-        "updates": int(checkpoint["agents"][0]["num_updates"]),
+        "updates": common.checkpoint_updates(checkpoint),
         "policy": policy,
         "tracks": common.track_block(first_track, tracks),
         "eval_return": float(returns.mean()),

@@ -92,8 +92,6 @@ ALGOS = {  # --algo: (variant: the rows' name, the run directory's prefix, the c
 ALGO_KEYS = ("batch_size", "n_steps", "gamma", "gae_lambda", "n_epochs", "ent_coef", "sde_sample_freq",
              "max_grad_norm", "vf_coef", "use_sde", "clip_range")  # fmt: skip
 
-# SB3's PPO (and RecurrentPPO) count an epoch over a rollout as one update; each is this many minibatch gradient steps
-
 
 class FrameSkip(gymnasium.Wrapper):
     """Repeat each action `skip` env steps and sum the rewards (rl-zoo's FrameSkip); stops at the episode's end."""
@@ -391,10 +389,12 @@ def main(argv=None) -> dict | list[dict]:
     args = parser.parse_args(argv)
     variant, config = ALGOS[args.algo]
     budget_steps = config["n_timesteps"] if args.budget_steps is None else args.budget_steps
-    if args.cpu_hours <= 0 or budget_steps < 1 or args.tracks < 1 or args.torch_threads < 1:
-        parser.error("--cpu-hours must be > 0 and --budget-steps, --tracks, --torch-threads >= 1")
-    if min(args.snapshot_steps) < 1:
-        parser.error("--snapshot-steps must be >= 1")
+    if not args.cpu_hours > 0:
+        parser.error(f"--cpu-hours must be > 0, got {args.cpu_hours}")
+    for flag, value in (("--budget-steps", budget_steps), ("--tracks", args.tracks),
+                        ("--torch-threads", args.torch_threads), ("--snapshot-steps", min(args.snapshot_steps))):
+        if value < 1:
+            parser.error(f"{flag} must be >= 1, got {value}")
     import torch
 
     torch.set_num_threads(args.torch_threads)

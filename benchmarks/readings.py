@@ -25,7 +25,7 @@ import os
 
 import numpy as np
 from calibration import calibrate_checkpoint
-from common import track_block, write_table
+from common import checkpoint_updates, track_block, write_json, write_table
 from learning import progress_rows
 
 POLICIES = ("stochastic", "mean-action")
@@ -52,7 +52,7 @@ def checkpoint_at(run_dir: str, updates: int) -> str:
     for path in paths:
         if not os.path.exists(path):
             continue
-        done = int(race.read_checkpoint(path)[1]["agents"][0]["num_updates"])
+        done = checkpoint_updates(race.read_checkpoint(path)[1])
         if done == updates:
             return path
         kept.append(done)
@@ -142,9 +142,7 @@ def report(sweep) -> str:
             else:  # readings kept before the PEDAL columns: add them
                 extra = pedal(path, sweep.first_track)
                 cache[key] = {policy: {**values, **extra} for policy, values in cache[key].items()}
-            with open(cache_path + ".tmp", "w") as f:
-                json.dump(cache, f, indent=1)
-            os.replace(cache_path + ".tmp", cache_path)
+            write_json(cache_path, cache)
         for policy in POLICIES:
             rows.append({"tag": config["tag"], "variant": config["variant"], "seed": config["seed"],
                          "updates": updates, "policy": policy, **cache[key][policy],

@@ -3,23 +3,23 @@
 * ``interval_estimates``: IQM and mean of each method's scores with stratified-bootstrap 95% intervals;
 * ``paired_probability_of_improvement``: P(X > Y) within pairs of runs measured together, with its
   bootstrap-over-pairs interval;
-* ``t_interval``, ``paired_t_interval``, ``two_sample_t_interval``: Student t 95% intervals of a mean, of the mean
-  of paired differences and of a difference of independent means (Welch);
+* ``t_interval``, ``two_sample_t_interval``: Student t 95% intervals of a mean (of paired differences, say) and of a
+  difference of independent means (Welch);
 * ``sign_flip_test``: the exact one- or two-sided p-value of paired differences over all 2^n sign assignments;
   ``permutation_test``: of two independent groups over all their splits;
 * ``paired_claim``, ``two_group_claim``: a claim "the difference is positive" measured by both (estimate,
   t interval, exact p each way) and judged; ``describe``: its test in one line;
-* ``verdict``: what a difference says of the claim that it is positive, from the exact test and the t interval
-  (or, over more than ``SMALL_N`` units and without them, from a bootstrap interval); ``judge``: the same, or
-  "too few runs" when a side has fewer than ``MIN_RUNS``; ``SMALL_SAMPLE_NOTE``: why a claim over very few units
-  can at best be "weak";
+* ``outcome`` and ``verdict``: what a difference says of the claim that it is positive, from the exact test and the
+  t interval (a word of ``OUTCOMES``, and a sentence); ``judge``: the same, or "too few runs" when a side has fewer
+  than ``MIN_RUNS``; ``SMALL_SAMPLE_NOTE``: why a claim over very few units can at best be "weak";
 * ``pairs_needed``: the seed pairs a paired t test needs to detect a true mean difference.
 
-Over 6 units or fewer (seeds, or seed pairs) a percentile bootstrap's interval is too narrow (over 3 it is the
-range of the values), so every claim there is judged by an exact permutation test and a t interval; rliable's
-bootstrap intervals stay as descriptions.
+Every claim is judged by an exact test (sign-flip or permutation) and a t interval: over the few runs an RL
+comparison has (6 or fewer seeds, or seed pairs) a percentile bootstrap's interval is too narrow (over 3 it is the
+range of the values). rliable's bootstrap intervals stay as descriptions.
 
-Scores are arrays of shape (runs, tasks), rliable's layout; one task is a column of one.
+rliable's scores are arrays of shape (runs, tasks); one task is a column of one. The tests and intervals take one
+value per run (a run is the unit: several values of one run are not independent).
 """
 
 from __future__ import annotations
@@ -74,7 +74,6 @@ def paired_probability_of_improvement(x: np.ndarray, y: np.ndarray, reps: int = 
 
 
 ALPHA = 0.05  # the level of every claim: its exact one-sided p-value below this and its t 95% interval clear of 0
-SMALL_N = 6  # a claim over this many units (seeds or seed pairs) or fewer: an exact test and a t interval only
 MAX_EXACT = 10**7  # sign assignments or splits an exact test enumerates at most
 ALTERNATIVES = ("greater", "less", "two-sided")
 
@@ -97,37 +96,31 @@ def _t(means, variances, sizes, weights, confidence: float) -> tuple[float, tupl
     return estimate, (estimate - half, estimate + half)
 
 
+def one_per_run(x, what: str) -> np.ndarray:
+    """x as one value per run: shape (runs,), or rliable's (runs, 1). Several values a run (rliable's tasks) are
+    refused: counted as units, they would make the tests and intervals claim more runs than there are."""
+    x = np.asarray(x, float)
+    if x.ndim == 2 and x.shape[1] == 1:
+        x = x[:, 0]
+    if x.ndim != 1 or x.size == 0:
+        raise ValueError(f"{what} needs one value per run, of shape (runs,), got {x.shape}")
+    return x
+
+
 def t_interval(x, confidence: float = 0.95) -> tuple[float, tuple[float, float]]:
-    """The mean of x with its Student t interval: (mean, (low, high)), mean +- t_{n-1} * sd / sqrt(n) (sd with
-    n - 1). x of shape (runs, strata) (rliable's layout; every stratum the same runs): the mean of the strata's
-    means, each stratum's own variance, Welch-Satterthwaite's degrees of freedom, so a spread between strata is no
-    noise. Values all equal: the interval is the mean; one run: (nan, nan).
+    """The mean of x (one value per run) with its Student t interval: (mean, (low, high)), mean +- t_{n-1} * sd /
+    sqrt(n) (sd with n - 1). Values all equal: the interval is the mean; one run: (nan, nan).
 
     For [5.4, -18.0, 247.9, 218.8, 166.0, -10.1]: mean 101.67, sd 122.74, t_5 = 2.5706: (101.67, (-27.1, 230.5))."""
-    x = np.asarray(x, float)
-    x = x[:, None] if x.ndim == 1 else x
-    if x.ndim != 2 or x.size == 0:
-        raise ValueError(f"t_interval needs values of shape (runs,) or (runs, strata), got {x.shape}")
-    sizes, k = [x.shape[0]] * x.shape[1], x.shape[1]
-    variances = [float(np.var(c, ddof=1)) if c.size > 1 else float("nan") for c in x.T]
-    return _t(x.mean(axis=0), variances, sizes, [1.0 / k] * k, confidence)
-
-
-def paired_t_interval(x, y, confidence: float = 0.95) -> tuple[float, tuple[float, float]]:
-    """mean(x - y) of runs paired by index (measured together: a seed pair's two agents, one run before and after)
-    with the t interval of the differences (``t_interval``)."""
-    x, y = np.asarray(x, float), np.asarray(y, float)
-    if x.shape != y.shape:
-        raise ValueError(f"paired runs need two arrays of one shape, got {x.shape} and {y.shape}")
-    return t_interval(x - y, confidence)
+    x = one_per_run(x, "t_interval")
+    variance = float(np.var(x, ddof=1)) if x.size > 1 else float("nan")
+    return _t([x.mean()], [variance], [x.size], [1.0], confidence)
 
 
 def two_sample_t_interval(x, y, confidence: float = 0.95) -> tuple[float, tuple[float, float]]:
     """mean(x) - mean(y) of independent runs with Welch's t interval (each side's own variance, Welch-Satterthwaite's
     degrees of freedom): a side's spread is not assumed to be the other's. A side of one run: (nan, nan)."""
-    x, y = np.asarray(x, float).reshape(-1), np.asarray(y, float).reshape(-1)
-    if x.size == 0 or y.size == 0:
-        raise ValueError(f"two groups need a run each, got {x.size} and {y.size}")
+    x, y = one_per_run(x, "a first group"), one_per_run(y, "a second group")
     var = [float(np.var(v, ddof=1)) if v.size > 1 else float("nan") for v in (x, y)]
     return _t([x.mean(), y.mean()], var, [x.size, y.size], [1.0, -1.0], confidence)
 
@@ -152,10 +145,9 @@ def sign_flip_test(diffs, alternative: str = "greater") -> float:
     every one of the 2^n assignments of signs to |diffs| (the observed one included), and the share of them at least
     as large as the observed mean ("greater"), as small ("less"), or as far from 0 ("two-sided"). 3 of 3
     positive: 1/8 one-sided, 2/8 two-sided; the smallest one-sided p over n pairs is 1/2^n (1/32 < 0.05 needs 5
-    pairs). Diffs of shape (runs, strata) count each entry as a unit (the mean is the strata's mean of means: every
-    stratum has the same runs)."""
-    d = np.asarray(diffs, float).reshape(-1)
-    if d.size == 0 or 2**d.size > MAX_EXACT:
+    pairs)."""
+    d = one_per_run(diffs, "the sign-flip test")
+    if 2**d.size > MAX_EXACT:
         raise ValueError(f"the exact sign-flip test enumerates 2^n assignments: n = {d.size} is not in "
                          f"1..{int(math.log2(MAX_EXACT))}")  # fmt: skip
     assignment, sums = np.arange(2**d.size), np.zeros(2**d.size)
@@ -170,45 +162,48 @@ def permutation_test(x, y, alternative: str = "greater") -> float:
     included), and the share of them at least as large as the observed difference ("greater"), as small ("less"),
     or as far from 0 ("two-sided"). The smallest one-sided p is 1/C(n + m, n): 1/20 = 0.05 for 3 and 3 runs, which
     is not below 0.05."""
-    x, y = np.asarray(x, float).reshape(-1), np.asarray(y, float).reshape(-1)
+    x, y = one_per_run(x, "the permutation test"), one_per_run(y, "the permutation test")
     n, m = x.size, y.size
-    if n == 0 or m == 0 or math.comb(n + m, n) > MAX_EXACT:
-        raise ValueError(f"the exact permutation test enumerates every split: {n} and {m} runs are too few or many")
+    if math.comb(n + m, n) > MAX_EXACT:
+        raise ValueError(f"the exact permutation test enumerates every split: {n} and {m} runs make "
+                         f"{math.comb(n + m, n)} splits, more than its limit of {MAX_EXACT}")  # fmt: skip
     pooled, total = np.concatenate([x, y]), float(x.sum() + y.sum())
     firsts = np.fromiter((sum(c) for c in itertools.combinations(pooled, n)), float, math.comb(n + m, n))
     return _p(firsts / n - (total - firsts) / m, float(x.mean() - y.mean()), alternative)
 
 
-def verdict(ci: tuple[float, float], estimate: float | None = None, p: float | None = None,
-            p_opposite: float | None = None) -> str:  # fmt: skip
-    """The claim "the difference is positive". With its exact test (`p`: the one-sided p-value that it is greater
-    than 0, `p_opposite`: that it is less), its `estimate` and its t 95% interval `ci`:
+OUTCOMES = ("supported", "contradicted", "weak", "not supported", "too few runs")
+
+
+def outcome(ci: tuple[float, float], estimate: float, p: float, p_opposite: float) -> str:
+    """The claim "the difference is positive", judged by its exact test (`p`: the one-sided p-value that it is
+    greater than 0, `p_opposite`: that it is less), its `estimate` and its t 95% interval `ci`:
 
     * "supported": p < ALPHA and the interval lies above 0;
-    * "contradicted": p_opposite < ALPHA and the interval lies below 0;
+    * "contradicted" (the opposite holds): p_opposite < ALPHA and the interval lies below 0;
     * "weak": the estimate is positive, but the test does not reach ALPHA or the interval includes 0;
-    * "not supported": otherwise (the estimate is 0 or negative, the opposite not shown either: its p is given).
-
-    Without a test: by `ci` alone, a bootstrap 95% interval over more than SMALL_N units (above 0: supported, below:
-    contradicted, else not supported)."""
+    * "not supported": otherwise (the estimate is 0 or negative, the opposite not shown either)."""
     low, high = ci
-    if p is not None and estimate is None:
-        raise ValueError("a verdict from an exact test needs the estimate beside its p")
-    if p is None:
-        if low > 0:
-            return "supported"
-        if high < 0:
-            return "contradicted (the opposite holds)"
-        return "not supported (the interval includes 0)"
     if p < ALPHA and low > 0:
         return "supported"
-    if p_opposite is not None and p_opposite < ALPHA and high < 0:
+    if p_opposite < ALPHA and high < 0:
+        return "contradicted"
+    return "weak" if estimate > 0 else "not supported"
+
+
+def verdict(ci: tuple[float, float], estimate: float, p: float, p_opposite: float) -> str:
+    """``outcome`` as a sentence that says why: "weak (positive, but the exact test's p = 0.109 is not below
+    0.05)"."""
+    word = outcome(ci, estimate, p, p_opposite)
+    if word == "supported":
+        return word
+    if word == "contradicted":
         return "contradicted (the opposite holds)"
-    if estimate is not None and estimate > 0:
+    if word == "weak":
         if p >= ALPHA:
             return f"weak (positive, but the exact test's p = {p:.3f} is not below {ALPHA})"
         return f"weak (positive and p = {p:.3f}, but the t interval includes 0)"
-    if estimate is not None and estimate < 0 and p_opposite is not None:
+    if estimate < 0:
         return f"not supported (the estimate is negative; the opposite's p = {p_opposite:.3f})"
     return "not supported (the estimate is not positive)"
 
@@ -217,51 +212,50 @@ MIN_RUNS = 2  # fewer runs than this on a side of a claim: no spread to measure,
 SMALL_SAMPLE_NOTE = (
     "An exact test over few units has a floor: over n seed pairs the sign-flip test's smallest one-sided p is "
     "1/2^n (1/8 for 3 pairs, 1/16 for 4), and over two groups of 3 runs the permutation test's is 1/C(6, 3) = 0.05, "
-    "so below 5 pairs, or 3 runs a side, a claim is at best \"weak\" however clearly every run agrees."
+    "so with fewer than 5 pairs, or 3 runs a side or fewer, a claim is at best \"weak\" however clearly every run "
+    "agrees."
 )
 
 
-def judge(ci: tuple[float, float], n: int, estimate: float | None = None, p: float | None = None,
-          p_opposite: float | None = None) -> str:  # fmt: skip
-    """``verdict`` when the smaller side of the comparison has `n` >= MIN_RUNS runs, else "too few runs". A claim
-    over n <= SMALL_N units must bring its exact test (`p`, `p_opposite`) and `estimate` with its t interval: a
-    bootstrap interval alone judges only more units (a ValueError otherwise)."""
+def judge(ci: tuple[float, float], n: int, estimate: float, p: float, p_opposite: float) -> tuple[str, str]:
+    """(``outcome``, ``verdict``) when the smaller side of the comparison has `n` >= MIN_RUNS runs, else
+    ("too few runs", "too few runs to judge (n = 1)")."""
     if n < MIN_RUNS:
-        return f"too few runs to judge (n = {n})"
-    if p is None and n <= SMALL_N:
-        raise ValueError(f"a claim over n = {n} <= {SMALL_N} units is judged by an exact test and a t interval")
-    return verdict(ci, estimate, p, p_opposite)
+        return "too few runs", f"too few runs to judge (n = {n})"
+    return outcome(ci, estimate, p, p_opposite), verdict(ci, estimate, p, p_opposite)
 
 
 def paired_claim(diffs, confidence: float = 0.95) -> dict:
     """The claim "the mean of paired differences is positive": ``estimate`` (their mean) with its t interval
     ``ci`` (``t_interval``), the exact sign-flip test's one-sided ``p`` (greater) and ``p_opposite`` (less),
-    ``n`` the units, ``min_p`` the smallest p the test can give (1/2^n) and the ``verdict`` (``judge``). Diffs of
-    shape (runs, strata): strata weighted alike, each entry a unit. Up to 23 units (the test is exact)."""
-    d = np.asarray(diffs, float)
+    ``n`` the units, ``min_p`` the smallest p the test can give (1/2^n), the ``outcome`` and the ``verdict``
+    (``judge``). One difference per unit (a seed pair, a run); up to 23 units (the test is exact)."""
+    d = one_per_run(diffs, "a paired claim")
     estimate, ci = t_interval(d, confidence)
     n = d.size
     greater, less = sign_flip_test(d, "greater"), sign_flip_test(d, "less")
+    word, said = judge(ci, n, estimate, greater, less)
     return {
         "estimate": estimate, "ci": ci, "p": greater, "p_opposite": less, "n": n, "sizes": f"{n}",
-        "test": "sign-flip", "interval": "t" if d.ndim == 1 or d.shape[1] == 1 else "t (strata)",
-        "confidence": confidence, "min_p": 0.5**n, "verdict": judge(ci, n, estimate, greater, less),
+        "test": "sign-flip", "interval": "t", "confidence": confidence, "min_p": 0.5**n, "outcome": word,
+        "verdict": said,
     }  # fmt: skip
 
 
 def two_group_claim(x, y, confidence: float = 0.95) -> dict:
     """The claim "mean(x) - mean(y) is positive" for independent runs: ``estimate`` with Welch's t interval ``ci``
     (``two_sample_t_interval``), the exact permutation test's one-sided ``p`` (greater) and ``p_opposite`` (less),
-    ``n`` the smaller side, ``min_p`` = 1/C(n_x + n_y, n_x) and the ``verdict`` (``judge``). Up to 10^7 splits
-    (12 runs a side; the test is exact)."""
-    x, y = np.asarray(x, float).reshape(-1), np.asarray(y, float).reshape(-1)
+    ``n`` the smaller side, ``min_p`` = 1/C(n_x + n_y, n_x), the ``outcome`` and the ``verdict`` (``judge``). Up to
+    10^7 splits (12 runs a side; the test is exact)."""
+    x, y = one_per_run(x, "a first group"), one_per_run(y, "a second group")
     estimate, ci = two_sample_t_interval(x, y, confidence)
     greater, less = permutation_test(x, y, "greater"), permutation_test(x, y, "less")
     n = min(x.size, y.size)
+    word, said = judge(ci, n, estimate, greater, less)
     return {
         "estimate": estimate, "ci": ci, "p": greater, "p_opposite": less, "n": n, "sizes": f"{x.size}+{y.size}",
         "test": "permutation", "interval": "Welch t", "confidence": confidence,
-        "min_p": 1 / math.comb(x.size + y.size, x.size), "verdict": judge(ci, n, estimate, greater, less),
+        "min_p": 1 / math.comb(x.size + y.size, x.size), "outcome": word, "verdict": said,
     }  # fmt: skip
 
 
@@ -285,7 +279,8 @@ def pairs_needed(diffs_sd: float, effect: float, alpha: float = ALPHA, power: fl
     from scipy import stats as sps
 
     if diffs_sd <= 0 or effect == 0 or alternative not in ("two-sided", "greater"):
-        raise ValueError("pairs_needed needs diffs_sd > 0, effect != 0 and a two-sided or greater test")
+        raise ValueError(f"pairs_needed needs diffs_sd > 0, effect != 0 and alternative 'two-sided' or 'greater', "
+                         f"got {diffs_sd}, {effect} and {alternative!r}")  # fmt: skip
     for n in range(2, 100_001):
         df, shift = n - 1, abs(effect) / diffs_sd * math.sqrt(n)
         if alternative == "two-sided":

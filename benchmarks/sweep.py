@@ -20,8 +20,8 @@ the same command continues it, another grid needs another ``--name``.
 ran out) on the screening tracks
 (10200..10219 by default, never used to report a result), sampled and with its mean action, and writes
 ``benchmarks/results/screening/sweep_<name>.csv`` and ``.md`` with the readings that say *why* a policy drives as it
-does (``readings.measure``): return, progress, |steer|, throttle, speed, laps finished, eliminations; the actor's
-sigma and entropy, the imagined return and the reward head's mean on elimination frames; each measurement is kept in
+does (``readings.measure``; ``readings.COLUMNS`` lists them: driving, the actor's sigma and entropy, the imagined
+against the real return, the reward head on elimination frames, the pedal's range); each measurement is kept in
 ``<storage>/<name>/readings.json`` and made once.
 """
 
@@ -147,10 +147,8 @@ def check(sweep: Sweep) -> None:
                 experiment.parse_overrides(script, flag_set(flags))
             except ValueError as error:
                 raise SystemExit(f"sweep.py: --grid {flags!r}: {error}") from None
-    if sweep.updates < 1:
-        raise SystemExit(f"sweep.py: --updates must be >= 1, got {sweep.updates}")
-    if not sweep.cpu_hours >= 0:
-        raise SystemExit(f"sweep.py: --cpu-hours must be >= 0 (0: no budget), got {sweep.cpu_hours}")
+    experiment.refuse_below("sweep.py", updates=(sweep.updates, 1), cpu_hours=(sweep.cpu_hours, 0),
+                            report_every=(sweep.report_every, 1), torch_threads=(sweep.torch_threads, 1))
     saved = saved_fields(sweep)
     if saved is not None and saved != fields(sweep):
         differ = [k for k in SWEEP_FIELDS if saved[k] != fields(sweep)[k]]
@@ -176,29 +174,17 @@ def saved_fields(sweep: Sweep) -> dict | None:
 def save_fields(sweep: Sweep) -> None:
     path = os.path.join(sweep.storage, sweep.name, "sweep.json")
     os.makedirs(os.path.dirname(path), exist_ok=True)
-    with open(path + ".tmp", "w") as f:
-        json.dump(fields(sweep), f, indent=1)
-    os.replace(path + ".tmp", path)
+    common.write_json(path, fields(sweep))
 
 
 def trial_status(sweep: Sweep) -> list[tuple[dict, str | None, int, float, bool, bool]]:
     """(config, run directory or None, updates and CPU-hours its latest.pt holds, whether it is finished, whether the
     non-finite guard stopped it) of every trial. A trial is finished at --updates updates, or with --cpu-hours once
-    its budget is spent, or when the guard stopped its run (experiment.numerical_stop: its last policy counts)."""
-    import importlib
-
+    its budget is spent, or when the guard stopped its run (experiment.trial_progress, as the experiment's trials)."""
     rows = []
     for config in trial_configs(sweep):
-        script = importlib.import_module(f"dreamer_{config['variant']}")
-        directory = experiment.trial_dir(config["spec"], "single", config["variant"], config["seed"])
-        run = experiment.run_of(directory)
-        done, hours, stopped = 0, 0.0, False
-        if run:
-            checkpoint = script.load_checkpoint(os.path.join(run, "checkpoints", "latest.pt"))
-            done = int(checkpoint["agents"][0]["num_updates"])
-            hours, stopped = experiment.cpu_hours_of(checkpoint), experiment.numerical_stop(checkpoint)
-        finished = stopped or (hours >= sweep.cpu_hours if sweep.cpu_hours > 0 else done >= sweep.updates)
-        rows.append((config, run, done, hours, run is not None and finished, stopped))
+        progress = experiment.trial_progress(config["spec"], "single", config["variant"], config["seed"])
+        rows.append((config, progress.run, progress.done, progress.hours, progress.finished, progress.stopped))
     return rows
 
 

@@ -15,7 +15,8 @@ rasterised once per reset (gymnasium draws 1000x800 polygons every step and scal
 ``rules="carracing"`` with ``num_agents=1, action_mode="classic"`` reproduces CarRacing-v3
 step for step (tiles, poses, rewards, termination); tests check this against gymnasium.
 
-Physics and rules live in ``MultiCarRacing``; drawing lives in ``TrackRenderer``.
+Physics and rules live in ``MultiCarRacing``; pixels are drawn by ``TrackRenderer``, which the
+env's last section (Drawing) hands what each view shows: the cars' outlines, colours and dashboards.
 """
 
 from __future__ import annotations

@@ -108,3 +108,16 @@ def test_a_whole_table_is_written_at_once_or_not_at_all(tmp_path):
     assert open(path).read() == before and os.listdir(tmp_path) == ["table.csv"]
     common.write_table(path, [], ("seed", "score"))  # no rows: the header alone
     assert open(path).read().splitlines() == ["seed,score"]
+    full = OSError(28, "No space left on device")  # an open that fails: its own error, not one of the clean-up's
+
+    def refuse(*args, **kwargs):
+        raise full
+
+    monkeypatch_open = pytest.MonkeyPatch()
+    monkeypatch_open.setattr(common, "open", refuse, raising=False)
+    try:
+        with pytest.raises(OSError) as raised:
+            common.write_table(path, [{"seed": 5, "score": 0.0}], ("seed", "score"))
+    finally:
+        monkeypatch_open.undo()
+    assert raised.value is full and open(path).read().splitlines() == ["seed,score"]

@@ -13,10 +13,12 @@ import importlib
 import itertools
 import math
 import os
+import types
 
 import numpy as np
 import pytest
 import torch
+import utils
 import utils.checkpoint as ckpt
 import utils.collector as collector
 import utils.run as run_tools
@@ -1037,6 +1039,20 @@ class _ScriptedSteer:
         return np.array([[self.steer if sees_track else 0.0, 1.0]], dtype=np.float32), state
 
 
+def test_the_collector_refuses_agents_that_do_not_match_the_cars():
+    """Agent i drives car i of every race: another count of agents or action repeats would map cars to the wrong
+    agents without a word; drive_races drives one race at a time (with K > 1 it would keep whichever ended first)."""
+    one_race_of_two = types.SimpleNamespace(num_envs=2, num_agents=2)
+    two_races_of_two = types.SimpleNamespace(num_envs=4, num_agents=2)
+    agents, args = [_ConstantDriver(np.zeros(2, np.float32))], types.SimpleNamespace(action_repeat=1)
+    with pytest.raises(ValueError, match=r"^1 agents for races of 2 cars \(2 vec-env slots\)"):
+        collector.Races(agents, args, one_race_of_two, None)
+    with pytest.raises(ValueError, match="^3 action repeats for 2 agents"):
+        collector.Races(agents * 2, args, one_race_of_two, None, repeats=[1, 2, 3])
+    with pytest.raises(ValueError, match="^drive_races drives one race at a time: eval_envs holds 4 slots for 2"):
+        collector.drive_races(agents * 2, args, two_races_of_two)
+
+
 def test_evaluation_averages_steer_over_the_decisions_of_cars_still_racing(script):
     """car_0 steers hard at full gas and leaves the road early; car_1 races on. car_0's mean |steer| is
     exactly 1: after it went out it is not asked to decide (it would see a blank observation and steer 0)."""
@@ -1181,6 +1197,30 @@ def test_races_side_by_side_keep_each_cars_state_when_they_fall_out_of_step(scri
     assert s1 < s2  # (both races started together: the later one ended s2 env steps in, the new race s2 - s1 ago)
     counts = sorted(races.states[0][0].tolist())
     assert counts == sorted([math.ceil(s2 / 3), math.ceil((s2 - s1) / 3)])
+
+
+def test_k_races_of_different_seeds_or_a_resume_start_on_tracks_of_their_own(script, tmp_path, monkeypatch):
+    """K races side by side start on the tracks of their vec env's seed + k (SB3's VecEnv.seed). With the run's
+    seed + races done as that seed, seed 11's second race would be seed 12's first, and a run resumed after 2 races
+    would race a new seed-13 run's tracks: no run, resumed or not, shares a starting track with another here."""
+    k_races = 4
+    starts = {(seed, done): {run_tools.races_seed(seed, done) + k for k in range(k_races)}
+              for seed in (11, 12, 13) for done in range(6)}  # fmt: skip
+    for a, b in itertools.combinations(starts, 2):
+        assert not starts[a] & starts[b], (a, b)
+    assert run_tools.races_seed(11, 3) == script.race_seed(11, 3)  # one race at a time: the same track seed
+
+    class Built(Exception):
+        pass
+
+    def make_vec_env(env_id, num_races, seed, *args, **kwargs):
+        raise Built(num_races, seed)
+
+    monkeypatch.setattr(utils, "make_vec_env", make_vec_env)
+    with pytest.raises(Built) as built:
+        script.main(tiny_args(script, num_races=k_races, seed=12, stage="single", num_agents=1,
+                              runs_dir=str(tmp_path)))  # fmt: skip
+    assert built.value.args == (k_races, run_tools.races_seed(12, 0))
 
 
 def test_dead_zone_of_the_next_race_is_set_before_its_reset(script):

@@ -49,5 +49,7 @@ def test_an_export_drives_exactly_like_its_checkpoint_and_the_json_has_every_tra
 def test_a_missing_file_or_no_tracks_is_one_line(tiny_run):
     with pytest.raises(SystemExit, match=r"^evaluate.py: error: no/such.pt: no such checkpoint file$"):
         evaluate.cli(["no/such.pt"])
-    with pytest.raises(SystemExit, match="tracks must be >= 1"):
-        evaluate.cli([os.path.join(tiny_run, "checkpoints", "latest.pt"), "--tracks", "0"])
+    for flags, got in ((["--tracks", "0"], "0 and 10000"), (["--first-track", "-3"], "10 and -3")):
+        with pytest.raises(SystemExit, match=rf"^evaluate.py: error: --tracks must be >= 1 and --first-track >= 0 "
+                                             rf"\(a track's seed\), got {got}$"):  # fmt: skip
+            evaluate.cli([os.path.join(tiny_run, "checkpoints", "latest.pt"), *flags])

@@ -142,6 +142,13 @@ def test_a_rerun_with_other_trials_or_a_missing_stage_is_refused_before_ray_star
         experiment.check_spec(experiment.Spec(seeds=(1,), stages=("race",), storage=str(tmp_path)))  # nothing ran
     with pytest.raises(ValueError, match="not name=value"):
         experiment.check_spec(experiment.Spec(overrides=("no_such_flag=1",), storage=str(tmp_path)))
+    # a count below 1 reads as "no limit" to the scripts: its trial would never end (a resumed one, report forever)
+    for name, value in (("report_every", 0), ("single_updates", -1), ("ghost_updates", 0), ("tournament_every", 0)):
+        with pytest.raises(SystemExit, match=f"^experiment.py: --{name.replace('_', '-')} must be >= 1, got {value}$"):
+            experiment.check_spec(experiment.Spec(storage=str(tmp_path / "new"), **{name: value}))
+    with pytest.raises(SystemExit, match="--single-cpu-hours must be >= 0, got nan"):
+        experiment.check_spec(experiment.Spec(single_cpu_hours=float("nan"), storage=str(tmp_path / "new")))
+    assert not os.path.exists(tmp_path / "new")  # refused before its spec.json
 
 
 def test_a_local_ray_offers_the_cpus_asked_for_and_a_rerun_may_change_them(finished, tmp_path, monkeypatch):
@@ -813,7 +820,7 @@ def test_a_cpu_hour_budget_ends_a_single_trial_whatever_its_updates(tmp_path, mo
 
     assert experiment.unfinished(spec, "single", ["gru"], [12]) == []  # the next stage may start from it
     progress = experiment.trial_progress(spec, "single", "gru", 12)
-    assert experiment.progress_text("t", *progress) == "t (4321 updates, 3.10 of 3.1 CPU-hours, finished)"
+    assert experiment.progress_text("t", progress) == "t (4321 updates, 3.10 of 3.1 CPU-hours, finished)"
     monkeypatch.setattr(script, "main", train)
     spent["extra"]["cpu_seconds"] = 3.0 * 3600
     with pytest.raises(Trains):
@@ -853,7 +860,7 @@ def test_a_trial_whose_run_the_non_finite_guard_stopped_ends_with_it_and_is_not_
     assert len(trained) == 1 and reports == [{"run": os.path.dirname(checkpoints), "numerical_stop": 1}]
     assert experiment.unfinished(spec, "single", ["lstm"], [12]) == []  # finished for the next stage
     progress = experiment.trial_progress(spec, "single", "lstm", 12)
-    text = experiment.progress_text("t", *progress)
+    text = experiment.progress_text("t", progress)
     assert text == "t (740 updates, 0.50 of 3.1 CPU-hours, stopped by the non-finite guard)"
     monkeypatch.setattr(script, "main", lambda *a: pytest.fail("the guard's stop is kept: no more training"))
     experiment.dreamer_trial(trial)  # restored (Tune's retry): nothing trained

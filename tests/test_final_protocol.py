@@ -503,6 +503,9 @@ def test_the_shipped_agent_is_replaced_only_by_a_better_seed_on_the_screening_tr
     with pytest.raises(ValueError, match="over the 10 MB"):
         final_protocol.ship("lstm", trials, str(shipped), results)
     assert shipped.read_bytes() == b"the agent shipped before" and not os.path.exists(str(shipped) + ".new")
+    with open(tmp_path / "ship_lstm.csv") as f:  # the record names the agent that stays, not the refused one
+        assert [(r["candidate"], r["shipped"]) for r in csv.DictReader(f) if r["shipped"] == "True"] == [
+            ("shipped", "True")]  # fmt: skip
 
     short = fake_trial(str(tmp_path / "short"), seed=21, cpu_seconds=BUDGET_SECONDS - 1)
     for seed in final_protocol.PROTOCOL_SEEDS[1:]:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import io
+import os
 import re
 import sys
 import time
@@ -150,3 +151,32 @@ def test_resumed_run_keeps_its_csv_rows(tmp_path):
         rows = list(csv.DictReader(f))
     assert [r["charts/a"] for r in rows] == ["1.0", "2.0"]
     assert [r["charts/b"] for r in rows] == ["", "5.0"]
+
+
+def test_a_kill_while_a_resume_restores_progress_csv_loses_no_row(tmp_path, monkeypatch):
+    """SB3 truncates progress.csv when the logger is built; a kill before the rows are back must not lose them."""
+    import utils.logger as logger_module
+
+    logger = logger_module.configure_logger(tmp_path, formats=("csv",))
+    for step in (1, 2):
+        logger.record("charts/a", float(step))
+        logger.dump(step)
+    logger.close()
+    whole = (tmp_path / "progress.csv").read_text()
+    real_configure = logger_module.configure
+
+    def killed(*args, **kwargs):  # the truncating logger is built, then the process dies
+        real_configure(*args, **kwargs).close()
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(logger_module, "configure", killed)
+    with pytest.raises(KeyboardInterrupt):
+        logger_module.configure_logger(tmp_path, formats=("csv",))
+    assert (tmp_path / "progress.csv").read_text() == ""  # SB3 truncated it: the rows are in the backup alone
+    monkeypatch.setattr(logger_module, "configure", real_configure)
+    logger = logger_module.configure_logger(tmp_path, formats=("csv",))  # the next resume
+    logger.record("charts/a", 3.0)
+    logger.dump(3)
+    logger.close()
+    assert (tmp_path / "progress.csv").read_text() == whole + "3.0\n"
+    assert sorted(os.listdir(tmp_path)) == ["progress.csv"]  # the backup is gone once the rows are back

@@ -186,6 +186,9 @@ def test_losses_are_drawn_per_x_unit_and_controls_beside_the_ghost(logdir, tmp_p
     assert "lstm/race (3 seeds)" in labelled(steps)  # the step-counted race runs only
     assert labelled(races) == ["lstm/race (1 seed)"]
     assert max(line.get_xdata().max() for line in races.lines) == 3
+    steps, races = (figures[f"multi_agent_win_rate{s}.png"].axes[0] for s in ("", "_races"))  # never on one axis
+    assert steps.get_xlabel() == "step" and "lstm (3 seeds)" in labelled(steps)
+    assert races.get_xlabel() == "races" and sorted(labelled(races)) == ["gru (1 seed)", "lstm (1 seed)"]
     single = labelled(figures["single_agent_return.png"].axes[0])
     assert sorted(single) == ["gru (3 seeds)", "lstm (3 seeds)"]  # the continued run is no fourth seed
     ghost = sorted(labelled(figures["ghost_return.png"].axes[0]))

@@ -41,7 +41,7 @@ def test_the_env_is_the_single_car_race_at_64_px_grayscale():
     env.close()
 
 
-def test_a_run_resumes_in_a_later_sitting_and_writes_its_row(tmp_path, monkeypatch):
+def test_a_run_resumes_in_a_later_sitting_and_writes_its_row(tmp_path, monkeypatch, capsys):
     monkeypatch.setitem(ppo_peer.ZOO, "n_envs", 2)
     monkeypatch.setitem(ppo_peer.ZOO, "n_steps", 32)
     monkeypatch.setitem(ppo_peer.ZOO, "batch_size", 32)
@@ -56,8 +56,12 @@ def test_a_run_resumes_in_a_later_sitting_and_writes_its_row(tmp_path, monkeypat
         rows = list(csv.DictReader(f))
     assert len(rows) == 1 and rows[0]["variant"] == "ppo" and int(rows[0]["env_steps"]) == 256  # replaced, not added
     assert -200 < float(rows[0]["final_return"]) < 1000 and 0 <= float(rows[0]["final_mean_abs_steer"]) <= 1
-    with pytest.raises(SystemExit):
-        ppo_peer.main(["--cpu-hours", "0"])
+    for argv, message in ((["--cpu-hours", "0"], "--cpu-hours must be > 0, got 0.0"),
+                          (["--tracks", "0"], "--tracks must be >= 1, got 0"),
+                          (["--snapshot-steps", "100", "0"], "--snapshot-steps must be >= 1, got 0")):
+        with pytest.raises(SystemExit):
+            ppo_peer.main(argv)
+        assert message in capsys.readouterr().err
 
 
 def test_the_budget_is_cpu_time_of_the_process(tmp_path, monkeypatch):

@@ -126,7 +126,9 @@ def test_tiny_train_run_logs_per_agent_win_rates(tiny_checkpoints, tmp_path):
     for i, variant in enumerate(("lstm", "gru")):
         path = str(run_dir / "checkpoints" / f"racer_{i}.pt")
         script, checkpoint = race.read_checkpoint(path)
-        assert checkpoint["counters"]["episode"] == 2 and script.VARIANT == variant
+        started = race.read_checkpoint(tiny_checkpoints[variant])[1]["counters"]
+        assert checkpoint["counters"]["episode"] == started["episode"] and script.VARIANT == variant  # its training
+        assert checkpoint["counters"]["race_episodes"] == 2 and checkpoint["counters"]["race_env_steps"] >= 2
         # its replay is saved beside it (named by the checkpoint) and a later sitting continues from both
         manifest = checkpoint["extra"]["replays"][0]
         assert ckpt.replay_dir_of(path, 0) == str(run_dir / "checkpoints" / f"racer_{i}_replay_car_0")
@@ -144,6 +146,9 @@ def test_tiny_train_run_logs_per_agent_win_rates(tiny_checkpoints, tmp_path):
     script, checkpoint = race.read_checkpoint(str(run_dir2 / "checkpoints" / "racer_0.pt"))
     assert checkpoint["agents"][0]["num_updates"] == 1 + 2 + 1  # continued, not restarted
     assert checkpoint["extra"]["replays"][0]["episodes"] == first.episodes + 3  # with the whole replay
+    first_sitting = race.read_checkpoint(str(run_dir / "checkpoints" / "racer_0.pt"))[1]["counters"]
+    assert checkpoint["counters"]["race_episodes"] == 3  # env steps counted on from the first sitting's
+    assert checkpoint["counters"]["race_env_steps"] > first_sitting["race_env_steps"]
     # plot.py: one race-stage curve per variant, the two sittings joined on the race count (1, 2, then 3)
     import plot
 

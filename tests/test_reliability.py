@@ -19,6 +19,7 @@ import math
 import os
 import subprocess
 import sys
+import types
 
 import numpy as np
 import pytest
@@ -465,6 +466,12 @@ def test_race_checkpoint_that_builds_no_agent_is_one_line(tmp_path):
         race.main([path, "--opponent", "pursuit"])
     text = str(exit_info.value.code)
     assert text.startswith(f"race.py: {path}: agent 0 does not fit the networks it names") and "\n" not in text
+    no_actor = types.SimpleNamespace(state_dict=lambda: {"world_model": {}})  # a saved agent without an actor
+    ckpt.save_checkpoint(path, "lstm", lstm.Args(**TINY), [no_actor], {"episode": 0})
+    with pytest.raises(SystemExit) as exit_info:
+        race.main([path, "--opponent", "pursuit"])
+    text = str(exit_info.value.code)
+    assert text == f"race.py: {path}: agent 0 has no actor output layer to read its action size from (KeyError: 'actor')"
 
 
 def test_plot_bad_input(tmp_path, capsys):

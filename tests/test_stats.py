@@ -25,21 +25,25 @@ def test_the_t_interval_of_the_ghost_differences_is_mean_plus_minus_t5_standard_
     assert estimate == pytest.approx(101.67, abs=0.005) and sd == pytest.approx(122.74, abs=0.005)
     assert (low, high) == pytest.approx((mean - half, mean + half), abs=1e-4)
     assert (low, high) == pytest.approx((-27.14, 230.47), abs=0.01)
-    paired, interval = stats.paired_t_interval(np.array(GHOST) + 300.0, [300.0] * 6)  # through the differences
-    assert paired == pytest.approx(estimate) and interval == pytest.approx((low, high))
     assert stats.t_interval([50.0] * 4) == (50.0, (50.0, 50.0))  # no spread: the interval is the point
     assert all(math.isnan(v) for v in stats.t_interval([5.0])[1])  # one run: no interval
 
 
-def test_the_welch_and_the_stratified_t_intervals_match_their_formulas():
+def test_the_welch_t_interval_matches_its_formula_and_a_run_is_the_unit():
     # x 1, 2, 3 (variance 1), y 10, 10, 10 (variance 0): -8 +- t_2 * sqrt(1/3); the degrees of freedom are x's alone
     diff, (low, high) = stats.two_sample_t_interval([1.0, 2.0, 3.0], [10.0, 10.0, 10.0])
     assert diff == -8.0 and (low, high) == pytest.approx((-8 - T_975[2] / math.sqrt(3), -8 + T_975[2] / math.sqrt(3)))
-    # two strata (columns) of variance 1 each, 3 runs: the mean of the means 52, variance (1/3 + 1/3) / 4 = 1/6,
-    # Welch-Satterthwaite (2/3)^2 / (2 * (1/3)^2 / 2) = 4 degrees of freedom; pooled, the six would spread over 1..103
-    mean, (low, high) = stats.t_interval(np.array([[1.0, 101.0], [2.0, 102.0], [3.0, 103.0]]))
-    assert mean == 52.0 and (low, high) == pytest.approx((52 - T_975[4] / math.sqrt(6), 52 + T_975[4] / math.sqrt(6)))
-    assert (low, high) == pytest.approx((50.87, 53.13), abs=0.005)
+    # several values a run (3 runs, 2 tasks each) would count as 6 units: p = 1/64 and an interval too narrow for 3
+    three_runs = np.array([[1.0, 101.0], [2.0, 102.0], [3.0, 103.0]])
+    for measure in (stats.t_interval, stats.sign_flip_test, stats.paired_claim):
+        with pytest.raises(ValueError, match=r"one value per run.*\(3, 2\)"):
+            measure(three_runs)
+    with pytest.raises(ValueError, match="one value per run"):
+        stats.two_group_claim(three_runs, [1.0, 2.0])
+    # their means per run are the units: 51, 52, 53, p = 1/8 and 52 +- t_2 * 1 / sqrt(3)
+    claim = stats.paired_claim(three_runs.mean(axis=1))
+    assert claim["p"] == 1 / 8 and claim["ci"] == pytest.approx((52 - T_975[2] / math.sqrt(3), 52 + T_975[2] / math.sqrt(3)))
+    assert stats.t_interval(three_runs[:, :1]) == stats.t_interval([1.0, 2.0, 3.0])  # rliable's (runs, 1) is one run each
 
 
 def test_the_sign_flip_test_counts_every_sign_assignment():
@@ -81,7 +85,8 @@ def test_the_permutation_test_counts_every_split():
 def test_a_claim_is_supported_only_by_the_exact_test_and_the_t_interval_together():
     # 1..6: p = 1/64 and the t interval 3.5 +- 2.5706 * 1.8708 / sqrt(6) = [1.54, 5.46] above 0
     assert stats.paired_claim([1.0, 2.0, 3.0, 4.0, 5.0, 6.0])["verdict"] == "supported"
-    assert stats.paired_claim([-1.0, -2.0, -3.0, -4.0, -5.0, -6.0])["verdict"].startswith("contradicted")
+    against = stats.paired_claim([-1.0, -2.0, -3.0, -4.0, -5.0, -6.0])
+    assert against["outcome"] == "contradicted" and against["verdict"].startswith("contradicted")
     # every difference positive (p = 1/64), but one far out: mean 17.5, sd 40.4, the interval [-24.9, 59.9]
     spread = stats.paired_claim([1.0, 1.0, 1.0, 1.0, 1.0, 100.0])
     assert spread["p"] == 1 / 64 and spread["verdict"].startswith("weak (positive and p = 0.016, but the t interval")
@@ -91,19 +96,18 @@ def test_a_claim_is_supported_only_by_the_exact_test_and_the_t_interval_together
     assert stats.paired_claim([-1.0, 1.0])["verdict"] == "not supported (the estimate is not positive)"
     assert stats.paired_claim([-1.0, -2.0, 0.5])["verdict"].startswith("not supported (the estimate is negative")
     assert stats.paired_claim([5.0])["verdict"] == "too few runs to judge (n = 1)"
+    assert stats.paired_claim([5.0])["outcome"] == "too few runs"
     # two groups of 3: the permutation test's floor is 1/20 = 0.05, not below 0.05, however far apart they are
     apart = stats.two_group_claim([600.0, 700.0, 800.0], [100.0, 200.0, 300.0])
-    assert apart["p"] == 1 / 20 and apart["ci"][0] > 0 and apart["verdict"].startswith("weak")
+    assert apart["p"] == 1 / 20 and apart["ci"][0] > 0 and apart["outcome"] == "weak"
+    assert apart["verdict"].startswith("weak")
     assert stats.two_group_claim([600.0, 700.0, 800.0, 900.0], [100.0, 200.0, 300.0])["verdict"] == "supported"
-    with pytest.raises(ValueError, match="exact test and a t interval"):
-        stats.judge((1.0, 2.0), 6)  # a bootstrap interval alone judges no claim over 6 units or fewer
-    assert stats.judge((1.0, 2.0), 7) == "supported"  # over more, it still may (the rule before)
 
 
 def test_the_ghost_claim_is_weak_where_a_percentile_bootstrap_said_supported():
     diffs = np.array(GHOST)
     boot = stats.interval_estimates({"d": diffs[:, None]}, reps=2000)["d"]["mean_ci"]
-    assert boot[0] > 0 and stats.verdict(boot) == "supported"  # the bootstrap's interval is too narrow over 6
+    assert boot[0] > 0  # the bootstrap's interval is too narrow over 6: by it alone the claim would hold
     claim = stats.paired_claim(diffs)
     assert claim["estimate"] == pytest.approx(101.67, abs=0.005) and claim["p"] == 7 / 64
     assert claim["verdict"] == "weak (positive, but the exact test's p = 0.109 is not below 0.05)"

@@ -81,6 +81,8 @@ def test_another_grid_under_the_same_name_or_an_unknown_flag_is_refused(finished
         sweeps.check(dataclasses.replace(finished, name="other", grid=("no_such_flag=1",)))
     with pytest.raises(SystemExit, match="same tag"):
         sweeps.check(dataclasses.replace(finished, name="other", grid=("default", "default")))
+    with pytest.raises(SystemExit, match="^sweep.py: --report-every must be >= 1, got 0$"):
+        sweeps.check(dataclasses.replace(finished, name="other", report_every=0))
 
 
 def test_a_cpu_budget_ends_each_trial_and_the_report_reads_its_last_policy(finished, monkeypatch, capsys):

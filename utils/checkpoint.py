@@ -168,13 +168,15 @@ def load_agent_state(agent, state, path: str, index: int) -> None:
         raise CheckpointError(f"{path}: agent {index} does not fit the networks it names: {first_line(e)}") from None
 
 
-def action_dim_of(agent_state: dict) -> int:
-    """The action size a saved agent was built for: its actor's output layer gives a mean and a sigma per action."""
+def action_dim_of(agent_state: dict, path: str, index: int) -> int:
+    """The action size a saved agent was built for: its actor's output layer (the last ``.bias`` of its ``actor``
+    state) gives a mean and a sigma per action. A state without one is a CheckpointError naming the file."""
     try:
         last = max((k for k in agent_state["actor"] if k.endswith(".bias")), key=lambda k: int(k.split(".")[2]))
         return int(agent_state["actor"][last].shape[0]) // 2
-    except (KeyError, TypeError, ValueError, IndexError, AttributeError):
-        return 2  # not an agent's state: load_agent_state names the file and what does not fit
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError) as e:
+        raise CheckpointError(f"{path}: agent {index} has no actor output layer to read its action size from "
+                              f"({type(e).__name__}: {first_line(e)})") from None  # fmt: skip
 
 
 def agent_from_checkpoint(method, path: str, index: int = 0, device="cpu"):
@@ -183,7 +185,7 @@ def agent_from_checkpoint(method, path: str, index: int = 0, device="cpu"):
     if not 0 <= index < len(checkpoint["agents"]):
         raise CheckpointError(f"{path}: has {len(checkpoint['agents'])} agent(s), asked for agent {index}")
     state = checkpoint["agents"][index]
-    agent = method.Agent(args_from_checkpoint(method.Args, checkpoint, path), action_dim_of(state), device=device)
+    agent = method.Agent(args_from_checkpoint(method.Args, checkpoint, path), action_dim_of(state, path, index), device=device)
     load_agent_state(agent, state, path, index)
     return agent
 

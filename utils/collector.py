@@ -74,6 +74,12 @@ class Races:
     is_first, policy) -> (actions, state)` and `action_dim`; the policy "random" draws uniform actions (prefill)."""
 
     def __init__(self, agents: list, args, envs, obs: np.ndarray, repeats: list[int] | None = None):
+        cars = getattr(envs, "num_agents", len(agents))  # (a MultiAgentVecEnv's cars per race)
+        if cars != len(agents) or envs.num_envs % len(agents):
+            raise ValueError(f"{len(agents)} agents for races of {cars} cars ({envs.num_envs} vec-env slots): agent i "
+                             "drives car i of every race, one agent per car")  # fmt: skip
+        if repeats is not None and len(repeats) != len(agents):
+            raise ValueError(f"{len(repeats)} action repeats for {len(agents)} agents: one per agent")
         self.agents, self.args, self.envs, self.n = agents, args, envs, len(agents)
         self.repeat = np.tile(repeats or [args.action_repeat] * self.n, envs.num_envs // self.n)  # per slot
         self.actions = np.zeros((envs.num_envs, max(a.action_dim for a in agents)), dtype=np.float32)
@@ -81,6 +87,8 @@ class Races:
         self.is_first, self.racing = np.ones(slots, dtype=bool), np.ones(slots, dtype=bool)
         self.held, self.reward = np.zeros(slots, dtype=int), np.zeros(slots)  # since the car's last decision
         self.cars: list[CarEpisode] = [None] * slots
+        # per slot, the race so far: sums of return, |steer|, gas, brake decisions and speed, with their counts
+        # (decisions, speed_samples); progress, lap_finished and eliminated hold their latest value, not a sum
         self.sums = {key: np.zeros(slots) for key in READINGS + ("decisions", "speed_samples")}
         self.start(obs)
 
@@ -181,6 +189,9 @@ def drive_races(agents: list, args, eval_envs, policy: str | None = None, seeds=
     """Races with `policy` (default --eval-policy), one per track of `seeds` (default: the held-out eval_seed + i,
     i < eval_episodes): every reading (READINGS) per race and car, each an (E, N) array. `records`, if given,
     receives each race's cars as CarEpisodes, as training stores them."""
+    if eval_envs.num_envs != len(agents):
+        raise ValueError(f"drive_races drives one race at a time: eval_envs holds {eval_envs.num_envs} slots for "
+                         f"{len(agents)} agents (one race of one car per agent)")  # fmt: skip
     policy = policy or args.eval_policy
     seeds = [args.eval_seed + e for e in range(args.eval_episodes)] if seeds is None else list(seeds)
     out = {key: np.zeros((len(seeds), len(agents))) for key in READINGS}

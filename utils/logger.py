@@ -108,14 +108,25 @@ def configure_logger(
     if check_videos and "tensorboard" in formats:
         check_video_support()
     csv_path = os.path.join(str(run_dir), "progress.csv")
-    previous_rows = open(csv_path).read() if "csv" in formats and os.path.exists(csv_path) else ""
+    # A resumed run: SB3 truncates progress.csv, so its rows are put back and appended to. Until they are back on
+    # disk they live in progress.csv.resume (a rename, atomic), which a kill in between leaves for the next resume.
+    backup, previous_rows = csv_path + ".resume", ""
+    if "csv" in formats:
+        if os.path.exists(csv_path) and not os.path.exists(backup):
+            os.replace(csv_path, backup)
+        if os.path.exists(backup):
+            with open(backup) as f:
+                previous_rows = f.read()
     logger = configure(str(run_dir), formats)
-    if previous_rows:  # a resumed run: SB3 truncates progress.csv; put its rows back and append
+    if previous_rows:
         for fmt in logger.output_formats:
             if isinstance(fmt, CSVOutputFormat):
                 fmt.file.write(previous_rows)
                 fmt.file.flush()
+                os.fsync(fmt.file.fileno())
                 fmt.keys = previous_rows.splitlines()[0].split(fmt.separator)
+    if "csv" in formats and os.path.exists(backup):
+        os.remove(backup)
     if hyperparameters:
         _write_tensorboard(logger, HYPERPARAMETERS_TAG, hyperparameter_table(hyperparameters), 0)
     return logger

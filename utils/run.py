@@ -35,6 +35,7 @@ from utils.checkpoint import (
     CheckpointError,
     UsageError,
     args_from_checkpoint,
+    atomic_write,
     ghost_from_tensors,
     ghost_to_tensors,
     load_agent_state,
@@ -312,6 +313,15 @@ class Run:
             print(message)
 
 
+def races_seed(seed: int, races_done: int) -> int:
+    """The seed of the vec env of K races side by side, built after `races_done` races: race k starts on the track
+    of this seed + k (SB3's VecEnv.seed), its later tracks come from its env's own stream. Drawn from (seed,
+    races_done), as the scripts' race_seed: with seed + races_done, run seed 11's race 1 would be run seed 12's
+    race 0, and a run resumed after e races would race the tracks of a new run of seed + e. (One race at a time
+    resets each race on its own track, start_race: this seed is never used then.)"""
+    return int(np.random.SeedSequence([seed, races_done]).generate_state(1)[0])
+
+
 def setup_run(method, args, overrides=()) -> Run:
     """Check everything, then build the run: a new one, or (args.resume) the saved one exactly as it stopped.
     Nothing is written before every check has passed."""
@@ -342,7 +352,7 @@ def setup_run(method, args, overrides=()) -> Run:
 
     n, episode = args.num_agents, int(resumed["counters"]["episode"]) if resumed else 0
     kwargs = method.env_kwargs(args, method.dead_zone_at(episode, args))
-    envs = make_vec_env(args.env_id, args.num_races, args.seed + episode, args.use_subprocess, **kwargs)
+    envs = make_vec_env(args.env_id, args.num_races, races_seed(args.seed, episode), args.use_subprocess, **kwargs)
     action_dim = int(envs.action_space.shape[0])
     run = Run(
         method, args, run_dir, device,
@@ -355,26 +365,11 @@ def setup_run(method, args, overrides=()) -> Run:
     if resumed is not None:
         restore_run(run, resumed, checkpoint_path)
     elif start is not None:
-        for i, agent in enumerate(run.agents):
-            source = i % len(start["agents"])
-            load_agent_state(agent, start["agents"][source], args.checkpoint, source)
-            directory = replay_dir_of(args.checkpoint, source)
-            if not args.fresh_replay and os.path.isfile(os.path.join(directory, "meta.npz")):
-                # The agent keeps learning from all it has seen: the newest save beside the checkpoint (for a
-                # best.pt, its run's replay at the end, which holds all best.pt had seen and what came after).
-                with np.load(os.path.join(directory, "meta.npz")) as meta:
-                    capacity = int(meta["capacity"])
-                if capacity != args.replay_capacity:
-                    raise UsageError(f"--replay-capacity {args.replay_capacity}: the replay beside --checkpoint "
-                                     f"({directory}) holds {capacity}; give --replay-capacity {capacity}, or "
-                                     "--fresh-replay to start with an empty one")  # fmt: skip
-                restore_replay(run.replays[i], directory, None, races=0)
-                print(f"car {i}: continues with the replay in {directory} ({len(run.replays[i]):,} steps)")
-                # (run.manifests stay None: the run's own replay directory holds no save until its first one)
+        start_from_checkpoint(run, start)
     formats = ("stdout", "csv", "tensorboard") if args.print_table else ("csv", "tensorboard")
     run.logger = configure_logger(run_dir, dataclasses.asdict(args), formats)
-    with open(os.path.join(run_dir, "config.json"), "w") as f:  # plot.py groups runs by variant and stage
-        json.dump({"variant": method.VARIANT, **dataclasses.asdict(args)}, f, indent=1)
+    config = {"variant": method.VARIANT, **dataclasses.asdict(args)}  # plot.py groups runs by variant and stage
+    atomic_write(os.path.join(run_dir, "config.json"), lambda f: f.write(json.dumps(config, indent=1).encode()))
     print(f"run directory: {run_dir} (device {device}); tensorboard --logdir {args.runs_dir}")
     if resumed is not None:
         print(f"resumed from {checkpoint_path} at race {run.counters['episode']}, step {run.counters['global_step']}")
@@ -383,6 +378,28 @@ def setup_run(method, args, overrides=()) -> Run:
         print(f"agents start from {args.checkpoint}")
     run.check_budget()
     return run
+
+
+def start_from_checkpoint(run: Run, start: dict) -> None:
+    """A new run from --checkpoint (`start`, loaded): agent i takes the checkpoint's agent i (modulo its count) and,
+    unless --fresh-replay, the replay saved beside it, so that it keeps learning from all it has seen (for a best.pt,
+    the newest save of its run: all best.pt had seen and what came after)."""
+    args = run.args
+    for i, agent in enumerate(run.agents):
+        source = i % len(start["agents"])
+        load_agent_state(agent, start["agents"][source], args.checkpoint, source)
+        directory = replay_dir_of(args.checkpoint, source)
+        if args.fresh_replay or not os.path.isfile(os.path.join(directory, "meta.npz")):
+            continue
+        with np.load(os.path.join(directory, "meta.npz")) as meta:
+            capacity = int(meta["capacity"])
+        if capacity != args.replay_capacity:
+            raise UsageError(f"--replay-capacity {args.replay_capacity}: the replay beside --checkpoint "
+                             f"({directory}) holds {capacity}; give --replay-capacity {capacity}, or "
+                             "--fresh-replay to start with an empty one")  # fmt: skip
+        restore_replay(run.replays[i], directory, None, races=0)
+        print(f"car {i}: continues with the replay in {directory} ({len(run.replays[i]):,} steps)")
+        # (run.manifests stay None: the run's own replay directory holds no save until its first one)
 
 
 def new_run_args(method, args):
