@@ -49,7 +49,7 @@ def evaluate_checkpoint(path: str, first_track: int = 10_000, tracks: int = 10, 
     first_track .. first_track + tracks - 1."""
     import torch
 
-    from race import read_checkpoint  # one reader of checkpoints: clear one-line errors naming the file
+    from utils.checkpoint import read_checkpoint  # one-line errors naming the file
     from utils import make_vec_env
     from utils.collector import drive_races
 
@@ -81,7 +81,7 @@ def table(results: dict[str, dict[str, list[float]]]) -> str:
 
 
 def main(args: Args) -> None:
-    from race import read_checkpoint
+    from utils.checkpoint import read_checkpoint
     from utils.checkpoint import export_policy
 
     if args.export:
@@ -102,7 +102,7 @@ def main(args: Args) -> None:
 
 def cli(argv: list[str] | None = None) -> None:
     """The command line: a bad file or value ends with one line naming it, no traceback."""
-    from race import CheckpointError
+    from utils.checkpoint import CheckpointError
 
     args = tyro.cli(Args, args=argv)
     try:

@@ -47,7 +47,6 @@ import utils.run as run_tools
 from utils import checkpoint as saved
 from utils.collector import Races
 
-VARIANT_SCRIPTS = {"lstm": "dreamer_lstm", "gru": "dreamer_gru"}
 WILSON_Z = 1.959963984540054  # two-sided 95%
 
 
@@ -101,40 +100,23 @@ def wilson_interval(wins: int, n: int, z: float = WILSON_Z) -> tuple[float, floa
 
 
 # --- Racers ---------------------------------------------------------------------------------
-class CheckpointError(ValueError):
-    """A file that is not a readable checkpoint of ours; the message names the file."""
-
-
-def read_checkpoint(path: str, device="cpu", training: bool = False) -> tuple:
-    """(script module, checkpoint) of a checkpoint or acting-only export, read by the script of its variant
-    (``load_checkpoint``, with ``weights_only=True``); every failure is a one-line CheckpointError naming the file."""
-    for name in VARIANT_SCRIPTS.values():
-        script = importlib.import_module(name)
-        try:
-            return script, script.load_checkpoint(path, device, training)
-        except saved.WrongVariant:
-            continue  # the other script's file
-        except saved.CheckpointError as e:
-            raise CheckpointError(str(e)) from None
-    raise CheckpointError(f"{path}: unknown variant; known: {sorted(VARIANT_SCRIPTS)}")
-
-
 class DreamerRacer:
     """A saved Dreamer agent driving one car; built and loaded by its own script."""
 
     def __init__(self, spec: str, device="cpu", policy: str = "stochastic", training: bool = False):
         path, _, index = spec.rpartition(":") if spec.rpartition(":")[2].isdigit() else (spec, "", "0")
-        self.module, checkpoint = read_checkpoint(path, device, training)
+        self.module, checkpoint = saved.read_checkpoint(path, device, training)
         self.path, self.index, self.variant = path, int(index), checkpoint["variant"]
         if not 0 <= self.index < len(checkpoint["agents"]):
-            raise CheckpointError(f"{path}: has {len(checkpoint['agents'])} agent(s), asked for agent {self.index}")
+            raise saved.CheckpointError(f"{path}: has {len(checkpoint['agents'])} agent(s), asked for agent "
+                                        f"{self.index}")  # fmt: skip
         try:  # the script's own reading of its arguments and networks, with one-line errors naming the file
             self.args = self.module.args_from_checkpoint(checkpoint, path)
             self.agent = self.module.agent_from_checkpoint(path, self.index, device)
         except (ValueError, RuntimeError, TypeError) as e:  # the script's CheckpointError, or impossible sizes
             text = (str(e).strip().splitlines() or [type(e).__name__])[0]
             message = text if text.startswith(path) else f"{path}: does not build an agent: {text}"
-            raise CheckpointError(message) from None
+            raise saved.CheckpointError(message) from None
         self.policy, self.counters = policy, dict(checkpoint.get("counters") or {})
         manifests = list((checkpoint.get("extra") or {}).get("replays") or [])
         self.replay_manifest = manifests[self.index] if self.index < len(manifests) else None  # the save it names
@@ -180,7 +162,7 @@ def collector_args(racers: list):
     """The Args the collector (utils/collector.py) drives the races with, for the env settings and recorded frames:
     the first Dreamer racer's (scripted drivers alone: the LSTM script's defaults)."""
     dreamers = [r for r in racers if isinstance(r, DreamerRacer)]
-    return dreamers[0].args if dreamers else importlib.import_module(VARIANT_SCRIPTS["lstm"]).Args()
+    return dreamers[0].args if dreamers else importlib.import_module(saved.VARIANT_SCRIPTS["lstm"]).Args()
 
 
 def run_race(envs, racers: list, seed: int, grid: list[int], record_video=False) -> RaceResult:
@@ -473,7 +455,7 @@ def main(argv=None):
         torch.set_num_threads(args.torch_threads)
     try:
         racers = build_racers(args, device)
-    except CheckpointError as e:
+    except saved.CheckpointError as e:
         sys.exit(f"race.py: {e}")
     if args.train:
         return train(args, racers, device)

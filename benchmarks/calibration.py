@@ -70,7 +70,7 @@ def calibrate_checkpoint(path: str, first_track: int = TRACKS["fresh"][0], track
     continue head's probability, against the reward head's median sigma over all frames (``reward_sigma``)."""
     import torch
 
-    from race import read_checkpoint
+    from utils.checkpoint import read_checkpoint
     from utils import make_vec_env
     from utils.collector import drive_races
 

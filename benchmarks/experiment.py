@@ -382,14 +382,14 @@ def interval_racers(interval: str, prune: bool = True) -> tuple[list[str], int] 
     pair (a kill in the microseconds between the two renames that end the saves of one race leaves racer 0 a
     race ahead) are removed unless `prune` is False: the interval continues from the pair, and their logs would
     count races twice."""
-    import race
+    from utils.checkpoint import read_checkpoint
 
     runs = sorted(path for path in glob.glob(os.path.join(interval, "*")) if os.path.isdir(path))
     for k in range(len(runs) - 1, -1, -1):
         paths = [os.path.join(runs[k], "checkpoints", f"racer_{i}.pt") for i in (0, 1)]
         if not all(os.path.exists(p) for p in paths):
             continue
-        races = {int(race.read_checkpoint(p)[1]["counters"]["race_episodes"]) for p in paths}
+        races = {int(read_checkpoint(p)[1]["counters"]["race_episodes"]) for p in paths}
         if len(races) == 1:
             for newer in runs[k + 1 :] if prune else ():
                 shutil.rmtree(newer)

@@ -152,9 +152,9 @@ def protocol_measure(variant: str, seed: int, runs_dir: str) -> tuple[dict, dict
     run = protocol_run(variant, seed, runs_dir)
     latest = os.path.join(run, "checkpoints", "latest.pt")
     import evaluate
-    import race
+    from utils.checkpoint import read_checkpoint
 
-    checkpoint = race.read_checkpoint(latest)[1]
+    checkpoint = read_checkpoint(latest)[1]
     cpu_hours = protocol_cpu_hours(run, checkpoint)
     driven = evaluate.evaluate_checkpoint(latest, *REPORT_TRACKS, PROTOCOL_POLICIES)
     sampled, mean_action = (track_means(driven[policy]) for policy in PROTOCOL_POLICIES)
@@ -269,7 +269,8 @@ def groups(rows: list[dict], peers: dict[str, list[dict]]) -> list[tuple[str, st
         for variant in VARIANTS if (mine := [r for r in rows if r["variant"] == variant])
         for policy in PROTOCOL_POLICY_COLUMNS
     ]  # fmt: skip
-    return out + [(PEER_NAMES[peer], "deterministic", mine, PEER_POLICY_COLUMNS) for peer, mine in peers.items() if mine]
+    return out + [(PEER_NAMES[peer], "deterministic", mine, PEER_POLICY_COLUMNS)
+                  for peer, mine in peers.items() if mine]  # fmt: skip
 
 
 def protocol_summary(rows: list[dict], peers: dict[str, list[dict]], reps: int = 2000) -> str:
@@ -629,13 +630,13 @@ def ship_rows(variant: str, runs_dir: str, shipped: str, seeds: tuple[int, ...] 
     driven with SHIP_POLICY on SHIP_TRACKS: one row each (SHIP_COLUMNS, ``shipped`` False), the shipped agent first.
     A missing shipped file is a candidate that lost already."""
     import evaluate
-    import race
+    from utils.checkpoint import read_checkpoint
 
     candidates = []
     for seed in seeds:
         run = protocol_run(variant, seed, runs_dir)
         latest = os.path.join(run, "checkpoints", "latest.pt")
-        protocol_cpu_hours(run, race.read_checkpoint(latest)[1])  # before any driving
+        protocol_cpu_hours(run, read_checkpoint(latest)[1])  # before any driving
         candidates.append((f"seed {seed}", latest))
     rows = []
     for name, path in ([("shipped", shipped)] if os.path.exists(shipped) else []) + candidates:
@@ -651,8 +652,7 @@ def ship(variant: str, runs_dir: str, shipped: str, results_dir: str = RESULTS) 
     `shipped` (atomically; refused above SHIP_MAX_BYTES, the shipped file unchanged). ``ship_<variant>.csv`` in
     `results_dir` keeps the rows, its ``shipped`` column marking the agent `shipped` holds afterwards. Returns a
     markdown table of the rows."""
-    import race
-    from utils.checkpoint import export_policy
+    from utils.checkpoint import export_policy, read_checkpoint
 
     rows = ship_rows(variant, runs_dir, shipped)
     current = next((r for r in rows if r["candidate"] == "shipped"), None)
@@ -661,7 +661,7 @@ def ship(variant: str, runs_dir: str, shipped: str, results_dir: str = RESULTS) 
     os.makedirs(results_dir, exist_ok=True)
     record = os.path.join(results_dir, f"ship_{variant}.csv")
     if winner is best:
-        script = race.read_checkpoint(best["checkpoint"])[0]
+        script = read_checkpoint(best["checkpoint"])[0]
         os.makedirs(os.path.dirname(os.path.abspath(shipped)), exist_ok=True)
         size = export_policy(script, best["checkpoint"], shipped + ".new")
         if size > SHIP_MAX_BYTES:

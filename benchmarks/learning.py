@@ -219,7 +219,7 @@ def policy_summary(
     if tracks < 1:
         raise ValueError(f"tracks must be >= 1, got {tracks}")
     from evaluate import evaluate_checkpoint as drive
-    from race import read_checkpoint  # one reader of checkpoints: clear one-line errors naming the file
+    from utils.checkpoint import read_checkpoint  # one-line errors naming the file
 
     script, checkpoint = read_checkpoint(path)
     variant = checkpoint["variant"]
@@ -400,7 +400,7 @@ def cli(argv: list[str] | None = None) -> None:
         if run_mode(args):
             return
         sitting = None if args.report else training_sitting(args)
-    except ValueError as e:  # race.CheckpointError and utils.checkpoint.UsageError are ValueErrors
+    except ValueError as e:  # (utils.checkpoint.CheckpointError and UsageError are ValueErrors)
         raise SystemExit(f"learning.py: error: {' '.join(str(e).split())}") from None
     if sitting is not None:
         script, script_args, overrides = sitting

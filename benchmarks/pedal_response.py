@@ -135,7 +135,7 @@ def pedal_response(path: str, first_track: int = SCREENING, tracks: int = 3, ped
     `horizon` decisions instead of the agent's H if given)."""
     import torch
 
-    from race import read_checkpoint
+    from utils.checkpoint import read_checkpoint
     from utils import make_vec_env
 
     script, checkpoint = read_checkpoint(path)

@@ -44,7 +44,7 @@ COLUMNS = ("tag", "variant", "seed", "updates", "policy", *DRIVING, *TRAINING, *
 
 def checkpoint_at(run_dir: str, updates: int) -> str:
     """The policy `run_dir` kept at exactly `updates` updates: its latest.pt or one of its eval_<race>.pt."""
-    import race
+    from utils.checkpoint import read_checkpoint
 
     paths = [os.path.join(run_dir, "checkpoints", "latest.pt")]
     paths += sorted(glob.glob(os.path.join(run_dir, "checkpoints", "eval_*.pt")), reverse=True)
@@ -52,7 +52,7 @@ def checkpoint_at(run_dir: str, updates: int) -> str:
     for path in paths:
         if not os.path.exists(path):
             continue
-        done = checkpoint_updates(race.read_checkpoint(path)[1])
+        done = checkpoint_updates(read_checkpoint(path)[1])
         if done == updates:
             return path
         kept.append(done)

@@ -21,6 +21,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(
 import experiment  # noqa: E402
 import experiment_report  # noqa: E402
 import race  # noqa: E402
+import utils.checkpoint  # noqa: E402
 import stats  # noqa: E402
 
 TINY_FLAGS = {
@@ -559,7 +560,8 @@ def fake_race(tmp_path, monkeypatch):
                 json.dump(rows, f)
 
     monkeypatch.setattr(race, "main", main)
-    monkeypatch.setattr(race, "read_checkpoint", lambda p: (None, {"counters": {"race_episodes": races[p]}}))
+    monkeypatch.setattr(utils.checkpoint, "read_checkpoint",
+                        lambda p: (None, {"counters": {"race_episodes": races[p]}}))  # fmt: skip
     reported = []
     monkeypatch.setattr(tune, "report", lambda metrics: reported.append(metrics["races_trained"]))
     config = {"trial": {"spec": plain, "seed": 3}}
@@ -705,9 +707,9 @@ def test_a_race_interval_split_by_a_kill_between_its_saves_continues_from_the_pa
     for i in (0, 1):
         open(os.path.join(extra, f"racer_{i}.pt"), "w").close()
     table = {os.path.join(extra, "racer_0.pt"): 2, os.path.join(extra, "racer_1.pt"): 1}
-    fake = race.read_checkpoint
-    monkeypatch.setattr(race, "read_checkpoint", lambda p: (None, {"counters": {"race_episodes": table[p]}})
-                        if p in table else fake(p))  # fmt: skip
+    real = utils.checkpoint.read_checkpoint
+    monkeypatch.setattr(utils.checkpoint, "read_checkpoint", lambda p: (None, {"counters": {"race_episodes": table[p]}})
+                        if p in table else real(p))  # fmt: skip
     assert experiment.race_progress(plain, 3) == "race_lstm_gru_seed3 (4 of 4 races; tournaments after 0, 2, 4 races)"
     assert len(os.listdir(interval)) == 2  # --status only reads: the split newer run is still there
     paths, done = experiment.interval_racers(interval)

@@ -125,8 +125,8 @@ def test_tiny_train_run_logs_per_agent_win_rates(tiny_checkpoints, tmp_path):
         assert 0.0 <= acc.Scalars(f"{racer}/charts/win_rate")[-1].value <= 1.0
     for i, variant in enumerate(("lstm", "gru")):
         path = str(run_dir / "checkpoints" / f"racer_{i}.pt")
-        script, checkpoint = race.read_checkpoint(path)
-        started = race.read_checkpoint(tiny_checkpoints[variant])[1]["counters"]
+        script, checkpoint = ckpt.read_checkpoint(path)
+        started = ckpt.read_checkpoint(tiny_checkpoints[variant])[1]["counters"]
         assert checkpoint["counters"]["episode"] == started["episode"] and script.VARIANT == variant  # its training
         assert checkpoint["counters"]["race_episodes"] == 2 and checkpoint["counters"]["race_env_steps"] >= 2
         # its replay is saved beside it (named by the checkpoint) and a later sitting continues from both
@@ -143,10 +143,10 @@ def test_tiny_train_run_logs_per_agent_win_rates(tiny_checkpoints, tmp_path):
          "--episodes", "1", "--train-steps", "1", "--max-steps", "30", "--runs-dir", str(again)]
     )  # fmt: skip
     (run_dir2,) = list(again.iterdir())
-    script, checkpoint = race.read_checkpoint(str(run_dir2 / "checkpoints" / "racer_0.pt"))
+    script, checkpoint = ckpt.read_checkpoint(str(run_dir2 / "checkpoints" / "racer_0.pt"))
     assert checkpoint["agents"][0]["num_updates"] == 1 + 2 + 1  # continued, not restarted
     assert checkpoint["extra"]["replays"][0]["episodes"] == first.episodes + 3  # with the whole replay
-    first_sitting = race.read_checkpoint(str(run_dir / "checkpoints" / "racer_0.pt"))[1]["counters"]
+    first_sitting = ckpt.read_checkpoint(str(run_dir / "checkpoints" / "racer_0.pt"))[1]["counters"]
     assert checkpoint["counters"]["race_episodes"] == 3  # env steps counted on from the first sitting's
     assert checkpoint["counters"]["race_env_steps"] > first_sitting["race_env_steps"]
     # plot.py: one race-stage curve per variant, the two sittings joined on the race count (1, 2, then 3)
@@ -213,7 +213,7 @@ def test_the_same_train_command_trains_the_same_agents(tiny_checkpoints, tmp_pat
         race.main([tiny_checkpoints["lstm"], tiny_checkpoints["gru"], "--train", "--episodes", "1",
                    "--train-steps", "2", "--max-steps", "30", "--runs-dir", str(runs_dir)])  # fmt: skip
         (run_dir,) = list(runs_dir.iterdir())
-        agent = race.read_checkpoint(str(run_dir / "checkpoints" / "racer_0.pt"))[1]["agents"][0]
+        agent = ckpt.read_checkpoint(str(run_dir / "checkpoints" / "racer_0.pt"))[1]["agents"][0]
         weights.append(torch.cat([t.flatten().float() for net in ("world_model", "actor", "critic")
                                   for t in agent[net].values()]))  # fmt: skip
     assert weights[0].numel() > 1000 and torch.equal(weights[0], weights[1])

@@ -471,7 +471,8 @@ def test_race_checkpoint_that_builds_no_agent_is_one_line(tmp_path):
     with pytest.raises(SystemExit) as exit_info:
         race.main([path, "--opponent", "pursuit"])
     text = str(exit_info.value.code)
-    assert text == f"race.py: {path}: agent 0 has no actor output layer to read its action size from (KeyError: 'actor')"
+    assert text == f"race.py: {path}: agent 0 has no actor output layer to read its action size from (KeyError: " \
+                   "'actor')"
 
 
 def test_plot_bad_input(tmp_path, capsys):

@@ -12,6 +12,8 @@ is ``VARIANT`` (the name written into its checkpoints), ``Args`` (its hyperparam
   a checkpoint naming an earlier manifest still loads until ``prune_replay``.
 
 Every file is written atomically (``atomic_write``): a kill at any moment leaves the old file or the new one.
+``read_checkpoint`` reads a file of either variant (by the script that wrote it), for race.py, evaluate.py and the
+benchmarks.
 """
 
 from __future__ import annotations
@@ -179,13 +181,32 @@ def action_dim_of(agent_state: dict, path: str, index: int) -> int:
                               f"({type(e).__name__}: {first_line(e)})") from None  # fmt: skip
 
 
+VARIANT_SCRIPTS = {"lstm": "dreamer_lstm", "gru": "dreamer_gru"}  # the script that builds each variant's agent
+
+
+def read_checkpoint(path: str, device="cpu", training: bool = False) -> tuple:
+    """(script module, checkpoint) of a checkpoint or acting-only export of either variant, read by the script of its
+    variant (``load_checkpoint``, with ``weights_only=True``); every failure is a one-line CheckpointError naming the
+    file."""
+    import importlib
+
+    for name in VARIANT_SCRIPTS.values():
+        script = importlib.import_module(name)
+        try:
+            return script, script.load_checkpoint(path, device, training)
+        except WrongVariant:
+            continue  # the other script's file
+    raise CheckpointError(f"{path}: unknown variant; known: {sorted(VARIANT_SCRIPTS)}")
+
+
 def agent_from_checkpoint(method, path: str, index: int = 0, device="cpu"):
     """Build agent `index` of a checkpoint of `method` with the sizes it was trained with (used by race.py)."""
     checkpoint = load_checkpoint(path, method.VARIANT, map_location=device)
     if not 0 <= index < len(checkpoint["agents"]):
         raise CheckpointError(f"{path}: has {len(checkpoint['agents'])} agent(s), asked for agent {index}")
     state = checkpoint["agents"][index]
-    agent = method.Agent(args_from_checkpoint(method.Args, checkpoint, path), action_dim_of(state, path, index), device=device)
+    args = args_from_checkpoint(method.Args, checkpoint, path)
+    agent = method.Agent(args, action_dim_of(state, path, index), device=device)
     load_agent_state(agent, state, path, index)
     return agent
 
