@@ -9,6 +9,7 @@ a block that chose nothing: the block a choice was made on measures that choice 
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import fcntl
 import json
@@ -41,14 +42,21 @@ def checkpoint_updates(checkpoint: dict) -> int:
 
 def write_json(path: str, data) -> None:
     """Write `data` as indented JSON to `path` atomically: a temporary file of its own (two writers never share
-    one) replaces it once whole, so a reader or a kill never sees half of it."""
+    one), flushed to disk, replaces it once whole, so a reader or a kill never sees half of it. The file gets the
+    permissions ``open`` would give it (mkstemp's are the owner's alone)."""
     fd, tmp = tempfile.mkstemp(dir=os.path.dirname(os.path.abspath(path)), suffix=".tmp")
     try:
+        umask = os.umask(0)
+        os.umask(umask)
+        os.fchmod(fd, 0o666 & ~umask)
         with os.fdopen(fd, "w") as f:
             json.dump(data, f, indent=1)
+            f.flush()
+            os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:
-        os.remove(tmp)
+        with contextlib.suppress(OSError):  # (the error to raise is the write's)
+            os.remove(tmp)
         raise
 
 

@@ -143,7 +143,8 @@ class Spec:
 
 # --- Trials ----------------------------------------------------------------------------------
 def trial_dir(spec: dict, stage: str, variant: str, seed: int) -> str:
-    return os.path.join(spec["storage"], "trials", f"{stage}_{variant}_seed{seed}")
+    """Where a trial's run directories go: <storage>/trials/<trial_label>."""
+    return os.path.join(spec["storage"], "trials", trial_label(stage, variant, seed))
 
 
 def run_of(directory: str) -> str | None:
@@ -264,7 +265,7 @@ def dreamer_trial(config: dict) -> None:
                 elif progress.done < min(goal, target):
                     script.main(script.Args(resume=progress.run, total_updates=min(goal, target)), {"total_updates"})
             except NumericalFault as fault:  # the guard stopped the run and saved latest.pt: the trial ends with it
-                print(f"experiment.py: {stage}_{variant}_seed{seed}: {fault}", flush=True)
+                print(f"experiment.py: {trial_label(stage, variant, seed)}: {fault}", flush=True)
                 if not trial_progress(spec, stage, variant, seed).stopped:  # (a stop its latest.pt does not show)
                     raise
             progress = trial_progress(spec, stage, variant, seed)
@@ -516,9 +517,9 @@ def check_spec(spec: Spec) -> None:
     run, or a rerun that asks for other trials than the experiment in --storage holds. Then record the experiment in
     <storage>/spec.json: a new one's fields, or the fields that may still change (CHANGEABLE_UNTIL)."""
     refuse_below("experiment.py", **{name: (getattr(spec, name), minimum) for name, minimum in (
-        ("single_updates", 1), ("single_cpu_hours", 0), ("ghost_updates", 1), ("race_episodes", 1),
+        ("single_updates", 1), ("single_cpu_hours", 0), ("ghost_updates", 1), ("race_episodes", 0),
         ("tournament_every", 1), ("race_train_steps", 0), ("report_every", 1), ("fresh_tracks", 1),
-        ("torch_threads", 1), ("gpus_per_trial", 0), ("max_failures", 0), ("chaos_kill_after_updates", 0))})
+        ("torch_threads", 1), ("gpus_per_trial", 0), ("max_failures", -1), ("chaos_kill_after_updates", 0))})
     for variant in ("lstm", "gru"):
         parse_overrides(importlib.import_module(f"dreamer_{variant}"), spec.overrides)
     if spec.num_cpus is not None and spec.address is not None:

@@ -415,7 +415,7 @@ COMPARISONS_TEXT = (
 
 
 def comparison_verdict(claim: dict) -> str:
-    """The final protocol's word for a comparison (stats.two_group_claim's verdict): "beats" when the first is
+    """The final protocol's word for a comparison (stats.two_group_claim's outcome): "beats" when the first is
     higher by both the exact test (p < 0.05) and Welch's interval (above 0), "behind" when it is lower by both,
     else "no detectable difference" (or too few runs to judge)."""
     words = {"supported": "beats", "contradicted": "behind", "too few runs": claim["verdict"]}
@@ -426,8 +426,8 @@ def protocol_comparisons(rows: list[dict], peers: dict[str, list[dict]]) -> str:
     """Markdown: the LSTM minus the GRU with each policy, and each variant with each policy minus each peer (its
     deterministic policy), over independent runs: the difference of the means, Welch's t 95% interval, the exact
     permutation test's one-sided p that the first is higher and that it is lower, and the verdict
-    (comparison_verdict: with 6 runs a side or fewer no bootstrap judges a claim). A comparison a side of which has
-    no row is left out."""
+    (comparison_verdict: the exact test and the t interval, never a bootstrap, judge so few runs). A comparison a
+    side of which has no row is left out."""
     from stats import two_group_claim
 
     returns = {(variant, p): column([r for r in rows if r["variant"] == variant], keys[0])

@@ -103,7 +103,7 @@ def one_per_run(x, what: str) -> np.ndarray:
     if x.ndim == 2 and x.shape[1] == 1:
         x = x[:, 0]
     if x.ndim != 1 or x.size == 0:
-        raise ValueError(f"{what} needs one value per run, of shape (runs,), got {x.shape}")
+        raise ValueError(f"{what} needs one value per run for at least one run, of shape (runs,), got {x.shape}")
     return x
 
 

@@ -233,7 +233,10 @@ def main(sweep: Sweep) -> None:
     if (sweep.status or sweep.report) and saved is not None:  # the sweep as it was started, whatever the flags say
         sweep = dataclasses.replace(sweep, **{k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()})
     if sweep.status:
-        print(status_text(sweep))
+        try:
+            print(status_text(sweep))
+        except ValueError as error:  # a flag of its grid this code no longer has (trial_progress parses them)
+            raise SystemExit(f"sweep.py: --status of sweep {sweep.name!r}: {error}") from None
         return
     check(sweep)
     if sweep.report:

@@ -2,6 +2,7 @@
 row of its own and of writers beside it, and refuses a file of other columns."""
 
 import csv
+import json
 import multiprocessing
 import os
 import sys
@@ -121,3 +122,16 @@ def test_a_whole_table_is_written_at_once_or_not_at_all(tmp_path):
     finally:
         monkeypatch_open.undo()
     assert raised.value is full and open(path).read().splitlines() == ["seed,score"]
+
+
+def test_a_json_file_is_written_whole_with_the_permissions_open_gives(tmp_path):
+    path = str(tmp_path / "spec.json")
+    umask = os.umask(0o022)
+    try:
+        common.write_json(path, {"seeds": [21, 22]})
+    finally:
+        os.umask(umask)
+    assert json.load(open(path)) == {"seeds": [21, 22]} and os.stat(path).st_mode & 0o777 == 0o644  # not mkstemp's 0600
+    with pytest.raises(TypeError):  # not JSON: the file stays as it was, no temporary file is left
+        common.write_json(path, {"seeds": {21}})
+    assert json.load(open(path)) == {"seeds": [21, 22]} and os.listdir(tmp_path) == ["spec.json"]

@@ -150,6 +150,9 @@ def test_a_rerun_with_other_trials_or_a_missing_stage_is_refused_before_ray_star
     with pytest.raises(SystemExit, match="--single-cpu-hours must be >= 0, got nan"):
         experiment.check_spec(experiment.Spec(single_cpu_hours=float("nan"), storage=str(tmp_path / "new")))
     assert not os.path.exists(tmp_path / "new")  # refused before its spec.json
+    # Ray's "retry forever" and an experiment without head-to-head training are no bad counts
+    experiment.check_spec(experiment.Spec(stages=("single",), max_failures=-1, race_episodes=0,
+                                          storage=str(tmp_path / "new")))  # fmt: skip
 
 
 def test_a_local_ray_offers_the_cpus_asked_for_and_a_rerun_may_change_them(finished, tmp_path, monkeypatch):

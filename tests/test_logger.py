@@ -180,3 +180,10 @@ def test_a_kill_while_a_resume_restores_progress_csv_loses_no_row(tmp_path, monk
     logger.close()
     assert (tmp_path / "progress.csv").read_text() == whole + "3.0\n"
     assert sorted(os.listdir(tmp_path)) == ["progress.csv"]  # the backup is gone once the rows are back
+    # a backup beside a longer progress.csv (a kill after the rows were back, then rows logged by code that does not
+    # know the backup): the progress.csv is the newer one and is kept
+    (tmp_path / "progress.csv.resume").write_text(whole)
+    logger = logger_module.configure_logger(tmp_path, formats=("csv",))
+    logger.close()
+    assert (tmp_path / "progress.csv").read_text() == whole + "3.0\n"
+    assert sorted(os.listdir(tmp_path)) == ["progress.csv"]

@@ -41,7 +41,7 @@ class CheckpointError(UsageError):
 
 
 class WrongVariant(CheckpointError):
-    """A checkpoint of the other variant's script (race.py then asks that script)."""
+    """A checkpoint of the other variant's script (read_checkpoint then asks that script)."""
 
 
 def first_line(error: BaseException) -> str:

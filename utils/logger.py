@@ -110,8 +110,12 @@ def configure_logger(
     csv_path = os.path.join(str(run_dir), "progress.csv")
     # A resumed run: SB3 truncates progress.csv, so its rows are put back and appended to. Until they are back on
     # disk they live in progress.csv.resume (a rename, atomic), which a kill in between leaves for the next resume.
+    # A progress.csv at least as long as such a backup is newer (the kill came after the rows were back): it is kept.
     backup, previous_rows = csv_path + ".resume", ""
     if "csv" in formats:
+        if os.path.exists(csv_path) and os.path.exists(backup):
+            if os.path.getsize(csv_path) >= os.path.getsize(backup):
+                os.remove(backup)
         if os.path.exists(csv_path) and not os.path.exists(backup):
             os.replace(csv_path, backup)
         if os.path.exists(backup):
