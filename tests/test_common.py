@@ -104,7 +104,7 @@ def test_a_whole_table_is_written_at_once_or_not_at_all(tmp_path):
     with open(path, newline="") as f:
         assert list(csv.DictReader(f)) == [{"seed": "1", "score": "2.5"}]
     before = open(path).read()
-    with pytest.raises(ValueError):  # a field outside the columns, after a good row: nothing of it lands
+    with pytest.raises(ValueError, match="fields not in fieldnames"):  # a field outside the columns, after a good row
         common.write_table(path, [{"seed": 3, "score": 1.0}, {"seed": 4, "bogus": 0}], ("seed", "score"))
     assert open(path).read() == before and os.listdir(tmp_path) == ["table.csv"]
     common.write_table(path, [], ("seed", "score"))  # no rows: the header alone
@@ -132,6 +132,6 @@ def test_a_json_file_is_written_whole_with_the_permissions_open_gives(tmp_path):
     finally:
         os.umask(umask)
     assert json.load(open(path)) == {"seeds": [21, 22]} and os.stat(path).st_mode & 0o777 == 0o644  # not mkstemp's 0600
-    with pytest.raises(TypeError):  # not JSON: the file stays as it was, no temporary file is left
+    with pytest.raises(TypeError, match="not JSON serializable"):  # the file stays as it was, no temporary file left
         common.write_json(path, {"seeds": {21}})
     assert json.load(open(path)) == {"seeds": [21, 22]} and os.listdir(tmp_path) == ["spec.json"]

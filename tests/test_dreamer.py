@@ -13,6 +13,7 @@ import importlib
 import itertools
 import math
 import os
+import shutil
 import types
 
 import numpy as np
@@ -70,7 +71,7 @@ def num_params(module: nn.Module) -> int:
 # ------------------------------------------------------------------------------------------
 # Defaults and sizes
 # ------------------------------------------------------------------------------------------
-def test_parsed_defaults_equal_design_table(script):
+def test_parsed_defaults_equal_the_documented_defaults_table(script):
     args = tyro.cli(script.Args, args=[])
     expected = DEFAULTS[script.VARIANT]
     assert {key: getattr(args, key) for key in expected} == expected
@@ -834,13 +835,42 @@ def test_checkpoint_round_trip_with_weights_only(script, tmp_path):
     assert np.random.rand() == expected_draw
 
 
-def test_keep_freed_memory(script):
+MMAPPED_BLOCKS_AFTER_A_LARGE_MALLOC = """
+import ctypes, sys
+import utils.run as run_tools
+libc = ctypes.CDLL("libc.so.6")
+class Mallinfo2(ctypes.Structure):
+    _fields_ = [(name, ctypes.c_size_t) for name in
+                ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks", "fordblks",
+                 "keepcost")]
+libc.mallinfo2.restype, libc.malloc.restype, libc.free.argtypes = Mallinfo2, ctypes.c_void_p, [ctypes.c_void_p]
+if sys.argv[1] == "fix":
+    assert run_tools.keep_freed_memory()
+before = libc.mallinfo2().hblks
+block = libc.malloc(64 << 20)
+print(libc.mallinfo2().hblks - before)
+libc.free(block)
+"""
+
+
+def test_keep_freed_memory_keeps_large_blocks_in_the_heap(script):
+    """glibc serves a 64 MiB malloc from its own mmap (one more mmapped block in mallinfo2) unless
+    keep_freed_memory has set M_MMAP_MAX to 0; in a fresh process each, as the setting is process-wide."""
     import platform
+    import subprocess
     import sys
 
-    result = run_tools.keep_freed_memory()
-    assert result == (sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc")
-    assert script.Args().malloc_fix is True
+    assert script.Args().malloc_fix is True  # the scripts set it by default
+    if not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc":
+        assert run_tools.keep_freed_memory() is False
+        return
+
+    def mmapped(mode: str) -> int:
+        out = subprocess.run([sys.executable, "-c", MMAPPED_BLOCKS_AFTER_A_LARGE_MALLOC, mode], capture_output=True,
+                             text=True, check=True, cwd=os.path.dirname(os.path.dirname(__file__)))  # fmt: skip
+        return int(out.stdout)
+
+    assert (mmapped("default"), mmapped("fix")) == (1, 0)
 
 
 def test_dead_zone_schedule(script):
@@ -947,8 +977,9 @@ def test_single_stage_writes_scalars_video_and_checkpoints(single_run):
     assert os.path.exists(os.path.join(run_dir, "checkpoints", "replay_car_0", "meta.npz"))
 
 
-def test_resume_continues_from_saved_counters(single_run):
+def test_resume_continues_from_saved_counters(single_run, tmp_path):
     script, run_dir = single_run
+    run_dir = str(shutil.copytree(run_dir, tmp_path / os.path.basename(run_dir)))  # the module's run stays as it was
     before = torch.load(os.path.join(run_dir, "checkpoints", "latest.pt"), weights_only=True)
     replay = script.Replay(E2E["replay_capacity"], TINY["image_size"])
     ckpt.load_replay(replay, os.path.join(run_dir, "checkpoints", "replay_car_0"))

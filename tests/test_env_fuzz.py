@@ -61,6 +61,7 @@ BAD_ACTIONS = {
 
 # --- bad calls as a whole -----------------------------------------------------------------------
 UNKNOWN_AGENTS = ["car_9", "CAR_0", "car_-1", 0, None, ("car_0",), 1.5]
+REFUSED_WHOLE = {"unknown agent": "unknown agent", "not a dict": "actions must be a dict"}  # named no live agent
 NOT_A_DICT = [None, "car_0", [np.zeros(2), np.zeros(2)], (np.zeros(2),), np.zeros((2, 2)), 3, {("car_0", 0.0)}]
 
 
@@ -124,8 +125,8 @@ def test_bad_calls_never_change_the_race(seed):
             kind, bad, named = bad_call(rng, fuzzed, actions)
             with pytest.raises(ValueError) as refused:
                 fuzzed.step(bad)
-            if named is not None:
-                assert named in str(refused.value), (kind, str(refused.value))
+            expected = named if named is not None else REFUSED_WHOLE[kind]
+            assert expected in str(refused.value), (kind, str(refused.value))
             kinds.add(kind)
         assert_same(fuzzed.step(actions), twin.step(twin_actions), f"race {races} step {fuzzed.step_count}")
         steps += 1

@@ -65,11 +65,15 @@ def test_truncated_and_foreign_checkpoints_get_one_line_errors(tmp_path):
         assert str(path) in text and message in text and "\n" not in text
 
 
-def test_bad_arguments():
-    with pytest.raises(SystemExit):
-        race.main(["--opponent", "pursuit"])  # one racer
-    with pytest.raises(SystemExit):
-        race.main(["--opponent", "pursuit:fast", "--opponent", "pursuit"])
+def test_bad_arguments(capsys):
+    for argv, message in [
+        (["--opponent", "pursuit"], "need at least two racers"),  # one racer
+        (["--opponent", "pursuit:fast", "--opponent", "pursuit"], "--opponent must be pursuit or pursuit:SPEED"),
+    ]:
+        with pytest.raises(SystemExit) as exit_info:
+            race.main(argv)
+        assert exit_info.value.code == 2
+        assert message in capsys.readouterr().err
     assert math.isclose(race.wilson_interval(0, 0)[1], 1.0)
 
 

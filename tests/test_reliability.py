@@ -450,9 +450,11 @@ def test_race_out_must_be_a_directory(tmp_path, capsys):
     import race
 
     (tmp_path / "file").write_text("x")
-    with pytest.raises(SystemExit):
+    with pytest.raises(SystemExit) as exit_info:
         race.main([*TWO, "--out", str(tmp_path / "file")])
-    assert "--out" in capsys.readouterr().err and not (tmp_path / "file").is_dir()
+    assert exit_info.value.code == 2
+    assert f"--out '{tmp_path / 'file'}' exists and is not a directory" in capsys.readouterr().err
+    assert (tmp_path / "file").read_text() == "x"
 
 
 def test_race_checkpoint_that_builds_no_agent_is_one_line(tmp_path):

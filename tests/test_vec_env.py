@@ -284,7 +284,7 @@ def test_subprocess_worker_errors_are_raised_in_the_parent():
         venv.step(slot_actions(2))  # never reset: the env refuses to step
     assert venv.env_method("set_dead_zone", -0.9) == [-0.9, -0.9]  # the pipes are still in sync
     venv.close()
-    with pytest.raises(TypeError):
+    with pytest.raises(TypeError, match="no_such_argument"):
         MultiAgentVecEnv([functools.partial(ScriptedParallelEnv, no_such_argument=1)], use_subprocess=True)
     with pytest.raises(ValueError, match="start_method"):
         MultiAgentVecEnv(scripted(), use_subprocess=True, start_method="fork")
