@@ -19,8 +19,9 @@ Read top to bottom:
 What is around the method is shared by both scripts: the collector that drives the cars and records their
 episodes (utils/collector.py: `Races`, frame preprocessing, what a race reads), and the run plumbing (arguments'
 checks, memory, run directory and resume, logging, atomic checkpoints and replay saves, the command line:
-utils/run.py, utils/checkpoint.py). utils/run.py reads this module's Args, PRESETS, VARIANT, LOG_SIGMA_RANGE,
-Replay, Agent, env_kwargs, dead_zone_at and main by name.
+utils/run.py, utils/checkpoint.py). They read this module by name: utils/run.py its Args, PRESETS, VARIANT,
+LOG_SIGMA_RANGE, Replay, Agent, env_kwargs, dead_zone_at and main; utils/checkpoint.py its load_checkpoint, Args,
+Agent and Agent.acting_state_dict; the collector an Agent's act, initial_state and action_dim.
 
 Everything that depends on the recurrent cell is inside `RecurrentCell` (its state is a tuple of
 tensors; the model state fed to every head is z||h). The GRU script (dreamer_gru.py) is this file
@@ -73,11 +74,12 @@ class Args:
     torch_threads: int = 0
     """number of CPU threads of torch (0: torch's default)"""
     malloc_fix: bool = True
-    """keep freed memory in the process (glibc mallopt, docs/agent.md): halved the update time on a 2-core CPU"""
+    """keep freed memory in the process (glibc mallopt, docs/performance.md): halved the update time on 2 cores"""
     compile: bool = False
     """torch.compile the networks (same losses up to float rounding; minutes of compiling at the start)"""
     amp: Literal["auto", "on", "off"] = "auto"
-    """bfloat16 autocast of the update's forward passes (losses stay float32); auto: on with CUDA, off on the CPU"""
+    """bfloat16 autocast of the update's forward passes (losses stay float32); auto: on a CUDA device with
+    bfloat16 in hardware (Ampere or newer), off elsewhere"""
     runs_dir: str = "runs"
     """directory holding the run directories `{env_id}__{exp_name}__{seed}__{time}`"""
     resume: str | None = None
@@ -166,7 +168,8 @@ class Args:
     """write checkpoints/latest.pt every this many races"""
     replay_save_every: int = 1
     """save the replay buffers beside the checkpoints every this many races (0: never); a resume restores the
-    replay as of its last save, so 1 makes a resume exact (only the chunks a race changed are written)"""
+    replay as of its last save, so 1 makes a resume exact with --num-races 1 (only the chunks a race changed are
+    written; K > 1 races side by side restart on new tracks: docs/reliability.md)"""
     print_table: bool = False
     """also print the logger's table of every race on stdout (TensorBoard and progress.csv always have it)"""
     max_nonfinite_updates: int = 20
@@ -312,9 +315,11 @@ def dead_zone_at(episode: int, args: Args) -> float:
 
 
 def next_dead_zone(args: Args, races_done: int) -> float:
-    """The dead zone to set after race `races_done` ended; the env applies it at its next reset. One race at a time
-    resets after this (start_race): the next race gets dead_zone_at(races_done). K > 1 races side by side have
-    already auto-reset the finished race's slot: the value is one race ahead, for the race that starts next."""
+    """The dead zone to set once `races_done` races have ended; the env applies it at its next reset. Every race
+    races at dead_zone_at(the races ended when it starts). One race at a time resets after this (start_race): the
+    next race gets dead_zone_at(races_done). K > 1 races side by side have already auto-reset the ended race's
+    slot: the value is for the race that starts when the next one ends, dead_zone_at(races_done + 1). (So race r
+    of K side by side races at dead_zone_at(r - K + 1): the warm-up lags K - 1 races.)"""
     return dead_zone_at(races_done + (args.num_races > 1), args)
 
 
@@ -618,6 +623,11 @@ class Actor(nn.Module):
         return action.clamp(-1.0, 1.0), policy_log_prob(action, mean, std)
 
 
+def gaussian_nll(x: torch.Tensor, mean: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
+    """-log N(x; mean, std), elementwise."""
+    return 0.5 * ((x - mean) / std).pow(2) + torch.log(std) + 0.5 * math.log(2 * math.pi)
+
+
 def policy_log_prob(action: torch.Tensor, mean: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
     """log pi(a) = sum_d [log N(a_d; mean_d, sigma_d) - log(1 - tanh(a_d)^2 + 1e-6)] of the unclipped sample a
     (paper 3.9): the Gaussian's log density plus a penalty that grows with |a| (extreme_action_term)."""
@@ -644,11 +654,6 @@ class Critic(nn.Module):
 # =====================================================================================
 # 4. Losses and returns (paper 3.8 world model, 3.9 behaviour)
 # =====================================================================================
-def gaussian_nll(x: torch.Tensor, mean: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
-    """-log N(x; mean, std), elementwise."""
-    return 0.5 * ((x - mean) / std).pow(2) + torch.log(std) + 0.5 * math.log(2 * math.pi)
-
-
 def beta_nll(x: torch.Tensor, mean: torch.Tensor, std: torch.Tensor, beta: float) -> torch.Tensor:
     """gaussian_nll weighted by the stop-gradient std^(2 beta), elementwise: the beta-NLL of Seitzer et al. (ICLR
     2022). The mean's gradient is (mean - x) / std^(2 - 2 beta): at beta = 0 the Gaussian NLL's, which a large
@@ -809,7 +814,9 @@ def imagine_rollout(world_model: WorldModel, actor: Actor, state: tuple, h, z, h
 
     Returns features s_0..s_H (H+1, N, F), log pi_0..log pi_{H-1} (H, N), the sampled actions before clipping
     (H, N, A; the model is given them clipped to [-1, 1]) and the actor's sigma at every step (H, N, A).
-    Everything is reparameterised, so the actor loss backpropagates through the learned dynamics.
+    Everything is reparameterised, so the actor loss backpropagates through the learned dynamics, except where a
+    sample falls outside [-1, 1]: the clip passes no gradient, so that action dimension's reward and value reach
+    the actor only through log pi (a share that grows with sigma and as the mean nears +-1).
     """
     features, log_pis, samples, stds = [torch.cat([z, h], -1)], [], [], []
     for _ in range(horizon):
@@ -821,6 +828,15 @@ def imagine_rollout(world_model: WorldModel, actor: Actor, state: tuple, h, z, h
         features.append(torch.cat([z, h], -1))
         stds.append(std)
     return torch.stack(features), torch.stack(log_pis), torch.stack(samples), torch.stack(stds)
+
+
+def bf16_autocast(amp: str, device: torch.device) -> bool:
+    """Whether --amp runs the update under bfloat16 autocast: always with on, never with off; with auto on a CUDA
+    device that has bfloat16 in hardware (emulated bfloat16, before Ampere, is slower than float32), not on the
+    CPU."""
+    if amp != "auto":
+        return amp == "on"
+    return device.type == "cuda" and torch.cuda.is_bf16_supported(including_emulation=False)
 
 
 class Agent:
@@ -855,7 +871,7 @@ class Agent:
             for module in (*self.world_model.children(), self.actor, self.critic, *self.targets.values()):
                 module.compile()
         # --amp: bfloat16 autocast of the update (not of acting); needs no loss scaling, unlike float16
-        self.amp = args.amp == "on" or (args.amp == "auto" and self.device.type == "cuda")
+        self.amp = bf16_autocast(args.amp, self.device)
         self.acting_only = False  # True once an acting-only export is loaded
         self.return_scale = torch.zeros((), device=self.device)  # --return-norm: EMA of the returns' 5-95% range
         self.num_updates = 0
@@ -873,7 +889,7 @@ class Agent:
             for module in (self.world_model, self.actor, self.critic):
                 module.train(training)
 
-    def _update_targets(self) -> None:
+    def _update_model_targets(self) -> None:
         wm, tau = self.world_model, self.args.tau
         soft_update(self.targets["encoder"], wm.encoder, tau)
         soft_update(self.targets["representation"], wm.representation, tau)
@@ -1025,7 +1041,9 @@ class Agent:
         """One training update on a batch of B sequences of length L (numpy arrays from Replay.sample).
 
         Each optimiser step whose loss or gradient is not finite is skipped: its network, its BatchNorm
-        statistics and its targets stay unchanged, and the update counts in nonfinite_updates."""
+        statistics and its targets stay unchanged, and the update counts in nonfinite_updates. (The --return-norm
+        scale is moved by the actor's returns before its step: a finite batch moves it even if that step is
+        skipped.)"""
         if self.acting_only:
             raise RuntimeError("an acting-only export has no decoder, critic or optimiser state: it cannot learn")
         dev = self.device
@@ -1045,7 +1063,7 @@ class Agent:
             model_loss, metrics, post = self.world_model_loss(obs, actions, rewards, is_first, terminated)
         model_ok = self._step(self.model_optimizer, model_loss, self.world_model.parameters())
         if model_ok:
-            self._update_targets()
+            self._update_model_targets()
 
         with self.autocast():
             actor_loss, critic_loss, behaviour_metrics = self.behaviour_losses(post, terminated)
@@ -1221,7 +1239,7 @@ def main(args: Args, overrides=()) -> str:
     # each race's seeded stream, with the dead zone set ahead for the race that starts next (below).
     obs, track_seed = start_race(run) if k_races == 1 else (run.envs.reset(), None)
     if args.env_id == "multi_car_racing" and k_races > 1:
-        run.envs.env_method("set_dead_zone", dead_zone_at(run.counters["episode"] + 1, args))
+        run.envs.env_method("set_dead_zone", next_dead_zone(args, run.counters["episode"]))
     races = Races(run.agents, args, run.envs, obs)  # agent i drives car i of every race
     run.pbar = tqdm(total=args.total_episodes, initial=run.counters["episode"], desc=f"{VARIANT} {args.stage}")
     while not run.finished():

@@ -1254,10 +1254,27 @@ def test_k_races_of_different_seeds_or_a_resume_start_on_tracks_of_their_own(scr
     assert built.value.args == (k_races, run_tools.races_seed(12, 0))
 
 
+def test_amp_auto_only_with_bfloat16_in_hardware(script, monkeypatch):
+    """--amp auto: bfloat16 autocast on a CUDA device only if it has bfloat16 in hardware (a GPU before Ampere
+    emulates it, slower than float32), never on the CPU; on and off as they say."""
+    asked = []
+
+    def emulating_gpu(including_emulation=True):
+        asked.append(including_emulation)
+        return including_emulation  # supported only by emulation
+
+    cuda, cpu = torch.device("cuda"), torch.device("cpu")
+    monkeypatch.setattr(torch.cuda, "is_bf16_supported", emulating_gpu)
+    assert script.bf16_autocast("auto", cuda) is False and asked == [False]
+    monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda including_emulation=True: True)  # Ampere or newer
+    assert script.bf16_autocast("auto", cuda) is True and script.bf16_autocast("auto", cpu) is False
+    assert script.bf16_autocast("on", cpu) is True and script.bf16_autocast("off", cuda) is False
+
+
 def test_dead_zone_of_the_next_race_is_set_before_its_reset(script):
-    """The env applies a dead zone at its next reset. One race at a time resets after the race's turn: it gets the
-    value of the races finished so far. K > 1 races have already auto-reset the finished race's slot inside the
-    step, so the value is one race ahead, for the race that starts when the next one ends."""
+    """The env applies a dead zone at its next reset; a race races at the schedule's value for the races ended when
+    it starts. One race at a time resets after the race's turn: the races ended so far. K > 1 races have already
+    auto-reset the ended race's slot inside the step: one more, for the race that starts when the next one ends."""
     for races, ahead in ((1, 0), (3, 1)):
         args = tiny_args(script, num_races=races, dead_zone_start=-1.0, dead_zone_end=-0.5, dead_zone_episodes=4)
         assert script.next_dead_zone(args, 2) == script.dead_zone_at(2 + ahead, args) == -1.0 + 0.5 * (2 + ahead) / 4

@@ -492,7 +492,8 @@ def finish_run(run: Run) -> str:
 # --- After every race ------------------------------------------------------------------------
 def log_race(run: Run, cars: list, track_seed: int | None, env_sps: float) -> None:
     """Per car: return, progress, lap time and win rate (race stages; the ghost stage: beating the ghost, whose
-    record is replaced when beaten), and the env steps per second while the cars drove."""
+    record is replaced when beaten), and the env steps per second while the cars drove; charts/dead_zone is the
+    schedule at the count of races ended (the next race's dead zone with one race at a time: next_dead_zone)."""
     from envs import race_winners
 
     args, logger = run.args, run.logger
