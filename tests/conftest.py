@@ -1,13 +1,17 @@
-"""Shared by the test files: the two agent scripts, tiny network sizes, and a fixture running a test on each script."""
+"""Shared by the test files: the two agent scripts, tiny network sizes, a fixture running a test on each script, random
+batches, stand-in heads and TensorBoard event files written as a run's sittings would."""
 
 from __future__ import annotations
 
 import importlib
 import math
+import os
 
 import numpy as np
 import pytest
 import torch
+from torch import nn
+from torch.utils.tensorboard import SummaryWriter
 
 SCRIPTS = ["dreamer_lstm", "dreamer_gru"]
 
@@ -23,6 +27,7 @@ TINY_RUN = dict(
     TINY, batch_size=2, imagination_horizon=3, max_steps=30, train_steps_per_episode=1, prefill_episodes=1,
     replay_capacity=500, total_episodes=1, eval_every=1, eval_episodes=1, video_every=0,
 )  # fmt: skip
+TINY_TRIAL = {k: v for k, v in TINY_RUN.items() if k != "total_episodes"}  # the same, for trials that set the length
 
 
 @pytest.fixture(params=SCRIPTS)
@@ -50,3 +55,68 @@ def assert_same(a, b, where="") -> None:
         assert isinstance(b, float) and math.isnan(b), where
     else:
         assert a == b, f"{where}: {a!r} != {b!r}"
+
+
+def tiny_args(script, **overrides):
+    """The script's Args at the TINY sizes, with `overrides`."""
+    return script.Args(**{**TINY, **overrides})
+
+
+def random_batch(batch=3, length=8, size=64, seed=0, episode_starts=(0,)):
+    """A batch as Replay.sample returns it: random frames, actions (zero at an episode's first step), rewards."""
+    rng = np.random.default_rng(seed)
+    is_first = np.zeros((batch, length), dtype=bool)
+    is_first[:, list(episode_starts)] = True
+    return {
+        "obs": rng.integers(0, 256, (batch, length, size, size, 3), dtype=np.uint8),
+        "action": rng.uniform(-1, 1, (batch, length, 2)).astype(np.float32) * ~is_first[..., None],
+        "reward": rng.normal(size=(batch, length)).astype(np.float32),
+        "is_first": is_first,
+        "terminated": np.zeros((batch, length), dtype=bool),
+    }
+
+
+class ColumnHead(nn.Module):
+    """A stand-in head whose output's first half is column `index` of its input (a reward mean or a value)."""
+
+    def __init__(self, index: int, pair: bool):
+        super().__init__()
+        self.index, self.pair = index, pair
+
+    def forward(self, features):
+        x = features[..., self.index : self.index + 1]
+        return (x.squeeze(-1), torch.ones_like(x.squeeze(-1))) if self.pair else torch.cat([x, torch.zeros_like(x)], -1)
+
+
+class ConstantHead(nn.Module):
+    """A stand-in head with one output, `value` everywhere (a continue logit)."""
+
+    def __init__(self, value: float):
+        super().__init__()
+        self.value = value
+
+    def forward(self, features):
+        return torch.full((*features.shape[:-1], 1), self.value)
+
+
+def write_sitting(run_dir, points, wall_start, pid=None):
+    """One event file: eval points (env_steps, return, progress, updates) at 1000 s apart from wall_start, named
+    as SB3's logger names a file of process `pid` (this test's own when None)."""
+    before = set(os.listdir(run_dir)) if os.path.isdir(run_dir) else set()
+    writer = SummaryWriter(run_dir)
+    for i, (steps, ret, progress, updates) in enumerate(points):
+        wall = wall_start + 1000.0 * i
+        writer.add_scalar("car_0/perf/updates", updates, steps, walltime=wall)
+        writer.add_scalar("car_0/eval/episodic_return", ret, steps, walltime=wall)
+        writer.add_scalar("car_0/eval/progress", progress, steps, walltime=wall)
+    writer.close()
+    if pid is not None:
+        as_process(run_dir, before, pid)
+
+
+def as_process(run_dir, before, pid):
+    """Rename the one event file written to run_dir since `before` (its file names) as process `pid`'s:
+    events.out.tfevents.<time>.<host>.<pid>.<n>."""
+    (name,) = set(os.listdir(run_dir)) - before
+    head, rest = name.split(f".{os.getpid()}.", 1)
+    os.rename(os.path.join(run_dir, name), os.path.join(run_dir, f"{head}.{pid}.{rest}"))

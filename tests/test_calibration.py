@@ -3,16 +3,14 @@ calibration of a tiny trained agent on the episode it drives."""
 
 import importlib
 import os
-import sys
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
-import calibration  # noqa: E402
-import learning  # noqa: E402
-from conftest import TINY_RUN  # noqa: E402
-import utils.checkpoint as ckpt  # noqa: E402
+import calibration
+import learning
+from conftest import TINY_RUN
+import utils.checkpoint as ckpt
 
 
 def test_realised_and_horizon_returns_match_their_sums_written_out():

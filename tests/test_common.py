@@ -5,12 +5,10 @@ import csv
 import json
 import multiprocessing
 import os
-import sys
 
 import pytest
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
-import common  # noqa: E402
+import common
 
 COLUMNS = ("seed", "tracks", "value")
 

@@ -180,7 +180,6 @@ def reproduction_commands(text: str) -> list[list[str]]:
 
 def mismatches(argvs: list[list[str]]) -> list[str]:
     """What in these experiment.py command lines differs from the experiment as it was run (empty: nothing)."""
-    sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
     import experiment
 
     specs = [tyro.cli(experiment.Spec, args=argv) for argv in argvs]

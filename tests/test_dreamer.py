@@ -24,7 +24,7 @@ import utils.checkpoint as ckpt
 import utils.collector as collector
 import utils.run as run_tools
 import tyro
-from conftest import SCRIPTS, TINY, assert_same
+from conftest import SCRIPTS, TINY, ColumnHead, ConstantHead, assert_same, random_batch, tiny_args
 from torch import nn
 
 # The defaults: the paper's hyperparameters (Algorithm 1, appendix) and the paper authors' configurations, one column
@@ -46,23 +46,6 @@ DEFAULTS = {
     },
 }  # fmt: skip
 DEFAULTS["gru"] = {**DEFAULTS["lstm"], "batch_size": 50, "imagination_horizon": 15}
-
-def tiny_args(script, **overrides):
-    return script.Args(**{**TINY, **overrides})
-
-
-def random_batch(batch=3, length=8, size=64, seed=0, episode_starts=(0,)):
-    rng = np.random.default_rng(seed)
-    is_first = np.zeros((batch, length), dtype=bool)
-    is_first[:, list(episode_starts)] = True
-    return {
-        "obs": rng.integers(0, 256, (batch, length, size, size, 3), dtype=np.uint8),
-        "action": rng.uniform(-1, 1, (batch, length, 2)).astype(np.float32) * ~is_first[..., None],
-        "reward": rng.normal(size=(batch, length)).astype(np.float32),
-        "is_first": is_first,
-        "terminated": np.zeros((batch, length), dtype=bool),
-    }
-
 
 def num_params(module: nn.Module) -> int:
     return sum(p.numel() for p in module.parameters())
@@ -369,29 +352,6 @@ def test_lambda_returns_split_into_task_and_entropy_parts(script):
     torch.testing.assert_close(script.return_range(x), torch.tensor(90.0))  # 95th - 5th percentile of 0..100
 
 
-class _Column(nn.Module):
-    """A stand-in head whose output's first half is column `index` of its input (a reward mean or a value)."""
-
-    def __init__(self, index: int, pair: bool):
-        super().__init__()
-        self.index, self.pair = index, pair
-
-    def forward(self, features):
-        x = features[..., self.index : self.index + 1]
-        return (x.squeeze(-1), torch.ones_like(x.squeeze(-1))) if self.pair else torch.cat([x, torch.zeros_like(x)], -1)
-
-
-class _Constant(nn.Module):
-    """A stand-in head with one output, `value` everywhere (a continue logit)."""
-
-    def __init__(self, value: float):
-        super().__init__()
-        self.value = value
-
-    def forward(self, features):
-        return torch.full((*features.shape[:-1], 1), self.value)
-
-
 @pytest.mark.parametrize(
     "rewards, scale_before, scale_after, loss",
     [
@@ -427,9 +387,9 @@ def test_return_norm_scales_the_task_part_of_the_actor_objective(script, monkeyp
     monkeypatch.setattr(script, "imagine_rollout", lambda *a: (features, log_pi, None, torch.ones(1, 5, 2)))
     start_cont = torch.tensor([1.0, 1.0, 1.0, 1.0, 0.0])  # the fifth start is a terminal state
     monkeypatch.setattr(agent, "start_states", lambda post, terminated: (None, None, None, start_cont))
-    agent.world_model.reward = _Column(0, pair=False)
-    agent.world_model.cont = _Constant(100.0)  # sigmoid(100) = 1 in float32
-    agent.targets["critic"] = _Column(1, pair=True)
+    agent.world_model.reward = ColumnHead(0, pair=False)
+    agent.world_model.cont = ConstantHead(100.0)  # sigmoid(100) = 1 in float32
+    agent.targets["critic"] = ColumnHead(1, pair=True)
     agent.return_scale.fill_(scale_before)
     actor_loss, critic_loss, metrics = agent.behaviour_losses(post, terminated)
     # the critic learns the unscaled return R_i = r_i + gamma V(s_1) + alpha (-log pi_i), its Gaussian NLL at s_0

@@ -8,8 +8,7 @@ import os
 
 import pytest
 import torch
-from conftest import TINY
-from test_dreamer import random_batch, tiny_args
+from conftest import TINY, ColumnHead, ConstantHead, random_batch, tiny_args
 from torch import nn
 
 
@@ -112,7 +111,6 @@ def test_the_action_penalty_reweighs_the_extreme_action_term_of_the_bonus(script
     """A one-step imagination fixed by hand: reward 3, value 4, gamma 0.5, continue 1, log pi -1, both sampled action
     dimensions 0.5. The bonus is -alpha log pi = 0.25; --action-penalty beta replaces alpha on the extreme-action
     term, 2 * -log(1 - tanh(0.5)^2) = 0.48046, so R = 3 + 0.25 + (0.25 - beta) 0.48046 + 0.5 * 4."""
-    from test_dreamer import _Column, _Constant
 
     agent = script.Agent(tiny_args(script, entropy_coef=0.25, action_penalty=penalty, gamma=0.5, imagination_horizon=1))
     size = TINY["latent_size"] + TINY["deter_size"]
@@ -122,9 +120,9 @@ def test_the_action_penalty_reweighs_the_extreme_action_term_of_the_bonus(script
     samples = torch.full((1, 1, 2), 0.5)
     monkeypatch.setattr(script, "imagine_rollout", lambda *a: (features, log_pi, samples, torch.ones(1, 1, 2)))
     monkeypatch.setattr(agent, "start_states", lambda post, terminated: (None, None, None, torch.ones(1)))
-    agent.world_model.reward = _Column(0, pair=False)
-    agent.world_model.cont = _Constant(100.0)
-    agent.targets["critic"] = _Column(1, pair=True)
+    agent.world_model.reward = ColumnHead(0, pair=False)
+    agent.world_model.cont = ConstantHead(100.0)
+    agent.targets["critic"] = ColumnHead(1, pair=True)
     post = {"z": torch.randn(1, 2, TINY["latent_size"]), "h": torch.randn(1, 2, TINY["deter_size"])}  # 2: BatchNorm
     _, _, metrics = agent.behaviour_losses(post, torch.zeros(1, 1))
     term = 2 * -math.log(1 - math.tanh(0.5) ** 2 + 1e-6)

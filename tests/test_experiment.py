@@ -15,20 +15,15 @@ import sys
 
 import numpy as np
 import pytest
-from conftest import TINY
+from conftest import TINY_TRIAL
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
-import experiment  # noqa: E402
-import experiment_report  # noqa: E402
-import race  # noqa: E402
-import utils.checkpoint  # noqa: E402
-import stats  # noqa: E402
+import experiment
+import experiment_report
+import race
+import utils.checkpoint
+import stats
 
-TINY_FLAGS = {
-    **TINY, "batch_size": 2, "imagination_horizon": 3, "max_steps": 30, "train_steps_per_episode": 1,
-    "prefill_episodes": 1, "replay_capacity": 500, "eval_every": 1, "eval_episodes": 1, "video_every": 0,
-    "ghost_tracks": 1, "action_repeat": 2,
-}  # fmt: skip
+TINY_FLAGS = {**TINY_TRIAL, "ghost_tracks": 1, "action_repeat": 2}
 
 
 @pytest.fixture(scope="module")

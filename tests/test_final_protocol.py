@@ -9,20 +9,18 @@ import itertools
 import json
 import os
 import re
-import sys
 
 import numpy as np
 import pytest
 import torch
 from scipy import stats as sps
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
-import common  # noqa: E402
-import evaluate  # noqa: E402
-import final_protocol  # noqa: E402
-import learning  # noqa: E402
-import readings  # noqa: E402
-from test_learning_report import write_sitting  # noqa: E402
+import common
+import evaluate
+import final_protocol
+import learning
+import readings
+from conftest import write_sitting
 
 BUDGET_SECONDS = 3600 * final_protocol.PROTOCOL_CPU_HOURS
 

@@ -7,7 +7,6 @@ and actions), highway-env's own render() frame, and PettingZoo's API test.
 from __future__ import annotations
 
 import os
-import sys
 import warnings
 
 import cv2
@@ -165,7 +164,6 @@ def test_runs_through_make_vec_env_in_worker_processes():
 
 
 def test_highway_random_reads_a_runs_evaluations_per_car_over_sittings(tmp_path):
-    sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
     from highway_random import agent_evaluations
     from torch.utils.tensorboard import SummaryWriter
 

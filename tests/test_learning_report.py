@@ -6,43 +6,19 @@ import csv
 import importlib
 import json
 import os
-import sys
 
 import numpy as np
 import pytest
 from torch.utils.tensorboard import SummaryWriter
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
-import learning  # noqa: E402
-import learning_report  # noqa: E402
+import learning
+import learning_report
+from conftest import as_process, write_sitting
 
 BASELINES = {
     "random": {"eval_return": -76.6, "eval_progress": 0.03},
     "pursuit@70": {"eval_return": 909.0, "eval_progress": 1.0},
 }
-
-
-def write_sitting(run_dir, points, wall_start, pid=None):
-    """One event file: eval points (env_steps, return, progress, updates) at 1000 s apart from wall_start, named
-    as SB3's logger names a file of process `pid` (this test's own when None)."""
-    before = set(os.listdir(run_dir)) if os.path.isdir(run_dir) else set()
-    writer = SummaryWriter(run_dir)
-    for i, (steps, ret, progress, updates) in enumerate(points):
-        wall = wall_start + 1000.0 * i
-        writer.add_scalar("car_0/perf/updates", updates, steps, walltime=wall)
-        writer.add_scalar("car_0/eval/episodic_return", ret, steps, walltime=wall)
-        writer.add_scalar("car_0/eval/progress", progress, steps, walltime=wall)
-    writer.close()
-    if pid is not None:
-        as_process(run_dir, before, pid)
-
-
-def as_process(run_dir, before, pid):
-    """Rename the one event file written to run_dir since `before` (its file names) as process `pid`'s:
-    events.out.tfevents.<time>.<host>.<pid>.<n>."""
-    (name,) = set(os.listdir(run_dir)) - before
-    head, rest = name.split(f".{os.getpid()}.", 1)
-    os.rename(os.path.join(run_dir, name), os.path.join(run_dir, f"{head}.{pid}.{rest}"))
 
 
 @pytest.fixture

@@ -4,18 +4,16 @@ against its sum written out, and bad input."""
 import dataclasses
 import importlib
 import os
-import sys
 
 import numpy as np
 import pytest
 import torch
 from torch import nn
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
-import pedal_response  # noqa: E402
-from conftest import TINY_RUN  # noqa: E402
-import utils.checkpoint as ckpt  # noqa: E402
-from utils import make_vec_env  # noqa: E402
+import pedal_response
+from conftest import TINY_RUN
+import utils.checkpoint as ckpt
+from utils import make_vec_env
 
 
 @pytest.fixture(scope="module")

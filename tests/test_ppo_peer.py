@@ -3,14 +3,12 @@
 
 import csv
 import os
-import sys
 
 import gymnasium
 import numpy as np
 import pytest
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
-import ppo_peer  # noqa: E402
+import ppo_peer
 
 
 def test_frame_skip_sums_rewards_and_stops_at_the_end():

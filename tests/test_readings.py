@@ -2,12 +2,10 @@
 or an evaluation's eval_<race>.pt), and names the counts it kept when it has none there."""
 
 import os
-import sys
 
 import pytest
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
-import readings  # noqa: E402
+import readings
 
 
 def fake_run(root, kept):

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "fixtures"))
-from record_reference_runs import REFERENCE_RUN, logged_rows  # noqa: E402
+from record_reference_runs import REFERENCE_RUN, logged_rows
 
 FIXTURES = os.path.join(os.path.dirname(os.path.abspath(__file__)), "fixtures")
 # scalars logged since the reference was recorded: readings of the same evaluations, nothing computed differently

@@ -26,7 +26,7 @@ import pytest
 import torch
 import utils.checkpoint as ckpt
 import utils.run as run_tools
-from conftest import SCRIPTS, TINY, assert_same
+from conftest import SCRIPTS, TINY, assert_same, random_batch
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 RUN = dict(
@@ -51,19 +51,6 @@ def one_torch_thread():
 
 def flags(**kwargs) -> list[str]:
     return [part for key, value in kwargs.items() for part in (f"--{key.replace('_', '-')}", str(value))]
-
-
-def random_batch(seed=0, batch=3, length=8, size=64):
-    rng = np.random.default_rng(seed)
-    is_first = np.zeros((batch, length), dtype=bool)
-    is_first[:, 0] = True
-    return {
-        "obs": rng.integers(0, 256, (batch, length, size, size, 3), dtype=np.uint8),
-        "action": rng.uniform(-1, 1, (batch, length, 2)).astype(np.float32),
-        "reward": rng.normal(size=(batch, length)).astype(np.float32),
-        "is_first": is_first,
-        "terminated": np.zeros((batch, length), dtype=bool),
-    }
 
 
 def assert_same_replays(a, b) -> None:
@@ -322,10 +309,10 @@ def test_a_run_killed_mid_race_resumes_exactly(script, tmp_path, monkeypatch, ca
 def test_a_nonfinite_loss_or_gradient_skips_that_step(script):
     torch.manual_seed(0)
     agent = script.Agent(script.Args(**TINY))
-    agent.update(random_batch(0))  # the optimisers have state
+    agent.update(random_batch(seed=0))  # the optimisers have state
     before = copy.deepcopy(agent.state_dict())
 
-    batch = random_batch(1)
+    batch = random_batch(seed=1)
     batch["reward"][1, 3] = np.nan  # a NaN reward: the world model's loss is NaN, the behaviour losses are not
     metrics = agent.update(batch)
     after = agent.state_dict()
@@ -340,7 +327,7 @@ def test_a_nonfinite_loss_or_gradient_skips_that_step(script):
     # A finite loss with a non-finite gradient: only the critic's step is skipped.
     before = copy.deepcopy(agent.state_dict())
     hook = agent.critic.net.net[0].weight.register_hook(lambda grad: torch.full_like(grad, float("nan")))
-    metrics = agent.update(random_batch(2))
+    metrics = agent.update(random_batch(seed=2))
     hook.remove()
     after = agent.state_dict()
     assert math.isfinite(metrics["critic"])
@@ -349,7 +336,7 @@ def test_a_nonfinite_loss_or_gradient_skips_that_step(script):
     assert not torch.equal(after["world_model"]["decoder.fc.weight"], before["world_model"]["decoder.fc.weight"])
     assert (agent.nonfinite_updates, agent.nonfinite_in_a_row) == (2, 2)
 
-    agent.update(random_batch(3))  # a clean update ends the streak; the total stays
+    agent.update(random_batch(seed=3))  # a clean update ends the streak; the total stays
     assert (agent.nonfinite_updates, agent.nonfinite_in_a_row) == (2, 0)
     assert agent.state_dict()["nonfinite_updates"] == 2  # saved with the agent
 

@@ -3,14 +3,11 @@ needs, against values derived by hand (or by a brute force written apart from th
 
 import itertools
 import math
-import os
-import sys
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
-import stats  # noqa: E402
+import stats
 
 # benchmarks/results/ghost_vs_control.csv: return after the ghost stage - after its control, per (variant, seed)
 GHOST = [5.4, -18.0, 247.9, 218.8, 166.0, -10.1]

@@ -9,21 +9,14 @@ import dataclasses
 import json
 import math
 import os
-import sys
 
 import pytest
-from conftest import TINY
+from conftest import TINY, TINY_TRIAL
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
-import readings  # noqa: E402
-import sweep as sweeps  # noqa: E402
+import readings
+import sweep as sweeps
 
-TINY_FLAGS = " ".join(
-    f"{k}={v}" for k, v in {
-        **TINY, "batch_size": 2, "imagination_horizon": 3, "max_steps": 30, "train_steps_per_episode": 1,
-        "prefill_episodes": 1, "replay_capacity": 500, "eval_every": 1, "eval_episodes": 1, "video_every": 0,
-    }.items()
-)  # fmt: skip
+TINY_FLAGS = " ".join(f"{k}={v}" for k, v in TINY_TRIAL.items())
 GRID = (TINY_FLAGS, TINY_FLAGS + " entropy_coef=0.3")
 
 
