@@ -1,6 +1,7 @@
 """Every command the README and docs/ show must run as written: each `python <file> ...` line is parsed by its own
 program's command-line parser (argparse or tyro), which stops there (a dry run). A renamed or removed flag, a wrong
-value type or a file that no longer exists fails here, naming the page and the command."""
+value type, or a script or an input file in the repository (a path to a .pt, .csv, ... that no placeholder marks)
+that no longer exists fails here, naming the page and the command."""
 
 from __future__ import annotations
 
@@ -42,6 +43,9 @@ def commands(page: str) -> list[str]:
 ALL = sorted({(page, command) for page in PAGES for command in commands(page)})
 
 
+OUTPUT_FLAGS = {"--out", "--results", "--export"}  # a path after one of these is written, not read
+
+
 class Parsed(Exception):
     """The program's parser accepted the command line (raised instead of running it)."""
 
@@ -57,6 +61,10 @@ def test_a_documented_command_parses(page, command, monkeypatch):
     argv = shlex.split(command)[1:]
     path = os.path.join(ROOT, argv[0])
     assert os.path.isfile(path), f"{page}: `{command}` names a file that does not exist"
+    inputs = [token for before, token in zip(["", *argv], argv) if before not in OUTPUT_FLAGS and "/" in token
+              and re.search(r"\.(pt|csv|json|zip|pkl)$", token) and not re.search(r"[<>*$]", token)]  # fmt: skip
+    missing = [token for token in inputs if not os.path.exists(os.path.join(ROOT, token))]
+    assert not missing, f"{page}: `{command}` reads files that do not exist: {missing}"
 
     real_parse, real_cli = argparse.ArgumentParser.parse_args, tyro.cli
 
