@@ -20,8 +20,8 @@ What is around the method is shared by both scripts: the collector that drives t
 episodes (utils/collector.py: `Races`, frame preprocessing, what a race reads), and the run plumbing (arguments'
 checks, memory, run directory and resume, logging, atomic checkpoints and replay saves, the command line:
 utils/run.py, utils/checkpoint.py). They read this module by name: utils/run.py its Args, PRESETS, VARIANT,
-LOG_SIGMA_RANGE, Replay, Agent, env_kwargs, dead_zone_at and main; utils/checkpoint.py its load_checkpoint, Args,
-Agent and Agent.acting_state_dict; the collector an Agent's act, initial_state and action_dim.
+LOG_SIGMA_RANGE, Replay, Agent, env_kwargs, dead_zone_at and main; utils/checkpoint.py its VARIANT, load_checkpoint,
+Args, Agent and Agent.acting_state_dict; the collector an Agent's act, initial_state and action_dim.
 
 Everything that depends on the recurrent cell is inside `RecurrentCell` (its state is a tuple of
 tensors; the model state fed to every head is z||h). The LSTM script (dreamer_lstm.py) is this file
@@ -74,7 +74,8 @@ class Args:
     torch_threads: int = 0
     """number of CPU threads of torch (0: torch's default)"""
     malloc_fix: bool = True
-    """keep freed memory in the process (glibc mallopt, docs/performance.md): halved the update time on 2 cores"""
+    """keep freed memory in the process (glibc mallopt: utils/run.py keep_freed_memory), so an update's large
+    blocks are not unmapped and page-faulted in again by the next"""
     compile: bool = False
     """torch.compile the networks (same losses up to float rounding; minutes of compiling at the start)"""
     amp: Literal["auto", "on", "off"] = "auto"
@@ -318,8 +319,8 @@ def next_dead_zone(args: Args, races_done: int) -> float:
     """The dead zone to set once `races_done` races have ended; the env applies it at its next reset. Every race
     races at dead_zone_at(the races ended when it starts). One race at a time resets after this (start_race): the
     next race gets dead_zone_at(races_done). K > 1 races side by side have already auto-reset the ended race's
-    slot: the value is for the race that starts when the next one ends, dead_zone_at(races_done + 1). (So race r
-    of K side by side races at dead_zone_at(r - K + 1): the warm-up lags K - 1 races.)"""
+    slot: the value is for the race that starts when the next one ends, dead_zone_at(races_done + 1). (So with K
+    side by side the warm-up lags by up to K - 1 races; races that end in the same step restart at one value.)"""
     return dead_zone_at(races_done + (args.num_races > 1), args)
 
 
@@ -814,8 +815,8 @@ def imagine_rollout(world_model: WorldModel, actor: Actor, state: tuple, h, z, h
     Returns features s_0..s_H (H+1, N, F), log pi_0..log pi_{H-1} (H, N), the sampled actions before clipping
     (H, N, A; the model is given them clipped to [-1, 1]) and the actor's sigma at every step (H, N, A).
     Everything is reparameterised, so the actor loss backpropagates through the learned dynamics, except where a
-    sample falls outside [-1, 1]: the clip passes no gradient, so that action dimension's reward and value reach
-    the actor only through log pi (a share that grows with sigma and as the mean nears +-1).
+    sample falls outside [-1, 1]: the clip passes no gradient, so that step's action dimension gets no gradient of
+    reward or value, only the entropy bonus's (a share of samples that grows with sigma and as the mean nears +-1).
     """
     features, log_pis, samples, stds = [torch.cat([z, h], -1)], [], [], []
     for _ in range(horizon):
@@ -835,7 +836,10 @@ def bf16_autocast(amp: str, device: torch.device) -> bool:
     CPU."""
     if amp != "auto":
         return amp == "on"
-    return device.type == "cuda" and torch.cuda.is_bf16_supported(including_emulation=False)
+    if device.type != "cuda":
+        return False
+    with torch.cuda.device(device):  # (is_bf16_supported asks the current device)
+        return torch.cuda.is_bf16_supported(including_emulation=False)
 
 
 class Agent:

@@ -59,7 +59,7 @@ class Args:
     threads: int = 0
     """torch threads (0: torch's default)"""
     malloc_fix: bool = True
-    """glibc mallopt setting of the scripts (docs/agent.md), applied once for the reference and the agents alike"""
+    """glibc mallopt setting of the scripts (--malloc-fix), applied once for the reference and the agents alike"""
     compile: bool = False
     """torch.compile the agents' networks (the scripts' --compile)"""
     amp: Literal["auto", "on", "off"] = "auto"

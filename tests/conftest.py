@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 import torch
 from torch import nn
-from torch.utils.tensorboard import SummaryWriter
 
 SCRIPTS = ["dreamer_lstm", "dreamer_gru"]
 
@@ -102,6 +101,8 @@ class ConstantHead(nn.Module):
 def write_sitting(run_dir, points, wall_start, pid=None):
     """One event file: eval points (env_steps, return, progress, updates) at 1000 s apart from wall_start, named
     as SB3's logger names a file of process `pid` (this test's own when None)."""
+    from torch.utils.tensorboard import SummaryWriter
+
     before = set(os.listdir(run_dir)) if os.path.isdir(run_dir) else set()
     writer = SummaryWriter(run_dir)
     for i, (steps, ret, progress, updates) in enumerate(points):

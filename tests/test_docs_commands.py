@@ -43,7 +43,7 @@ def commands(page: str) -> list[str]:
 ALL = sorted({(page, command) for page in PAGES for command in commands(page)})
 
 
-OUTPUT_FLAGS = {"--out", "--results", "--export"}  # a path after one of these is written, not read
+OUTPUT_FLAGS = {"--out", "--results", "--export", "--json", "--csv"}  # a path after one is written, not read
 
 
 class Parsed(Exception):
@@ -61,7 +61,8 @@ def test_a_documented_command_parses(page, command, monkeypatch):
     argv = shlex.split(command)[1:]
     path = os.path.join(ROOT, argv[0])
     assert os.path.isfile(path), f"{page}: `{command}` names a file that does not exist"
-    inputs = [token for before, token in zip(["", *argv], argv) if before not in OUTPUT_FLAGS and "/" in token
+    tokens = [part for token in argv for part in (token.split("=", 1) if token.startswith("--") else [token])]
+    inputs = [token for before, token in zip(["", *tokens], tokens) if before not in OUTPUT_FLAGS and "/" in token
               and re.search(r"\.(pt|csv|json|zip|pkl)$", token) and not re.search(r"[<>*$]", token)]  # fmt: skip
     missing = [token for token in inputs if not os.path.exists(os.path.join(ROOT, token))]
     assert not missing, f"{page}: `{command}` reads files that do not exist: {missing}"

@@ -217,10 +217,10 @@ def check_replay_memory(args, step_bytes: int) -> int:
 
 
 def keep_freed_memory() -> bool:
-    """Stop glibc from returning freed memory to the OS (docs/agent.md, update time).
+    """Stop glibc from returning freed memory to the OS (the scripts' --malloc-fix).
 
     Every update allocates and frees the same large blocks; by default glibc unmaps them and the
-    kernel page-faults them in again on the next update (~45% of wall time measured here).
+    kernel page-faults them in again on the next update.
     mallopt(M_TRIM_THRESHOLD, 2**31-1) and mallopt(M_MMAP_MAX, 0) keep them in the process.
     Linux/glibc only; returns whether both settings took effect.
     """
