@@ -17,7 +17,8 @@ protocol (``learning.py --final`` until commit 32c3b4c), whose ``learning_final.
 * The peers (PROTOCOL_PEERS: ``ppo_peer.py --algo ppo`` and ``--algo recurrent-ppo``): their deterministic policy
   after the same CPU time on the same tracks: the rows of ``<peer>_peer.csv`` beside learning_final.csv whose
   ``tracks`` are the report tracks (protocol_peer_path, read_peer_rows); the rows of other tracks (the fresh tracks
-  10100..10119 of the 8,000-update protocol, which a row without a ``tracks`` column was measured on) are left out.
+  10100..10119 of the 8,000-update protocol, which a row without a ``tracks`` column was measured on) are left out,
+  and so is a row of a run not finished yet (peer_finished: neither budget spent; listed in the report).
   Their sample efficiency: the snapshots of ``<peer>_peer_curve.csv`` (``ppo_peer.py --curve``) on the report tracks.
 * Why a run drives as it does (protocol_readings; ``learning_final_readings.csv``): benchmarks/readings.py's
   readings of the same final policy on the same tracks, per policy: its driving (speed, gas, brake share, laps,
@@ -57,7 +58,7 @@ from common import (
 )  # fmt: skip
 from learning import RESULTS, VARIANTS, eval_curve, eval_summary, training_hours
 from learning_report import baselines
-from ppo_peer import COLUMNS as PEER_CSV_COLUMNS, CURVE_COLUMNS, read_rows as read_peer_csv
+from ppo_peer import ALGOS as PEER_ALGOS, COLUMNS as PEER_CSV_COLUMNS, CURVE_COLUMNS, read_rows as read_peer_csv
 
 # --- The protocol ----------------------------------------------------------------------------
 # Each run is a single-stage trial of benchmarks/experiment.py trained until it has spent PROTOCOL_CPU_HOURS of
@@ -253,12 +254,36 @@ def read_peer_rows(path: str, columns: tuple[str, ...] = PEER_COLUMNS) -> list[d
     """A peer's rows (or with CURVE_COLUMNS its curve's) measured on the report tracks (protocol_peer_path; none
     while its file does not exist): only runs measured on the same tracks are compared, and a row of other tracks
     is left out (ppo_peer.read_rows: a row without a ``tracks`` column was measured on 10100..10119). A file that
-    lacks one of `columns` is refused with a one-line ValueError naming it."""
+    lacks one of `columns`, or holds another peer's rows (``ppo_peer.py --results`` given the wrong file), is
+    refused with a one-line ValueError naming it."""
     rows = read_peer_csv(path)
     missing = [c for c in columns if rows and c not in rows[0]]
     if missing:
         raise ValueError(f"{path} lacks the column(s) {', '.join(missing)} of a peer's row")
+    peer = os.path.basename(path).split("_peer")[0]
+    foreign = sorted({r["variant"] for r in rows if r["variant"] != peer})
+    if foreign:
+        raise ValueError(f"{path} holds rows of {', '.join(foreign)}, not only {peer}'s: move them to their own file")
     return [r for r in rows if r["tracks"] == track_block(*REPORT_TRACKS)]
+
+
+def peer_finished(row: dict) -> bool:
+    """Whether a peer's row is of a finished run, as ppo_peer.py ends one: its CPU budget spent
+    (PROTOCOL_CPU_HOURS), or the zoo's step budget (n_timesteps, frame_skip env steps each) taken first. A row
+    measured with --evaluate-only before either is not a final policy."""
+    config = {variant: config for variant, config in PEER_ALGOS.values()}[row["variant"]]
+    steps = config["n_timesteps"] * config["frame_skip"]
+    return float(row["cpu_hours"]) >= PROTOCOL_CPU_HOURS or int(row["env_steps"]) >= steps
+
+
+def check_finite(rows: list[dict], keys: tuple[str, ...], what: str) -> None:
+    """Refuse (a one-line ValueError naming the run) a row whose return, progress or |steer| is not a finite number:
+    a measurement that failed, which no mean, test or bar may take in."""
+    for r in rows:
+        bad = [k for k in keys if not np.isfinite(float(r[k]))]
+        if bad:
+            raise ValueError(f"{what}: {r['variant']} seed {r['seed']} has {', '.join(bad)} = "
+                             f"{', '.join(r[k] for k in bad)}: measure it again")
 
 
 def groups(rows: list[dict], peers: dict[str, list[dict]]) -> list[tuple[str, str, list[dict], tuple]]:
@@ -414,6 +439,13 @@ COMPARISONS_TEXT = (
 )
 
 
+def provisional_note(rows: list[dict]) -> str:
+    """Markdown: which variants' comparisons are provisional, lacking some of PROTOCOL_SEEDS ("" when none is)."""
+    missing = {v: sorted(set(PROTOCOL_SEEDS) - {int(r["seed"]) for r in rows if r["variant"] == v}) for v in VARIANTS}
+    short = [f"{v} lacks seeds {', '.join(map(str, seeds))}" for v, seeds in missing.items() if seeds]
+    return f"\nProvisional: {'; '.join(short)}.\n" if short else ""
+
+
 def comparison_verdict(claim: dict) -> str:
     """The final protocol's word for a comparison (stats.two_group_claim's outcome): "beats" when the first is
     higher by both the exact test (p < 0.05) and Welch's interval (above 0), "behind" when it is lower by both,
@@ -468,18 +500,19 @@ def curve_means(curve: list[dict]) -> dict[int, tuple[float, int]]:
 def reached_at(means: dict[int, tuple[float, int]], target: float, seeds: int) -> str:
     """The first snapshot whose mean return (curve_means) reaches `target`, with how many of the peer's `seeds` that
     mean is over, or "not within" the last one."""
-    reached = [n for n, (mean, _) in means.items() if mean >= target]
+    reached = [n for n, (mean, _) in means.items() if round(mean, BAR_DECIMALS) >= round(target, BAR_DECIMALS)]
     if not reached:
         return f"not within {steps_label(max(means))}"
     return f"{steps_label(reached[0])} ({means[reached[0]][1]} of {seeds} seeds)"
 
 
-def sample_efficiency(rows: list[dict], curves: dict[str, list[dict]]) -> str:
+def sample_efficiency(rows: list[dict], curves: dict[str, list[dict]], peers: dict[str, list[dict]]) -> str:
     """Markdown: for each variant and policy, its final mean return and mean env steps over its seeds, and the
     snapshot after which each peer's mean return (curve_means: over the seeds that have it) first reaches that
-    return (reached_at); then each peer's curve. "" while no peer has a curve."""
+    return (reached_at, out of the peer's seeds: those with a final row or a curve); then each peer's curve. ""
+    while no peer has a curve."""
     means = {peer: curve_means(curve) for peer, curve in curves.items() if curve}
-    seeds = {peer: len({r["seed"] for r in curve}) for peer, curve in curves.items() if curve}
+    seeds = {peer: len({r["seed"] for r in curve + peers.get(peer, [])}) for peer, curve in curves.items() if curve}
     if not means:
         return ""
     lines = [
@@ -578,8 +611,16 @@ def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
     readings per variant (protocol_why); and its figure, learning_final.png (plot_protocol).
     Returns the text."""
     rows = read_table(os.path.join(results_dir, "learning_final.csv"), PROTOCOL_COLUMNS, PROTOCOL_ADVICE)
-    peers = {peer: read_peer_rows(protocol_peer_path(peer, results_dir)) for peer in PROTOCOL_PEERS}
-    peers = {peer: theirs for peer, theirs in peers.items() if theirs}
+    measured = {peer: read_peer_rows(protocol_peer_path(peer, results_dir)) for peer in PROTOCOL_PEERS}
+    measured = {peer: theirs for peer, theirs in measured.items() if theirs}
+    check_finite(rows, PROTOCOL_POLICY_COLUMNS["mean-action"] + PROTOCOL_POLICY_COLUMNS["stochastic"],
+                 "learning_final.csv")
+    for peer, theirs in measured.items():
+        check_finite(theirs, PEER_POLICY_COLUMNS, f"{peer}_peer.csv")
+    # a peer's row of a run not finished yet (ppo_peer.py --evaluate-only in between) is listed, not compared
+    peers = {peer: [r for r in theirs if peer_finished(r)] for peer, theirs in measured.items()}
+    unfinished = [f"{PEER_NAMES[peer]} seed {r['seed']} ({float(r['cpu_hours']):.2f} CPU-h, {r['env_steps']} env "
+                  f"steps)" for peer, theirs in measured.items() for r in theirs if not peer_finished(r)]
     curves = {peer: read_peer_rows(protocol_peer_path(peer, results_dir, curve=True), CURVE_COLUMNS)
               for peer in PROTOCOL_PEERS}  # fmt: skip
     header = (
@@ -598,9 +639,10 @@ def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
         text = (
             header + protocol_summary(rows, peers, reps) + "\n" + protocol_references(results_dir)
             + "\nThe bar, per variant over its seeds:\n\n"
-            + protocol_bar_table(rows) + "\nEvery run:\n\n" + protocol_seeds(rows, peers)
-            + COMPARISONS_TEXT + protocol_comparisons(rows, peers)
-            + sample_efficiency(rows, curves)
+            + protocol_bar_table(rows) + "\nEvery run:\n\n" + protocol_seeds(rows, measured)
+            + (f"\nNot finished, left out of the statistics: {'; '.join(unfinished)}.\n" if unfinished else "")
+            + COMPARISONS_TEXT + protocol_comparisons(rows, peers) + provisional_note(rows)
+            + sample_efficiency(rows, curves, measured)
         )  # fmt: skip
         why_rows = read_table(os.path.join(results_dir, WHY_CSV), WHY_COLUMNS, WHY_ADVICE)
         if why_rows:
@@ -655,6 +697,7 @@ def ship(variant: str, runs_dir: str, shipped: str, results_dir: str = RESULTS) 
     from utils.checkpoint import export_policy, read_checkpoint
 
     rows = ship_rows(variant, runs_dir, shipped)
+    check_finite([{**r, "seed": r["candidate"]} for r in rows], ("return",), f"ship_{variant}")
     current = next((r for r in rows if r["candidate"] == "shipped"), None)
     best = max((r for r in rows if r["candidate"] != "shipped"), key=lambda r: r["return"])
     winner = best if current is None or best["return"] > current["return"] else current

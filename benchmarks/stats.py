@@ -98,12 +98,16 @@ def _t(means, variances, sizes, weights, confidence: float) -> tuple[float, tupl
 
 def one_per_run(x, what: str) -> np.ndarray:
     """x as one value per run: shape (runs,), or rliable's (runs, 1). Several values a run (rliable's tasks) are
-    refused: counted as units, they would make the tests and intervals claim more runs than there are."""
+    refused: counted as units, they would make the tests and intervals claim more runs than there are. So is a
+    value that is not finite (a failed measurement: NaN compares false both ways, and an exact test would count it
+    as neither higher nor lower)."""
     x = np.asarray(x, float)
     if x.ndim == 2 and x.shape[1] == 1:
         x = x[:, 0]
     if x.ndim != 1 or x.size == 0:
         raise ValueError(f"{what} needs one value per run for at least one run, of shape (runs,), got {x.shape}")
+    if not np.isfinite(x).all():
+        raise ValueError(f"{what} needs finite values, got {x.tolist()}")
     return x
 
 

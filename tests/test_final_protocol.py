@@ -378,6 +378,56 @@ def test_the_report_gives_mean_iqm_and_exact_tests_on_the_same_tracks_only(tmp_p
         final_protocol.write_protocol_report(str(results), reps=200)
 
 
+def test_a_peer_row_of_an_unfinished_run_is_listed_not_compared_and_a_failed_or_foreign_row_is_refused(tmp_path):
+    """A peer's run ends at its CPU budget or at the zoo's step budget (n_timesteps x frame_skip env steps); a row
+    measured before either (ppo_peer.py --evaluate-only in between) is listed and left out of every statistic. A row
+    whose return is not finite, or a peer file holding another peer's rows, is refused, naming it."""
+    results = tmp_path / "results"
+    results.mkdir()
+    path = str(results / "learning_final.csv")
+    for seed, mean_action in zip(final_protocol.PROTOCOL_SEEDS[:4], (700.0, 720.0, 740.0, 760.0)):
+        final_protocol.write_protocol_row(protocol_row("lstm", seed, mean_action), path)
+    header = ",".join(final_protocol.PEER_COLUMNS) + ",tracks\n"
+    (results / "ppo_peer.csv").write_text(
+        header + "ppo,11,4800,3900000,3.1,500.0,0.9,0.1,10300..10329\n"
+        "ppo,12,4800,3900000,3.1,600.0,0.9,0.1,10300..10329\n"
+        "ppo,13,1500,1000000,1.0,900.0,0.9,0.1,10300..10329\n"  # at 1 CPU-h and 1M of 8M env steps: not final
+    )  # fmt: skip
+    (results / "recurrent_ppo_peer.csv").write_text(  # the zoo's 2M steps (4M env steps) taken before 3.1 CPU-h
+        header + "recurrent_ppo,11,900,4000000,2.5,650.0,0.9,0.1,10300..10329\n"
+        "recurrent_ppo,12,900,4000000,2.6,670.0,0.9,0.1,10300..10329\n"
+    )  # fmt: skip
+    write_references(results)
+    text = final_protocol.write_protocol_report(str(results), reps=200)
+    assert "Not finished, left out of the statistics: SB3 PPO seed 13 (1.00 CPU-h, 1000000 env steps).\n" in text
+    assert "| SB3 PPO | 13 | 1500 | 1000000 | 1.00 (short of the budget) |" in text  # listed with every run
+    ppo, recurrent = (summary_cells(text, peer, "deterministic") for peer in ("SB3 PPO", "RecurrentPPO"))
+    assert ppo[2] == "2" and ppo[3].startswith("550.0 [") and recurrent[2] == "2" and recurrent[3].startswith("660.0 [")
+    comparison = next(line for line in text.splitlines() if line.startswith("| mean action: lstm - SB3 PPO |"))
+    assert comparison.split("|")[2].strip() == "4+2" and comparison.split("|")[3].strip() == "+180.0"  # 730 - 550
+    assert "Provisional: lstm lacks seeds 25; gru lacks seeds 21, 22, 23, 24, 25.\n" in text
+    final_protocol.write_protocol_row(protocol_row("lstm", 25, 780.0, sampled=float("nan")), path)
+    with pytest.raises(ValueError, match=r"^learning_final\.csv: lstm seed 25 has final_return = nan: measure it"):
+        final_protocol.write_protocol_report(str(results), reps=200)
+    final_protocol.write_protocol_row(protocol_row("lstm", 25, 780.0), path)
+    with open(results / "ppo_peer.csv", "a") as f:  # ppo_peer.py --algo recurrent-ppo --results ppo_peer.csv
+        f.write("recurrent_ppo,13,900,4000000,2.5,650.0,0.9,0.1,10300..10329\n")
+    with pytest.raises(ValueError, match=r"ppo_peer\.csv holds rows of recurrent_ppo, not only ppo's"):
+        final_protocol.write_protocol_report(str(results), reps=200)
+
+
+def test_reaching_the_dreamers_mean_is_judged_at_the_bars_precision_and_out_of_the_peers_seeds():
+    target = np.mean([836.13, 671.81, 862.95, 617.57, 700.84])  # 737.86 as a CSV reads it, 737.8600000000001 here
+    assert final_protocol.reached_at({100_000: (737.86, 2)}, target, 2) == "100k (2 of 2 seeds)"
+    assert final_protocol.reached_at({100_000: (737.85, 2)}, target, 2) == "not within 100k"
+    rows = [protocol_row("lstm", 21, 600.0)]
+    curve = [{"variant": "ppo", "seed": s, "snapshot": 50_000, "env_steps": 50_000, "return": 650.0,
+              "progress": 0.5, "mean_abs_steer": 0.1, "tracks": "10300..10329"} for s in ("11", "12")]  # fmt: skip
+    peers = {"ppo": [{"seed": str(s)} for s in range(11, 16)]}  # five seeds, two with a curve
+    assert "| lstm | mean action | 600.0 | 60,000 | 50k (2 of 5 seeds) |" in final_protocol.sample_efficiency(
+        rows, {"ppo": curve}, peers)  # fmt: skip
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--protocol-row", "--report"], "--report and --protocol-row are separate modes: give one at most"),
     (["--protocol-report", "--diagnose"], "--diagnose and --protocol-report are separate modes"),

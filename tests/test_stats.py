@@ -142,3 +142,11 @@ def test_the_bootstrap_intervals_repeat_for_a_seed_and_leave_the_callers_random_
     assert first["a"]["mean"] == 438.0 and first["a"]["iqm"] == (300.0 + 250.0 + 640.0) / 3
     low, high = first["a"]["mean_ci"]
     assert 100.0 <= low < 438.0 < high <= 900.0
+
+
+def test_a_value_that_is_not_finite_is_refused_not_counted():
+    """NaN compares false both ways: an exact test would count a failed measurement as neither higher nor lower."""
+    with pytest.raises(ValueError, match=r"^a first group needs finite values, got \[1\.0, nan\]$"):
+        stats.two_group_claim([1.0, float("nan")], [2.0, 3.0])
+    with pytest.raises(ValueError, match="the sign-flip test needs finite values"):
+        stats.sign_flip_test([1.0, float("inf")])
