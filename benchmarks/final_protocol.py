@@ -237,7 +237,9 @@ def protocol_bar(rows: list[dict]) -> dict[str, tuple[float, bool]]:
     """Each part of the final protocol's bar for the rows of one variant (its seeds): (its value, met). The mean
     action: mean return >= PROTOCOL_BAR_RETURN, every seed's >= PROTOCOL_BAR_SEED_RETURN (the value: the lowest),
     mean progress >= PROTOCOL_BAR_PROGRESS, mean |steer| <= PROTOCOL_BAR_STEER; sampled: mean return >=
-    PROTOCOL_BAR_SAMPLED_RETURN. Each value is rounded to BAR_DECIMALS (what the CSV's values make exact)."""
+    PROTOCOL_BAR_SAMPLED_RETURN. The bar reads the rows as learning_final.csv holds them (returns to 2 decimals,
+    progress and |steer| to 4: protocol_measure), so anyone can judge it again from the file; each value is rounded
+    to BAR_DECIMALS (what the CSV's values make exact)."""
     returns, progress, steer = (column(rows, key) for key in PROTOCOL_POLICY_COLUMNS["mean-action"])
     sampled = column(rows, PROTOCOL_POLICY_COLUMNS["stochastic"][0])
     values = {"return": returns.mean(), "every seed": returns.min(), "progress": progress.mean(),
