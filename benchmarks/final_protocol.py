@@ -284,8 +284,9 @@ def check_finite(rows: list[dict], keys: tuple[str, ...], what: str) -> None:
     for r in rows:
         bad = [k for k in keys if not np.isfinite(float(r[k]))]
         if bad:
-            raise ValueError(f"{what}: {r['variant']} seed {r['seed']} has {', '.join(bad)} = "
-                             f"{', '.join(r[k] for k in bad)}: measure it again")
+            run = r["candidate"] if "candidate" in r else f"seed {r['seed']}"  # (ship_rows name theirs)
+            raise ValueError(f"{what}: {r['variant']} {run} has {', '.join(bad)} = "
+                             f"{', '.join(str(r[k]) for k in bad)}: measure it again")
 
 
 def groups(rows: list[dict], peers: dict[str, list[dict]]) -> list[tuple[str, str, list[dict], tuple]]:
@@ -699,7 +700,7 @@ def ship(variant: str, runs_dir: str, shipped: str, results_dir: str = RESULTS) 
     from utils.checkpoint import export_policy, read_checkpoint
 
     rows = ship_rows(variant, runs_dir, shipped)
-    check_finite([{**r, "seed": r["candidate"]} for r in rows], ("return",), f"ship_{variant}")
+    check_finite(rows, ("return",), f"ship_{variant}")
     current = next((r for r in rows if r["candidate"] == "shipped"), None)
     best = max((r for r in rows if r["candidate"] != "shipped"), key=lambda r: r["return"])
     winner = best if current is None or best["return"] > current["return"] else current

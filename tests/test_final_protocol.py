@@ -555,6 +555,12 @@ def test_the_shipped_agent_is_replaced_only_by_a_better_seed_on_the_screening_tr
         assert [(r["candidate"], r["shipped"]) for r in csv.DictReader(f) if r["shipped"] == "True"] == [
             ("shipped", "True")]  # fmt: skip
 
+    monkeypatch.setattr(utils.checkpoint, "export_policy", export)
+    returns[seed23], before = float("nan"), list(exported)  # a failed drive is refused, not kept (max() keeps a NaN)
+    with pytest.raises(ValueError, match=r"^ship_lstm: lstm seed 23 has return = nan: measure it again$"):
+        final_protocol.ship("lstm", trials, str(shipped), results)
+    assert shipped.read_bytes() == b"the agent shipped before" and exported == before
+
     short = fake_trial(str(tmp_path / "short"), seed=21, cpu_seconds=BUDGET_SECONDS - 1)
     for seed in final_protocol.PROTOCOL_SEEDS[1:]:
         fake_trial(str(tmp_path / "short"), seed=seed)
