@@ -400,9 +400,9 @@ def protocol_bar_table(rows: list[dict]) -> str:
 WHY_TABLE = (
     (f"actor sigma (last {readings.SCREEN_WINDOW} updates)", "actor_sigma", "stochastic"),
     ("entropy weight alpha", "alpha", "stochastic"),
-    ("imagined lambda-return", "imagined_return", "stochastic"),
+    ("imagined lambda-return (with the entropy bonus)", "imagined_return", "stochastic"),
     *((f"{POLICY_NAMES[policy]}: {label}", key, policy) for policy in PROTOCOL_POLICIES[::-1] for label, key in (
-        ("speed", "speed"), ("gas", "gas"), ("brake share", "brake_share"), ("laps finished", "lap_finished"),
+        ("speed", "speed"), ("gas", "gas"), ("brake commands", "brake_share"), ("laps finished", "lap_finished"),
         ("eliminated", "eliminated"))),
     ("model on sampled drives: imagined H-step return", "imagined_task_return", "stochastic"),
     ("... the real H-step return from the same states", "real_task_return", "stochastic"),
@@ -416,7 +416,10 @@ WHY_TABLE = (
 def protocol_why(why_rows: list[dict]) -> str:
     """Markdown: per reading of WHY_TABLE, per variant with readings, its mean over the seeds and in brackets the
     lowest and highest seed's (NaNs, readings a run could not take, left out and the seeds that have it counted;
-    "-" if none)."""
+    "-" if none); under it, each variant's H (the H-step returns and the pedal ranges are over H decisions of its
+    own: the two variants' are not comparable with each other)."""
+    import importlib
+
     variants = [v for v in VARIANTS if any(r["variant"] == v for r in why_rows)]
     seeds = {v: len({r["seed"] for r in why_rows if r["variant"] == v}) for v in variants}
     lines = ["| reading | " + " | ".join(f"{v} ({n} seed{'s' * (n > 1)})" for v, n in seeds.items()) + " |",
@@ -431,6 +434,14 @@ def protocol_why(why_rows: list[dict]) -> str:
                 cell += f" ({values.size} of {seeds[variant]} seeds)"
             cells.append(cell)
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    scripts = {v: importlib.import_module(f"dreamer_{v}") for v in variants}
+    cpu = {v: script.preset_args("cpu") for v, script in scripts.items()}
+    horizons = ", ".join(f"{v} {a.imagination_horizon} decisions of {a.action_repeat} env steps"
+                         for v, a in cpu.items())  # fmt: skip
+    brake = {f"{a.brake_speed_threshold:g}" for a in cpu.values()}
+    lines += ["", f"H is each variant's imagination horizon ({horizons}): the H-step returns and pedal ranges are not "
+                  f"comparable across the variants. Speed is read at the end of each decision; a brake command (a "
+                  f"pedal at or below the dead zone's edge) brakes only above speed {'/'.join(sorted(brake))}."]
     return "\n".join(lines) + "\n"
 
 

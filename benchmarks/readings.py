@@ -5,8 +5,9 @@ For one saved single-car agent, on a block of tracks (a sweep's: the screening t
 final protocol's: its report tracks 10300..10329):
 
 * driving, for each policy (sampled as trained, and the mean action): return, progress, |steer| (near 1: bang-bang),
-  gas (mean of max(action[1], 0)), brake share (decisions at or below the dead zone's edge), speed, the share of
-  laps finished within the time limit and of races ended by an elimination (``drive_races``, utils/collector.py);
+  gas (mean of max(action[1], 0)), brake share (decisions at or below the dead zone's edge: brake commands, which
+  brake above speed 50), speed (at the end of each decision), the share of laps finished within the time limit and
+  of races ended by an elimination (``drive_races``, utils/collector.py);
 * the model on those real episodes (sampled policy; ``calibration.calibrate_checkpoint``): the imagined H-step task
   return against the real one from the same states, and on the frames where a car was eliminated the reward head's
   mean (the real reward there is the -100 penalty);

@@ -146,9 +146,12 @@ def test_a_runs_readings_come_from_the_same_drives_its_training_logs_and_its_mod
     text = (results / "learning_final.md").read_text()
     for line in ["| reading | lstm (1 seed) |", "| actor sigma (last 500 updates) | 0.40 [0.40, 0.40] |",
                  "| mean action: speed | 40.00 [40.00, 40.00] |", "| sampled: speed | 20.00 [20.00, 20.00] |",
-                 "| mean action: laps finished | 0.70 [0.70, 0.70] |", "| imagined lambda-return | - |",
+                 "| mean action: laps finished | 0.70 [0.70, 0.70] |",
+                 "| imagined lambda-return (with the entropy bonus) | - |",
                  "| ... reward head's mean on their last frame (real: -100) | -7.50 [-7.50, -7.50] |",
-                 "| ... of the real return | - |"]:  # fmt: skip
+                 "| ... of the real return | - |",
+                 "H is each variant's imagination horizon (lstm 48 decisions of 2 env steps): the H-step returns",
+                 "brakes only above speed 50."]:  # fmt: skip
         assert line in text
     # without the readings (--no-protocol-readings) only the row is measured and written; a readings file of other
     # columns is refused before anything is driven
