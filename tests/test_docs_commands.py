@@ -188,7 +188,9 @@ def reproduction_commands(text: str) -> list[list[str]]:
 
 
 def mismatches(argvs: list[list[str]]) -> list[str]:
-    """What in these experiment.py command lines differs from the experiment as it was run (empty: nothing)."""
+    """What in these experiment.py command lines differs from the experiment as it was run (empty: nothing). They
+    are parsed with today's experiment.py, while the page runs them at commit 59e2cc7 (both parse them; a flag
+    renamed since would pass here, as the checkout that CI gets may lack the history to parse them as of then)."""
     import experiment
 
     specs = [tyro.cli(experiment.Spec, args=argv) for argv in argvs]
