@@ -78,6 +78,7 @@ PROTOCOL_COLUMNS = (
     "mean_speed", "best_eval_return", "last3_eval_return",
 )  # fmt: skip
 PROTOCOL_PEERS = ("ppo", "recurrent_ppo")  # benchmarks/ppo_peer.py's variants (--algo ppo, recurrent-ppo)
+PROTOCOL_PEER_SEEDS = {"ppo": (11, 12, 13, 14, 15), "recurrent_ppo": (11, 12, 13)}
 PEER_COLUMNS = tuple(c for c in PEER_CSV_COLUMNS if c != "tracks")  # a peer's row (ppo_peer.py's), its tracks aside
 PEER_POLICY_COLUMNS = ("final_return", "final_progress", "final_mean_abs_steer")  # its deterministic policy's driving
 # Why a run drives as it does: benchmarks/readings.py's readings of its final policy on the report tracks, per policy,
@@ -269,24 +270,36 @@ def read_peer_rows(path: str, columns: tuple[str, ...] = PEER_COLUMNS) -> list[d
     return [r for r in rows if r["tracks"] == track_block(*REPORT_TRACKS)]
 
 
+PEER_CPU_OVERSHOOT = 0.1  # CPU-hours a peer's run may pass its budget by (it stops at the first check past it)
+
+
 def peer_finished(row: dict) -> bool:
-    """Whether a peer's row is of a finished run, as ppo_peer.py ends one: its CPU budget spent
-    (PROTOCOL_CPU_HOURS), or the zoo's step budget (n_timesteps, frame_skip env steps each) taken first. A row
-    measured with --evaluate-only before either is not a final policy."""
+    """Whether a peer's row is the protocol's final policy, as ppo_peer.py ends a run: its CPU budget
+    (PROTOCOL_CPU_HOURS, passed by at most PEER_CPU_OVERSHOOT) spent, or the zoo's step budget (n_timesteps,
+    frame_skip env steps each) taken first. A row measured with --evaluate-only before either, or of a run given
+    another --cpu-hours or --budget-steps, is not."""
     config = {variant: config for variant, config in PEER_ALGOS.values()}[row["variant"]]
-    steps = config["n_timesteps"] * config["frame_skip"]
-    return float(row["cpu_hours"]) >= PROTOCOL_CPU_HOURS or int(row["env_steps"]) >= steps
+    steps, hours = config["n_timesteps"] * config["frame_skip"], float(row["cpu_hours"])
+    if hours > PROTOCOL_CPU_HOURS + PEER_CPU_OVERSHOOT:
+        return False
+    return hours >= PROTOCOL_CPU_HOURS or int(row["env_steps"]) >= steps
 
 
 def check_finite(rows: list[dict], keys: tuple[str, ...], what: str) -> None:
     """Refuse (a one-line ValueError naming the run) a row whose return, progress or |steer| is not a finite number:
     a measurement that failed, which no mean, test or bar may take in."""
+    def finite(value) -> bool:
+        try:
+            return bool(np.isfinite(float(value)))
+        except (TypeError, ValueError):  # an empty cell
+            return False
+
     for r in rows:
-        bad = [k for k in keys if not np.isfinite(float(r[k]))]
+        bad = [k for k in keys if not finite(r[k])]
         if bad:
             run = r["candidate"] if "candidate" in r else f"seed {r['seed']}"  # (ship_rows name theirs)
             raise ValueError(f"{what}: {r['variant']} {run} has {', '.join(bad)} = "
-                             f"{', '.join(str(r[k]) for k in bad)}: measure it again")
+                             f"{', '.join(repr(r[k]) for k in bad)}: measure it again")
 
 
 def groups(rows: list[dict], peers: dict[str, list[dict]]) -> list[tuple[str, str, list[dict], tuple]]:
@@ -340,8 +353,8 @@ def protocol_references(results_dir: str) -> str:
 def protocol_seeds(rows: list[dict], peers: dict[str, list[dict]]) -> str:
     """Markdown: every run's row, both policies side by side (the variants), then the peers' runs. A run short of
     PROTOCOL_CPU_HOURS says why: a Dreamer run was stopped by the non-finite guard (protocol_cpu_hours admits no
-    other); a peer's is marked short of the budget (its step budget, ppo_peer.py --budget-steps, may have ended it
-    first, or it was measured with --evaluate-only before its budget was spent)."""
+    other); a peer's is marked short of the budget (the zoo's step budget may have ended it first: it counts; or it
+    was measured with --evaluate-only before its budget was spent: peer_finished leaves it out of the statistics)."""
 
     def policy(row: dict, keys: tuple) -> str:
         ret, progress, steer = (float(row[key]) for key in keys)
@@ -402,7 +415,7 @@ WHY_TABLE = (
     ("entropy weight alpha", "alpha", "stochastic"),
     ("imagined lambda-return (with the entropy bonus)", "imagined_return", "stochastic"),
     *((f"{POLICY_NAMES[policy]}: {label}", key, policy) for policy in PROTOCOL_POLICIES[::-1] for label, key in (
-        ("speed", "speed"), ("gas", "gas"), ("brake commands", "brake_share"), ("laps finished", "lap_finished"),
+        ("speed", "speed"), ("gas", "gas"), ("brake-command share", "brake_share"), ("laps finished", "lap_finished"),
         ("eliminated", "eliminated"))),
     ("model on sampled drives: imagined H-step return", "imagined_task_return", "stochastic"),
     ("... the real H-step return from the same states", "real_task_return", "stochastic"),
@@ -453,10 +466,13 @@ COMPARISONS_TEXT = (
 )
 
 
-def provisional_note(rows: list[dict]) -> str:
-    """Markdown: which variants' comparisons are provisional, lacking some of PROTOCOL_SEEDS ("" when none is)."""
+def provisional_note(rows: list[dict], peers: dict[str, list[dict]]) -> str:
+    """Markdown: which comparisons are provisional, a side lacking some of its seeds (a variant's PROTOCOL_SEEDS, a
+    peer's PROTOCOL_PEER_SEEDS among its finished rows); "" when none is."""
     missing = {v: sorted(set(PROTOCOL_SEEDS) - {int(r["seed"]) for r in rows if r["variant"] == v}) for v in VARIANTS}
-    short = [f"{v} lacks seeds {', '.join(map(str, seeds))}" for v, seeds in missing.items() if seeds]
+    missing |= {PEER_NAMES[p]: sorted(set(seeds) - {int(r["seed"]) for r in peers.get(p, [])})
+                for p, seeds in PROTOCOL_PEER_SEEDS.items()}  # fmt: skip
+    short = [f"{name} lacks seeds {', '.join(map(str, seeds))}" for name, seeds in missing.items() if seeds]
     return f"\nProvisional: {'; '.join(short)}.\n" if short else ""
 
 
@@ -631,7 +647,7 @@ def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
                  "learning_final.csv")
     for peer, theirs in measured.items():
         check_finite(theirs, PEER_POLICY_COLUMNS, f"{peer}_peer.csv")
-    # a peer's row of a run not finished yet (ppo_peer.py --evaluate-only in between) is listed, not compared
+    # a peer's row that is not the protocol's final policy (peer_finished) is listed, not compared
     peers = {peer: [r for r in theirs if peer_finished(r)] for peer, theirs in measured.items()}
     unfinished = [f"{PEER_NAMES[peer]} seed {r['seed']} ({float(r['cpu_hours']):.2f} CPU-h, {r['env_steps']} env "
                   f"steps)" for peer, theirs in measured.items() for r in theirs if not peer_finished(r)]
@@ -654,8 +670,9 @@ def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
             header + protocol_summary(rows, peers, reps) + "\n" + protocol_references(results_dir)
             + "\nThe bar, per variant over its seeds:\n\n"
             + protocol_bar_table(rows) + "\nEvery run:\n\n" + protocol_seeds(rows, measured)
-            + (f"\nNot finished, left out of the statistics: {'; '.join(unfinished)}.\n" if unfinished else "")
-            + COMPARISONS_TEXT + protocol_comparisons(rows, peers) + provisional_note(rows)
+            + (f"\nNot the protocol's final policy (peer_finished), left out of the statistics: "
+               f"{'; '.join(unfinished)}.\n" if unfinished else "")
+            + COMPARISONS_TEXT + protocol_comparisons(rows, peers) + provisional_note(rows, peers)
             + sample_efficiency(rows, curves, measured)
         )  # fmt: skip
         why_rows = read_table(os.path.join(results_dir, WHY_CSV), WHY_COLUMNS, WHY_ADVICE)

@@ -353,7 +353,9 @@ def test_the_report_gives_mean_iqm_and_exact_tests_on_the_same_tracks_only(tmp_p
         for cell in cells[3:5]:  # each interval holds its estimate, within the seeds' range
             point, low, high = map(float, re.fullmatch(r"(\S+) \[(\S+), (\S+)\]", cell).groups())
             assert min(scores) <= low <= point <= high <= max(scores) and low < high
-    assert "5000.0" not in text and "6000.0" not in text and "RecurrentPPO" not in text  # other tracks: out
+    assert "5000.0" not in text and "6000.0" not in text  # other tracks: out
+    assert [line for line in text.splitlines() if "RecurrentPPO" in line] == [  # only as a side without its seeds
+        "Provisional: SB3 PPO lacks seeds 11, 12, 13, 14, 15; RecurrentPPO lacks seeds 11, 12, 13."]
     assert "Sample efficiency" not in text  # no peer has a curve
     comparisons = {line.split("|")[1].strip(): line.split("|") for line in text.splitlines()
                    if line.startswith("| ") and " - " in line}  # fmt: skip
@@ -402,15 +404,19 @@ def test_a_peer_row_of_an_unfinished_run_is_listed_not_compared_and_a_failed_or_
     )  # fmt: skip
     write_references(results)
     text = final_protocol.write_protocol_report(str(results), reps=200)
-    assert "Not finished, left out of the statistics: SB3 PPO seed 13 (1.00 CPU-h, 1000000 env steps).\n" in text
+    assert ("Not the protocol's final policy (peer_finished), left out of the statistics: SB3 PPO seed 13 (1.00 CPU-h,"
+            " 1000000 env steps).\n") in text
     assert "| SB3 PPO | 13 | 1500 | 1000000 | 1.00 (short of the budget) |" in text  # listed with every run
     ppo, recurrent = (summary_cells(text, peer, "deterministic") for peer in ("SB3 PPO", "RecurrentPPO"))
     assert ppo[2] == "2" and ppo[3].startswith("550.0 [") and recurrent[2] == "2" and recurrent[3].startswith("660.0 [")
     comparison = next(line for line in text.splitlines() if line.startswith("| mean action: lstm - SB3 PPO |"))
     assert comparison.split("|")[2].strip() == "4+2" and comparison.split("|")[3].strip() == "+180.0"  # 730 - 550
-    assert "Provisional: lstm lacks seeds 25; gru lacks seeds 21, 22, 23, 24, 25.\n" in text
+    assert ("Provisional: lstm lacks seeds 25; gru lacks seeds 21, 22, 23, 24, 25; SB3 PPO lacks seeds 13, 14, 15; "
+            "RecurrentPPO lacks seeds 13.\n") in text  # (PPO 13's row is not a final policy)
+    over = {"variant": "ppo", "seed": "14", "cpu_hours": "5.0", "env_steps": "5000000"}  # --cpu-hours 5: not ours
+    assert not final_protocol.peer_finished(over) and final_protocol.peer_finished({**over, "cpu_hours": "3.15"})
     final_protocol.write_protocol_row(protocol_row("lstm", 25, 780.0, sampled=float("nan")), path)
-    with pytest.raises(ValueError, match=r"^learning_final\.csv: lstm seed 25 has final_return = nan: measure it"):
+    with pytest.raises(ValueError, match=r"^learning_final\.csv: lstm seed 25 has final_return = 'nan': measure it"):
         final_protocol.write_protocol_report(str(results), reps=200)
     final_protocol.write_protocol_row(protocol_row("lstm", 25, 780.0), path)
     with open(results / "ppo_peer.csv", "a") as f:  # ppo_peer.py --algo recurrent-ppo --results ppo_peer.csv
