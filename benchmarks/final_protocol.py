@@ -385,6 +385,11 @@ def protocol_seeds(rows: list[dict], peers: dict[str, list[dict]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def missing_seeds(rows: list[dict], seeds: tuple[int, ...]) -> list[int]:
+    """The `seeds` that no row of `rows` (one variant's or one peer's) has, in order."""
+    return sorted(set(seeds) - {int(r["seed"]) for r in rows})
+
+
 def protocol_bar_table(rows: list[dict]) -> str:
     """Markdown: per variant each part of the bar (protocol_bar), its value and whether it is met, and the verdict;
     a variant without all of PROTOCOL_SEEDS is provisional."""
@@ -401,7 +406,7 @@ def protocol_bar_table(rows: list[dict]) -> str:
         cells = [f"{value:.10g} {'met' if met else 'not met'}" for value, met in parts.values()]
         failed = [part for part, (_, met) in parts.items() if not met]
         verdict = "met" if not failed else "not met: " + ", ".join(failed)
-        missing = sorted(set(PROTOCOL_SEEDS) - {int(r["seed"]) for r in mine})
+        missing = missing_seeds(mine, PROTOCOL_SEEDS)
         if missing:
             verdict += f" (provisional: seeds {', '.join(map(str, missing))} missing)"
         lines.append(f"| {variant} | {len(mine)} | " + " | ".join(cells) + f" | {verdict} |")
@@ -469,9 +474,8 @@ COMPARISONS_TEXT = (
 def provisional_note(rows: list[dict], peers: dict[str, list[dict]]) -> str:
     """Markdown: which comparisons are provisional, a side lacking some of its seeds (a variant's PROTOCOL_SEEDS, a
     peer's PROTOCOL_PEER_SEEDS among its finished rows); "" when none is."""
-    missing = {v: sorted(set(PROTOCOL_SEEDS) - {int(r["seed"]) for r in rows if r["variant"] == v}) for v in VARIANTS}
-    missing |= {PEER_NAMES[p]: sorted(set(seeds) - {int(r["seed"]) for r in peers.get(p, [])})
-                for p, seeds in PROTOCOL_PEER_SEEDS.items()}  # fmt: skip
+    missing = {v: missing_seeds([r for r in rows if r["variant"] == v], PROTOCOL_SEEDS) for v in VARIANTS}
+    missing |= {PEER_NAMES[p]: missing_seeds(peers.get(p, []), seeds) for p, seeds in PROTOCOL_PEER_SEEDS.items()}
     short = [f"{name} lacks seeds {', '.join(map(str, seeds))}" for name, seeds in missing.items() if seeds]
     return f"\nProvisional: {'; '.join(short)}.\n" if short else ""
 
