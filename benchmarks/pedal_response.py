@@ -1,8 +1,8 @@
-"""Does the world model see what the pedal does? Real against imagined returns with the pedal held.
+"""Does the world model see what the pedal does? Real against imagined returns and speeds with the pedal held.
 
-    python benchmarks/pedal_response.py runs/<run>/checkpoints/latest.pt                  # tracks 10200..10202
+    python benchmarks/pedal_response.py runs/<run>/checkpoints/latest.pt      # tracks 10200..10202, probe 10203..10208
     python benchmarks/pedal_response.py <checkpoint> --pedals -1 0 0.3 1 --after 0 40 --tracks 5
-    python benchmarks/pedal_response.py <checkpoint> --probe-tracks 0                     # returns only
+    python benchmarks/pedal_response.py <checkpoint> --probe-tracks 0         # the returns only
 
 For one saved agent (a training checkpoint: it needs its reward and continue heads), on each track: the car drives
 ``--after`` decisions with the agent's mean action; from there, for every pedal value ``p`` of ``--pedals``, it
@@ -21,13 +21,16 @@ A world model that has learned the pedal imagines braking from rest as standing 
 gives the actor no gradient to use it: its pedal drifts to wherever the entropy and action terms put it, and the
 car cruises. The table ends with each start's range over the pedals, imagined against real.
 
-Where is the pedal lost? A linear probe reads the car's speed off the model's state z||h (ridge regression,
-``fit_speed_probe``), fitted on ``--probe-tracks`` other races driven with the sampled policy (its noise varies the
-speed; the tracks after the pedal's) and scored by its R^2 on the last third of them, which it was not fitted on.
-Per start and pedal the table then also gives the car's real speed after the H decisions and the probe's reading of
-the imagined state after them. With a probe that reads speed well (R^2 near 1), imagined speeds that barely move
-with the pedal while the real ones do say the model's dynamics ignore the pedal; a probe that cannot read speed
-says the model's state does not hold it.
+Where is the pedal lost? A linear probe reads the car's speed off the model's state (``fit_speed_probe``: ridge
+regression, its penalty chosen by leave-one-race-out error), fitted on the first two thirds of ``--probe-tracks``
+races driven with the sampled policy (its noise varies the speed; the tracks after the pedal's) and scored on the
+rest: R^2 and RMSE of the probes on z||h, on h alone (what the dynamics carry forward) and on z alone, beside a
+baseline that knows only the time (speed as a cubic in the decision index: a policy that always drives alike has a
+speed that time alone predicts). Per start and pedal, with the car still in after the H decisions, the table then
+gives the real speed there, the probe's reading of the posterior of that real drive (the same instrument as the
+imagined side, so the probe's shrinkage cancels), and its reading of the imagined state after the H decisions;
+``start`` rows check the probe where the pedal is first held (the real speed against its reading of the
+posterior). The probe is fitted on posterior states and read on imagined (prior) ones as well.
 """
 
 from __future__ import annotations
@@ -45,7 +48,8 @@ sys.path.insert(0, ROOT)
 from common import TRACKS  # noqa: E402
 
 SCREENING = TRACKS["screening"][0]
-PROBE_RIDGE = 1e-3  # the speed probe's ridge penalty per standardised feature and sample: lambda = 1e-3 N F
+PROBE_RIDGES = (1e-4, 1e-3, 1e-2, 1e-1, 1.0)  # the probe's ridge penalty per sample (lambda / N), chosen among these
+PROBE_TIME_DEGREE = 3  # the time baseline: speed as a polynomial of this degree in the decision index
 
 
 class CarOut(ValueError):
@@ -69,18 +73,19 @@ class Args:
     horizon: int | None = None
     """decisions the pedal is held (default: the agent's imagination horizon H)"""
     probe_tracks: int = 6
-    """races (on the tracks after the pedal's) for the speed probe: fitted on the first two thirds, scored on the
-    rest (0: no probe, returns only; else at least 2)"""
+    """races (on the tracks after the pedal's) for the speed probe: fitted on the first 2n // 3, scored on the rest
+    (0: no probe, the returns only; else at least 3)"""
     json: str | None = None
     """also write every track's values to this file"""
 
 
 def drive(agent, args, envs, track: int, after: int, pedal: float | None, horizon: int) -> tuple:
     """One race on `track`: `after` decisions with the mean action, then (if `pedal` is given) `horizon` decisions
-    steering with the mean action and the pedal held. Returns the first frame and those of the first `after`
-    decisions with their actions (as a replay stores them: the action that led to each frame, zero for the first)
-    and the per-decision rewards of the held part, with whether the car went out there (they stop at that decision)
-    and the car's speed at its end (the env's `speed` after the last env step driven; NaN in an env without it)."""
+    steering with the mean action and the pedal held. Returns the first frame and those of every decision after
+    which the car was still in, with their actions (as a replay stores them: the action that led to each frame,
+    zero for the first), the per-decision rewards of the held part, whether the car went out there (they stop at
+    that decision) and the car's speed at the end (the env's `speed` after the last env step driven; NaN in an env
+    without it)."""
     import torch
 
     from utils.collector import preprocess_frames
@@ -104,16 +109,15 @@ def drive(agent, args, envs, track: int, after: int, pedal: float | None, horizo
             speed = float(infos[0].get("speed", np.nan))
             if dones[0]:
                 break
-        if t < after:
-            if dones[0]:
-                raise CarOut(f"track {track}: the car was out after {t + 1} decisions, before --after {after}")
-            frames.append(preprocess_frames(obs, args.image_size)[0])
-            actions.append(action[0].astype(np.float32))
-        else:
+        if t < after and dones[0]:
+            raise CarOut(f"track {track}: the car was out after {t + 1} decisions, before --after {after}")
+        if t >= after:
             rewards.append(reward)
-            if dones[0]:
-                out = True
-                break
+        if dones[0]:  # (the env has reset: obs is the next race's)
+            out = True
+            break
+        frames.append(preprocess_frames(obs, args.image_size)[0])
+        actions.append(action[0].astype(np.float32))
     return np.stack(frames), np.stack(actions), np.array(rewards), out, speed
 
 
@@ -165,19 +169,28 @@ def posterior(agent, frames: np.ndarray, actions: np.ndarray) -> dict:
         return wm.observe(embed, torch.as_tensor(actions[None], device=agent.device), is_first)
 
 
+def posterior_features(agent, frames: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """z||h of the posterior at every frame (posterior), float64 on the CPU: what the speed probe reads."""
+    import torch
+
+    post = posterior(agent, frames, actions)
+    return torch.cat([post["z"], post["h"]], -1)[0].double().cpu().numpy()
+
+
 @dataclasses.dataclass
 class SpeedProbe:
-    """speed ~ ((x - mean) / scale) . weights + bias on the model's features x = z||h; `r2` on held-out races."""
+    """speed ~ ((x - mean) / scale) . weights + bias on features x; scored on held-out races: `r2`, `rmse`."""
 
     mean: np.ndarray
     scale: np.ndarray
     weights: np.ndarray
     bias: float
-    r2: float
-    samples: int
+    ridge: float
+    r2: float = float("nan")
+    rmse: float = float("nan")
 
     def __call__(self, features: np.ndarray) -> np.ndarray:
-        return ((features - self.mean) / self.scale) @ self.weights + self.bias
+        return ((np.asarray(features, np.float64) - self.mean) / self.scale) @ self.weights + self.bias
 
 
 def r_squared(truth: np.ndarray, predicted: np.ndarray) -> float:
@@ -185,34 +198,72 @@ def r_squared(truth: np.ndarray, predicted: np.ndarray) -> float:
     return float(1.0 - np.sum((truth - predicted) ** 2) / np.sum((truth - truth.mean()) ** 2))
 
 
-def fit_speed_probe(features: np.ndarray, speeds: np.ndarray, held_features: np.ndarray,
-                    held_speeds: np.ndarray) -> SpeedProbe:  # fmt: skip
-    """Ridge regression of speed on standardised features (N, F) (lambda = PROBE_RIDGE N F, a constant feature
-    left at scale 1), scored by its R^2 on held-out (features, speeds) from other races."""
-    mean, scale = features.mean(0), features.std(0)
-    scale = np.where(scale > 1e-6, scale, 1.0)
-    x, bias = (features - mean) / scale, float(speeds.mean())
-    gram = x.T @ x + PROBE_RIDGE * x.size * np.eye(x.shape[1])
-    probe = SpeedProbe(mean, scale, np.linalg.solve(gram, x.T @ (speeds - bias)), bias, float("nan"), len(speeds))
-    probe.r2 = r_squared(held_speeds, probe(held_features))
+def ridge(features: np.ndarray, speeds: np.ndarray, penalty: float) -> SpeedProbe:
+    """Ridge regression of speeds on standardised features (a constant feature left at scale 1) with lambda =
+    penalty * N, the intercept (the mean speed) unpenalised; float64."""
+    x, y = np.asarray(features, np.float64), np.asarray(speeds, np.float64)
+    mean, scale = x.mean(0), x.std(0)
+    scale = np.where(scale > 1e-8, scale, 1.0)
+    x, bias = (x - mean) / scale, float(y.mean())
+    weights = np.linalg.solve(x.T @ x + penalty * len(x) * np.eye(x.shape[1]), x.T @ (y - bias))
+    return SpeedProbe(mean, scale, weights, bias, penalty)
+
+
+def fit_speed_probe(fitted: list[tuple], held: list[tuple], ridges=PROBE_RIDGES) -> SpeedProbe:
+    """The probe of speed on features from the `fitted` races [(features (n, F), speeds (n,)), ...] (at least 2):
+    its penalty the one of `ridges` with the least leave-one-race-out squared error, then fitted on them all, and
+    scored by R^2 and RMSE on the `held` races."""
+    if len(fitted) < 2 or not held:
+        raise ValueError(f"the probe needs at least 2 races to fit and 1 to score, got {len(fitted)} and {len(held)}")
+
+    def error(penalty: float) -> float:
+        errors = []
+        for k, (features, speeds) in enumerate(fitted):
+            rest = [race for j, race in enumerate(fitted) if j != k]
+            probe = ridge(np.concatenate([f for f, _ in rest]), np.concatenate([s for _, s in rest]), penalty)
+            errors.append((probe(features) - speeds) ** 2)
+        return float(np.mean(np.concatenate(errors)))
+
+    penalty = min(ridges, key=error)
+    probe = ridge(np.concatenate([f for f, _ in fitted]), np.concatenate([s for _, s in fitted]), penalty)
+    features, speeds = np.concatenate([f for f, _ in held]), np.concatenate([s for _, s in held])
+    probe.r2, probe.rmse = r_squared(speeds, probe(features)), float(np.sqrt(np.mean((probe(features) - speeds) ** 2)))
     return probe
 
 
-def speed_probe(agent, args, envs, first_track: int, tracks: int) -> SpeedProbe:
-    """The probe fitted on the races of the first two thirds of tracks first_track.. (drive_race) and scored on the
-    rest; each race's features are its posterior's z||h at every frame after the first."""
+def time_baseline_r2(fitted: list[np.ndarray], held: list[np.ndarray], degree: int = PROBE_TIME_DEGREE) -> float:
+    """R^2 on the `held` races' speeds of a polynomial in the decision index (1, 2, ...) fitted on the `fitted`
+    races' speeds: how much of speed the time alone predicts."""
+    index = [np.arange(1, len(s) + 1) / 100.0 for s in fitted]
+    coefficients = np.polyfit(np.concatenate(index), np.concatenate(fitted), degree)
+    truth = np.concatenate(held)
+    return r_squared(truth, np.polyval(coefficients, np.concatenate([np.arange(1, len(s) + 1) / 100.0 for s in held])))
+
+
+PROBE_PARTS = ("zh", "h", "z")  # the probe's features: z||h, h alone, z alone
+
+
+def speed_probe(agent, args, envs, first_track: int, tracks: int) -> tuple[SpeedProbe, dict[str, float]]:
+    """The probe of speed on z||h, fitted on the races (drive_race) of the first 2 * tracks // 3 of tracks
+    first_track.. and scored on the rest; each race's features are its posterior's z||h at every frame after the
+    first. Returns it with its summary: R^2 of the probes on z||h, h and z, the time baseline's, the z||h probe's
+    RMSE, its ridge penalty and the fitted and held-out decisions."""
     import torch
 
-    fitted = -(-2 * tracks // 3)
-    data = []
+    races = []
     for track in range(first_track, first_track + tracks):
         frames, actions, speeds = drive_race(agent, args, envs, track)
         torch.manual_seed(track)
-        post = posterior(agent, frames, actions)
-        features = torch.cat([post["z"], post["h"]], -1)[0, 1:].float().cpu().numpy()
-        data.append((features, speeds))
-    fit, held = ([np.concatenate(part) for part in zip(*races)] for races in (data[:fitted], data[fitted:]))
-    return fit_speed_probe(*fit, *held)
+        races.append((posterior_features(agent, frames, actions)[1:], speeds))
+    cut, latent = 2 * tracks // 3, args.latent_size
+    columns = {"zh": slice(None), "h": slice(latent, None), "z": slice(0, latent)}
+    probes = {part: fit_speed_probe([(f[:, c], s) for f, s in races[:cut]], [(f[:, c], s) for f, s in races[cut:]])
+              for part, c in columns.items()}  # fmt: skip
+    summary = {f"probe_r2_{part}": round(probes[part].r2, 4) for part in PROBE_PARTS}
+    summary["probe_r2_time"] = round(time_baseline_r2([s for _, s in races[:cut]], [s for _, s in races[cut:]]), 4)
+    summary.update(probe_rmse=round(probes["zh"].rmse, 2), probe_ridge=probes["zh"].ridge,
+                   probe_fitted=sum(len(s) for _, s in races[:cut]), probe_held=sum(len(s) for _, s in races[cut:]))
+    return probes["zh"], summary
 
 
 def imagine(script, agent, frames: np.ndarray, actions: np.ndarray, pedal: float, horizon: int, samples: int,
@@ -237,15 +288,18 @@ def imagine(script, agent, frames: np.ndarray, actions: np.ndarray, pedal: float
             rewards.append(script.gaussian_params(wm.reward(features), script.HEAD_MIN_STD)[0].squeeze(-1))
             continues.append(torch.sigmoid(wm.cont(features).float().squeeze(-1)))
         weights = script.discount_weights(torch.stack(continues), gamma)
-        return float((weights * torch.stack(rewards)).sum(0).mean()), features.float().cpu().numpy()
+        return float((weights * torch.stack(rewards)).sum(0).mean()), features.double().cpu().numpy()
 
 
 def pedal_response(path: str, first_track: int = SCREENING, tracks: int = 3, pedals=(-1.0, 0.0, 0.3, 1.0),
                    after=(0, 40), samples: int = 16, horizon: int | None = None,
                    probe_tracks: int = 0) -> list[dict]:  # fmt: skip
     """Per track, start (`after`) and pedal: the real and the imagined H-decision task return (module docstring;
-    `horizon` decisions instead of the agent's H if given). With `probe_tracks` races for the speed probe, also the
-    real speed after the H decisions, the probe's reading of the imagined one and the probe's held-out R^2."""
+    `horizon` decisions instead of the agent's H if given). With `probe_tracks` (>= 3) races for the speed probe,
+    also (SPEEDS) the real speed where the pedal is first held and the probe's reading of the posterior there, and,
+    if the car is still in after the H decisions (else None), the real speed then, the probe's reading of the real
+    drive's posterior then and of the imagined state after the H decisions (mean over the samples); every row also
+    carries the probe's summary (speed_probe)."""
     import torch
 
     from utils.checkpoint import read_checkpoint
@@ -261,29 +315,41 @@ def pedal_response(path: str, first_track: int = SCREENING, tracks: int = 3, ped
         raise ValueError(f"--after must be >= 0, got {list(after)}")
     if horizon is not None and horizon < 1:
         raise ValueError(f"--horizon must be >= 1, got {horizon}")
-    if probe_tracks < 0 or probe_tracks == 1:
-        raise ValueError(f"--probe-tracks must be 0 (no probe) or >= 2 (fitted and scored on other races), got "
+    if probe_tracks < 0 or probe_tracks in (1, 2):
+        raise ValueError(f"--probe-tracks must be 0 (no probe) or >= 3 (2 races to fit, 1 to score), got "
                          f"{probe_tracks}")
     args = script.args_from_checkpoint(checkpoint, path, num_agents=1)
     horizon, gamma = horizon or args.imagination_horizon, args.gamma
     envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
     rows = []
     try:
-        probe = speed_probe(agent, args, envs, first_track + tracks, probe_tracks) if probe_tracks else None
+        probe, summary = (None, {})
+        if probe_tracks:
+            probe, summary = speed_probe(agent, args, envs, first_track + tracks, probe_tracks)
         for track in range(first_track, first_track + tracks):
             for start in after:
-                frames, actions, _, _, _ = drive(agent, args, envs, track, start, None, horizon)
+                frames, actions, _, _, start_speed = drive(agent, args, envs, track, start, None, horizon)
                 for pedal in pedals:
-                    _, _, rewards, out, speed = drive(agent, args, envs, track, start, pedal, horizon)
+                    held_frames, held_actions, rewards, out, speed = drive(agent, args, envs, track, start, pedal,
+                                                                           horizon)  # fmt: skip
                     real = float(np.sum(rewards * gamma ** np.arange(len(rewards))))
                     torch.manual_seed(track)
                     imagined, features = imagine(script, agent, frames, actions, pedal, horizon, samples, gamma)
                     rows.append({"track": track, "after": start, "pedal": pedal, "real": round(real, 2),
                                  "imagined": round(imagined, 2), "out": out, "decisions": len(rewards)})  # fmt: skip
-                    if probe is not None:
-                        read = float(probe(features).mean())
-                        rows[-1].update(real_speed=round(speed, 2), imagined_speed=round(read, 2),
-                                        probe_r2=round(probe.r2, 4))  # fmt: skip
+                    if probe is None:
+                        continue
+                    # (after the imagination: these posteriors draw on torch's generator, which the next drive seeds)
+                    torch.manual_seed(track)
+                    start_read = float(probe(posterior_features(agent, frames, actions)[-1]))
+                    end = {"real_speed": None, "real_speed_probed": None, "imagined_speed": None}
+                    if not out:
+                        torch.manual_seed(track)
+                        real_read = float(probe(posterior_features(agent, held_frames, held_actions)[-1]))
+                        end = {"real_speed": round(speed, 2), "real_speed_probed": round(real_read, 2),
+                               "imagined_speed": round(float(probe(features).mean()), 2)}  # fmt: skip
+                    rows[-1].update(start_speed=round(start_speed, 2), start_speed_probed=round(start_read, 2), **end,
+                                    **summary)  # fmt: skip
     finally:
         envs.close()
     return rows
@@ -291,47 +357,65 @@ def pedal_response(path: str, first_track: int = SCREENING, tracks: int = 3, ped
 
 def means(rows: list[dict], keys=("real", "imagined")) -> dict[int, dict[float, tuple[float, ...]]]:
     """Per start (`after`) and pedal, the mean over the tracks of each of `keys` (default: the real and the imagined
-    return)."""
+    return), leaving out None (a speed after the car went out); NaN where every track's is None."""
     out = {}
     for start in sorted({r["after"] for r in rows}):
         out[start] = {}
         for pedal in sorted({r["pedal"] for r in rows}):
             mine = [r for r in rows if r["after"] == start and r["pedal"] == pedal]
-            out[start][pedal] = tuple(float(np.mean([r[key] for r in mine])) for key in keys)
+            values = [[r[key] for r in mine if r[key] is not None] for key in keys]
+            out[start][pedal] = tuple(float(np.mean(v)) if v else float("nan") for v in values)
     return out
 
 
-def ranges(rows: list[dict], keys=("real", "imagined")) -> dict[int, tuple[float, float]]:
-    """Per start, the range over the pedals (max - min) of the mean imagined and of the mean real value of `keys`
-    (real, imagined; default: the returns): (imagined range, real range)."""
+def ranges(rows: list[dict]) -> dict[int, tuple[float, float]]:
+    """Per start, the range over the pedals (max - min) of the mean imagined and of the mean real return."""
     return {start: (float(np.ptp([m[1] for m in by_pedal.values()])), float(np.ptp([m[0] for m in by_pedal.values()])))
+            for start, by_pedal in means(rows).items()}  # fmt: skip
+
+
+def speed_ranges(rows: list[dict]) -> dict[int, dict[str, float]]:
+    """Per start, the range over the pedals of the mean speeds after the H decisions: real (the env's), read by the
+    probe on the real drive's posterior, and on the imagined states."""
+    keys = ("real_speed", "real_speed_probed", "imagined_speed")
+    return {start: {key: float(np.ptp(column)) for key, column in zip(keys, zip(*by_pedal.values()))}
             for start, by_pedal in means(rows, keys).items()}  # fmt: skip
 
 
-SPEEDS = ("real_speed", "imagined_speed")
+SPEEDS = ("start_speed", "start_speed_probed", "real_speed", "real_speed_probed", "imagined_speed")
 
 
 def table(rows: list[dict], path: str) -> str:
-    """Markdown: mean real and imagined return per start and pedal over the tracks (and speeds, with the probe),
-    then each start's range over the pedals (max - min of the means), imagined against real."""
-    probed = all(SPEEDS[0] in r for r in rows)
+    """Markdown: mean real and imagined return per start and pedal over the tracks (with the probe: the speeds
+    after the H decisions, over the tracks where the car was still in), then each start's range over the pedals
+    (max - min of the means), imagined against real, and the probe's check at the start and its summary."""
+    probed = bool(rows) and all(SPEEDS[0] in r for r in rows)
+    speed_columns = (" real speed | probed | imagined (probe) |", "---|---|---|") if probed else ("", "")
     lines = [f"Pedal held for H decisions, {path} ({len({r['track'] for r in rows})} tracks):", "",
-             "| after | pedal | real | imagined | out |" + (" real speed | imagined speed (probe) |" if probed else ""),
-             "|---|---|---|---|---|" + ("---|---|" if probed else "")]  # fmt: skip
+             "| after | pedal | real | imagined | out |" + speed_columns[0], "|---|---|---|---|---|" + speed_columns[1]]
     speeds = means(rows, SPEEDS) if probed else {}
     for start, by_pedal in means(rows).items():
         for pedal, (real, imagined) in by_pedal.items():
             out = sum(r["out"] for r in rows if r["after"] == start and r["pedal"] == pedal)
             line = f"| {start} | {pedal:+.2f} | {real:.2f} | {imagined:.2f} | {out} |"
             if probed:
-                line += " {:.1f} | {:.1f} |".format(*speeds[start][pedal])
+                line += " {:.1f} | {:.1f} | {:.1f} |".format(*speeds[start][pedal][2:])
             lines.append(line)
     spans = [f"after {start}: imagined range {imagined:.2f} against real {real:.2f}"
              for start, (imagined, real) in ranges(rows).items()]  # fmt: skip
     if probed:
-        spans += [f"after {start}: speed range imagined {imagined:.1f} against real {real:.1f}"
-                  for start, (imagined, real) in ranges(rows, SPEEDS).items()]  # fmt: skip
-        spans.append(f"speed probe: held-out R^2 {rows[0]['probe_r2']:.3f} (ridge on z||h; other races, sampled)")
+        for start, span in speed_ranges(rows).items():
+            spans.append(f"after {start}: speed range over the pedals, imagined {span['imagined_speed']:.1f} against "
+                         f"real {span['real_speed_probed']:.1f} (both read by the probe; the env's: "
+                         f"{span['real_speed']:.1f})")
+        for start, by_pedal in speeds.items():
+            real, read = next(iter(by_pedal.values()))[:2]
+            spans.append(f"after {start}: speed where the pedal is first held {real:.1f}, the probe reads {read:.1f}")
+        r = rows[0]
+        spans.append(f"speed probe (ridge {r['probe_ridge']:g} per sample; fitted on {r['probe_fitted']} decisions, "
+                     f"scored on {r['probe_held']}): held-out R^2 z||h {r['probe_r2_zh']:.3f}, "
+                     f"h {r['probe_r2_h']:.3f}, z {r['probe_r2_z']:.3f}; time alone {r['probe_r2_time']:.3f}; "
+                     f"RMSE {r['probe_rmse']:.1f}")
     return "\n".join(lines + [""] + spans) + "\n"
 
 
