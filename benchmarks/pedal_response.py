@@ -23,14 +23,16 @@ car cruises. The table ends with each start's range over the pedals, imagined ag
 
 Where is the pedal lost? A linear probe reads the car's speed off the model's state (``fit_speed_probe``: ridge
 regression, its penalty chosen by leave-one-race-out error), fitted on the first two thirds of ``--probe-tracks``
-races driven with the sampled policy (its noise varies the speed; the tracks after the pedal's) and scored on the
-rest: R^2 and RMSE of the probes on z||h, on h alone (what the dynamics carry forward) and on z alone, beside a
-baseline that knows only the time (speed as a cubic in the decision index: a policy that always drives alike has a
-speed that time alone predicts). Per start and pedal, with the car still in after the H decisions, the table then
-gives the real speed there, the probe's reading of the posterior of that real drive (the same instrument as the
-imagined side, so the probe's shrinkage cancels), and its reading of the imagined state after the H decisions;
-``start`` rows check the probe where the pedal is first held (the real speed against its reading of the
-posterior). The probe is fitted on posterior states and read on imagined (prior) ones as well.
+races and scored on the rest (the tracks after the pedal's). Those races drive as the pedal's do, the actor's mean
+steering with a held pedal, but the pedal is drawn afresh (uniform in [-1, 1]) for every stretch of 8..48
+decisions, so that speed varies apart from the time since the start (a policy that drives alike in every race has
+a speed that the clock alone predicts). The table gives R^2 and RMSE of the probes on z||h, on h alone (what the
+dynamics carry forward) and on z alone, beside that clock's (speed as a cubic in the decision index). Per start
+and pedal, with the car still in after the H decisions, it then gives the real speed there, the probe's reading of
+the posterior of that real drive (the same instrument as the imagined side, so the probe's shrinkage cancels) and
+its reading of the imagined state after the H decisions; and the probe's reading of the posterior where the pedal
+is first held, against the real speed there. The probe is fitted on posterior states and read on imagined (prior)
+ones as well.
 """
 
 from __future__ import annotations
@@ -50,6 +52,7 @@ from common import TRACKS  # noqa: E402
 SCREENING = TRACKS["screening"][0]
 PROBE_RIDGES = (1e-4, 1e-3, 1e-2, 1e-1, 1.0)  # the probe's ridge penalty per sample (lambda / N), chosen among these
 PROBE_TIME_DEGREE = 3  # the time baseline: speed as a polynomial of this degree in the decision index
+PROBE_STRETCH = (8, 48)  # a probe race holds each random pedal for this many decisions (uniform, both included)
 
 
 class CarOut(ValueError):
@@ -73,8 +76,8 @@ class Args:
     horizon: int | None = None
     """decisions the pedal is held (default: the agent's imagination horizon H)"""
     probe_tracks: int = 6
-    """races (on the tracks after the pedal's) for the speed probe: fitted on the first 2n // 3, scored on the rest
-    (0: no probe, the returns only; else at least 3)"""
+    """races (on the tracks after the pedal's, random pedals held) for the speed probe: fitted on the first 2n // 3,
+    scored on the rest (0: no probe, the returns only; else at least 3)"""
     json: str | None = None
     """also write every track's values to this file"""
 
@@ -129,20 +132,31 @@ def car_speed(info: dict) -> float:
 
 
 def drive_race(agent, args, envs, track: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One race on `track` with the sampled policy, until the car is out or the time limit: every frame, the action
-    that led to it (zero for the first: a replay's layout) and the car's speed at each frame after the first (at the
-    end of the decision that led to it)."""
+    """One race on `track` for the speed probe, until the car is out or the time limit: the actor's mean steering
+    and a pedal drawn uniformly from [-1, 1] for each stretch of PROBE_STRETCH decisions (numpy seeded by the track),
+    held in the action and in the agent's memory as `drive` holds it. Returns every frame, the action that led to it
+    (zero for the first: a replay's layout) and the car's speed at each (the env's `speed`: in the reset's info at
+    the first frame, where every car stands; then at the end of the decision that led to the frame)."""
     import torch
 
     from utils.collector import preprocess_frames
 
     torch.manual_seed(track)
     envs.seed(track)
+    rng = np.random.default_rng(track)
     obs, state, first = envs.reset(), None, np.ones(1, dtype=bool)
-    frames, actions, speeds = [preprocess_frames(obs, args.image_size)[0]], [np.zeros(agent.action_dim, np.float32)], []
+    frames, actions = [preprocess_frames(obs, args.image_size)[0]], [np.zeros(agent.action_dim, np.float32)]
+    speeds = [car_speed(envs.reset_infos[0])]
+    pedal, left = 0.0, 0
     for _ in range(-(-args.max_steps // args.action_repeat)):
-        action, state = agent.act(obs, state, first, "stochastic")
+        if left == 0:
+            pedal, left = float(rng.uniform(-1.0, 1.0)), int(rng.integers(PROBE_STRETCH[0], PROBE_STRETCH[1] + 1))
+        left -= 1
+        action, state = agent.act(obs, state, first, "mean-action")
         first[:] = False
+        action = action.copy()
+        action[:, 1] = pedal
+        state = (state[0], state[1], torch.as_tensor(action, device=state[2].device), state[3])
         for _ in range(args.action_repeat):
             obs, _, dones, infos = envs.step(action)
             if dones[0]:
@@ -199,11 +213,12 @@ def r_squared(truth: np.ndarray, predicted: np.ndarray) -> float:
 
 
 def ridge(features: np.ndarray, speeds: np.ndarray, penalty: float) -> SpeedProbe:
-    """Ridge regression of speeds on standardised features (a constant feature left at scale 1) with lambda =
-    penalty * N, the intercept (the mean speed) unpenalised; float64."""
+    """Ridge regression of speeds on standardised features with lambda = penalty * N, the intercept (the mean speed)
+    unpenalised; float64. A feature's scale is floored at 1e-3 of the median feature's (1 if all are constant), so
+    that a unit almost constant in the fitted races cannot turn a small change elsewhere into a huge reading."""
     x, y = np.asarray(features, np.float64), np.asarray(speeds, np.float64)
     mean, scale = x.mean(0), x.std(0)
-    scale = np.where(scale > 1e-8, scale, 1.0)
+    scale = np.maximum(scale, 1e-3 * np.median(scale)) if np.median(scale) > 0 else np.where(scale > 0, scale, 1.0)
     x, bias = (x - mean) / scale, float(y.mean())
     weights = np.linalg.solve(x.T @ x + penalty * len(x) * np.eye(x.shape[1]), x.T @ (y - bias))
     return SpeedProbe(mean, scale, weights, bias, penalty)
@@ -232,12 +247,14 @@ def fit_speed_probe(fitted: list[tuple], held: list[tuple], ridges=PROBE_RIDGES)
 
 
 def time_baseline_r2(fitted: list[np.ndarray], held: list[np.ndarray], degree: int = PROBE_TIME_DEGREE) -> float:
-    """R^2 on the `held` races' speeds of a polynomial in the decision index (1, 2, ...) fitted on the `fitted`
-    races' speeds: how much of speed the time alone predicts."""
-    index = [np.arange(1, len(s) + 1) / 100.0 for s in fitted]
-    coefficients = np.polyfit(np.concatenate(index), np.concatenate(fitted), degree)
-    truth = np.concatenate(held)
-    return r_squared(truth, np.polyval(coefficients, np.concatenate([np.arange(1, len(s) + 1) / 100.0 for s in held])))
+    """R^2 on the `held` races' speeds (one per frame: 0, 1, ... decisions in) of a polynomial in the decision index
+    fitted on the `fitted` races' speeds: how much of speed the time alone predicts."""
+
+    def clock(races: list[np.ndarray]) -> np.ndarray:
+        return np.concatenate([np.arange(len(speeds)) / 100.0 for speeds in races])
+
+    coefficients = np.polyfit(clock(fitted), np.concatenate(fitted), degree)
+    return r_squared(np.concatenate(held), np.polyval(coefficients, clock(held)))
 
 
 PROBE_PARTS = ("zh", "h", "z")  # the probe's features: z||h, h alone, z alone
@@ -245,8 +262,8 @@ PROBE_PARTS = ("zh", "h", "z")  # the probe's features: z||h, h alone, z alone
 
 def speed_probe(agent, args, envs, first_track: int, tracks: int) -> tuple[SpeedProbe, dict[str, float]]:
     """The probe of speed on z||h, fitted on the races (drive_race) of the first 2 * tracks // 3 of tracks
-    first_track.. and scored on the rest; each race's features are its posterior's z||h at every frame after the
-    first. Returns it with its summary: R^2 of the probes on z||h, h and z, the time baseline's, the z||h probe's
+    first_track.. and scored on the rest; each race's features are its posterior's z||h at every frame. Returns it
+    with its summary: R^2 of the probes on z||h, h and z, the time baseline's, the z||h probe's
     RMSE, its ridge penalty and the fitted and held-out decisions."""
     import torch
 
@@ -254,7 +271,7 @@ def speed_probe(agent, args, envs, first_track: int, tracks: int) -> tuple[Speed
     for track in range(first_track, first_track + tracks):
         frames, actions, speeds = drive_race(agent, args, envs, track)
         torch.manual_seed(track)
-        races.append((posterior_features(agent, frames, actions)[1:], speeds))
+        races.append((posterior_features(agent, frames, actions), speeds))
     cut, latent = 2 * tracks // 3, args.latent_size
     columns = {"zh": slice(None), "h": slice(latent, None), "z": slice(0, latent)}
     probes = {part: fit_speed_probe([(f[:, c], s) for f, s in races[:cut]], [(f[:, c], s) for f, s in races[cut:]])
@@ -376,10 +393,15 @@ def ranges(rows: list[dict]) -> dict[int, tuple[float, float]]:
 
 def speed_ranges(rows: list[dict]) -> dict[int, dict[str, float]]:
     """Per start, the range over the pedals of the mean speeds after the H decisions: real (the env's), read by the
-    probe on the real drive's posterior, and on the imagined states."""
+    probe on the real drive's posterior, and on the imagined states; over the pedals after which a car was still
+    in on some track (NaN with fewer than two such pedals), with their count under "pedals"."""
     keys = ("real_speed", "real_speed_probed", "imagined_speed")
-    return {start: {key: float(np.ptp(column)) for key, column in zip(keys, zip(*by_pedal.values()))}
-            for start, by_pedal in means(rows, keys).items()}  # fmt: skip
+    out = {}
+    for start, by_pedal in means(rows, keys).items():
+        kept = [values for values in by_pedal.values() if not np.isnan(values[0])]
+        spans = [float(np.ptp(column)) if len(kept) > 1 else float("nan") for column in zip(*kept)] or [np.nan] * 3
+        out[start] = {**dict(zip(keys, spans)), "pedals": len(kept)}
+    return out
 
 
 SPEEDS = ("start_speed", "start_speed_probed", "real_speed", "real_speed_probed", "imagined_speed")
@@ -405,9 +427,9 @@ def table(rows: list[dict], path: str) -> str:
              for start, (imagined, real) in ranges(rows).items()]  # fmt: skip
     if probed:
         for start, span in speed_ranges(rows).items():
-            spans.append(f"after {start}: speed range over the pedals, imagined {span['imagined_speed']:.1f} against "
-                         f"real {span['real_speed_probed']:.1f} (both read by the probe; the env's: "
-                         f"{span['real_speed']:.1f})")
+            spans.append(f"after {start}: speed range over the {span['pedals']} pedals with a car still in, imagined "
+                         f"{span['imagined_speed']:.1f} against real {span['real_speed_probed']:.1f} (both read by the "
+                         f"probe; the env's: {span['real_speed']:.1f})")
         for start, by_pedal in speeds.items():
             real, read = next(iter(by_pedal.values()))[:2]
             spans.append(f"after {start}: speed where the pedal is first held {real:.1f}, the probe reads {read:.1f}")

@@ -178,8 +178,25 @@ def test_the_probe_reaches_the_noise_limit_with_a_models_many_features():
     assert probe.ridge in pedal_response.PROBE_RIDGES
 
 
+def test_a_unit_almost_constant_in_the_fitted_races_cannot_blow_up_a_reading():
+    """A feature that barely moves in the fitted races (std 1e-9, like a unit at a fixed point of the policy's
+    states) and is 1 in a new state: the reading stays near the one without it (its scale is floored at 1e-3 of the
+    median feature's; standardised by its own std the 1 would be a 1e9-sigma input)."""
+    rng = np.random.default_rng(4)
+
+    def race(n=300):
+        features = np.concatenate([rng.normal(size=(n, 5)), rng.normal(0, 1e-9, size=(n, 1))], 1)
+        return features, 30.0 + 5.0 * features[:, 0] + rng.normal(0, 1.0, n)
+
+    probe = pedal_response.fit_speed_probe([race(), race()], [race()])
+    state = np.zeros(6)
+    moved = state.copy()
+    moved[5] = 1.0
+    assert abs(float(probe(moved)) - float(probe(state))) < 1.0
+
+
 def test_the_time_baseline_reads_a_speed_that_only_follows_the_clock():
-    clock = [30.0 * (1 - np.exp(-np.arange(1, n + 1) / 40.0)) for n in (200, 160, 180)]
+    clock = [30.0 * (1 - np.exp(-np.arange(n) / 40.0)) for n in (200, 160, 180)]
     assert pedal_response.time_baseline_r2(clock[:2], clock[2:]) > 0.99
     rng = np.random.default_rng(2)
     noise = [rng.normal(size=n) for n in (200, 160, 180)]
@@ -189,15 +206,15 @@ def test_the_time_baseline_reads_a_speed_that_only_follows_the_clock():
 def test_speed_probe_pairs_each_frame_with_its_speed_and_splits_by_race(monkeypatch):
     """Stand-in races whose speeds are random and whose first h unit holds the speed of its frame (z: noise): a probe
     that pairs a frame with its own speed reads it (R^2 1 from h, about 0 from z); a frame paired with a neighbour's
-    speed would read noise. The first 2 * 4 // 3 = 2 races are fitted, the other 2 scored (their decisions)."""
+    speed would read noise. The first 2 * 4 // 3 = 2 races are fitted, the other 2 scored (their frames)."""
     rng = np.random.default_rng(3)
     latent, lengths = 4, {20: 50, 21: 70, 22: 60, 23: 40}
     races = {}
     for track, n in lengths.items():
-        speeds = rng.uniform(0, 80, n)
-        features = rng.normal(size=(n + 1, latent + 6))
-        features[:, latent] = np.concatenate([[0.0], speeds])  # frame 0 (at rest) has no speed of its own
-        races[track] = (np.zeros((n + 1, 1)), np.zeros((n + 1, 2)), speeds, features)
+        speeds = np.concatenate([[0.0], rng.uniform(0, 80, n - 1)])
+        features = rng.normal(size=(n, latent + 6))
+        features[:, latent] = speeds
+        races[track] = (np.zeros((n, 1)), np.zeros((n, 2)), speeds, features)
 
     monkeypatch.setattr(pedal_response, "drive_race", lambda agent, args, envs, track: races[track][:3])
     monkeypatch.setattr(pedal_response, "posterior_features",
@@ -205,27 +222,34 @@ def test_speed_probe_pairs_each_frame_with_its_speed_and_splits_by_race(monkeypa
     probe, summary = pedal_response.speed_probe(None, types.SimpleNamespace(latent_size=latent), None, 20, 4)
     assert summary["probe_r2_zh"] > 0.999 and summary["probe_r2_h"] > 0.999 and summary["probe_r2_z"] < 0.1
     assert summary["probe_fitted"] == 50 + 70 and summary["probe_held"] == 60 + 40
-    features = races[23][3][1:]
-    np.testing.assert_allclose(probe(features), races[23][2], atol=0.5)
+    np.testing.assert_allclose(probe(races[23][3]), races[23][2], atol=0.5)
 
 
-def test_a_race_for_the_probe_records_the_envs_own_speeds(trained):
-    """drive_race's speeds are the env's `speed` after each decision when the same actions step it directly; the
-    frames are one more than the speeds (the first, at rest, has none) and the first action is zero."""
+def test_a_race_for_the_probe_holds_random_pedals_and_records_the_envs_own_speeds(trained):
+    """drive_race's speeds are the env's `speed` (0 at the reset, then after each decision) when the same actions
+    step it directly; its pedal is held for stretches of 8..48 decisions (the last one may end with the race) at
+    values in [-1, 1], the same for the same track; the first action is zero."""
     script, agent, args, _ = trained
+    args = dataclasses.replace(args, max_steps=400)
     envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
     try:
         frames, actions, speeds = pedal_response.drive_race(agent, args, envs, 10_201)
-        assert len(frames) == len(actions) == len(speeds) + 1 and not actions[0].any()
+        assert len(frames) == len(actions) == len(speeds) and not actions[0].any() and speeds[0] == 0.0
         envs.seed(10_201)
         envs.reset()
-        direct = []
+        direct = [0.0]
         for action in actions[1:]:
             for _ in range(args.action_repeat):
                 infos = envs.step(action[None])[3]
             direct.append(infos[0]["speed"])
         np.testing.assert_allclose(speeds, direct, rtol=1e-6)
-        assert np.ptp(speeds) > 0
+        pedals = actions[1:, 1]
+        changes = np.flatnonzero(np.diff(pedals)) + 1
+        stretches = np.diff(np.concatenate([[0], changes, [len(pedals)]]))
+        assert len(stretches) >= 2 and np.all((stretches[:-1] >= 8) & (stretches[:-1] <= 48)) and stretches[-1] <= 48
+        assert np.all(np.abs(pedals) <= 1) and np.ptp(speeds) > 0
+        again = pedal_response.drive_race(agent, args, envs, 10_201)[1]
+        np.testing.assert_array_equal(again[:, 1], actions[:, 1])
     finally:
         envs.close()
 
@@ -256,10 +280,13 @@ def test_the_table_gives_the_speeds_and_the_probe_with_it():
              "start_speed": 0.0, "start_speed_probed": 1.0 + t, "real_speed": None if out else rs,
              "real_speed_probed": None if out else rs - 2.0, "imagined_speed": None if out else 30.0 + t, **summary}
             for t, out in ((1, False), (2, False), (3, True)) for p, rs in ((0.0, 0.0), (1.0, 40.0))]  # fmt: skip
+    rows += [{**rows[0], "track": t, "pedal": 0.5, "out": True, "real_speed": None, "real_speed_probed": None,
+              "imagined_speed": None} for t in (1, 2, 3)]  # a pedal out on every track: no speed, left out of the range
     text = pedal_response.table(rows, "x.pt")
+    assert "| 0 | +0.50 | 1.00 | 2.00 | 3 | nan | nan | nan |" in text
     assert "| 0 | +1.00 | 1.00 | 2.00 | 1 | 40.0 | 38.0 | 31.5 |" in text  # track 3 (out) left out of the speeds
-    assert ("after 0: speed range over the pedals, imagined 0.0 against real 40.0 (both read by the probe; the env's: "
-            "40.0)") in text
+    assert ("after 0: speed range over the 2 pedals with a car still in, imagined 0.0 against real 40.0 (both read by "
+            "the probe; the env's: 40.0)") in text
     assert "after 0: speed where the pedal is first held 0.0, the probe reads 3.0" in text
     assert ("speed probe (ridge 0.001 per sample; fitted on 900 decisions, scored on 450): held-out R^2 z||h 0.910, "
             "h 0.850, z 0.400; time alone 0.300; RMSE 6.2") in text
