@@ -19,7 +19,7 @@ and pedal:
 A world model that has learned the pedal imagines braking from rest as standing still (a real return of about
 -0.1 per env step) and full gas as faster than coasting. One that imagines about the same return whatever the pedal
 gives the actor no gradient to use it: its pedal drifts to wherever the entropy and action terms put it, and the
-car cruises. The table ends with each start's range over the pedals, imagined against real.
+car cruises. The table gives each start's range over the pedals, imagined against real.
 
 Where is the pedal lost? A linear probe reads the car's speed off the model's state (``fit_speed_probe``: ridge
 regression, its penalty chosen by leave-one-race-out error), fitted on the first two thirds of ``--probe-tracks``
@@ -29,10 +29,11 @@ decisions, so that speed varies apart from the time since the start (a policy th
 a speed that the clock alone predicts). The table gives R^2 and RMSE of the probes on z||h, on h alone (what the
 dynamics carry forward) and on z alone, beside that clock's (speed as a cubic in the decision index). Per start
 and pedal, with the car still in after the H decisions, it then gives the real speed there, the probe's reading of
-the posterior of that real drive (the same instrument as the imagined side, so the probe's shrinkage cancels) and
-its reading of the imagined state after the H decisions; and the probe's reading of the posterior where the pedal
-is first held, against the real speed there. The probe is fitted on posterior states and read on imagined (prior)
-ones as well.
+the posterior of that real drive (the same instrument as the imagined side; a ridge probe shrinks some directions
+more than others, so the two sides agree only as far as their states differ alike) and its reading of the imagined
+state after the H decisions; and the probe's reading of the posterior where the pedal is first held, against the
+real speed there. The probe is fitted on posterior states and read on imagined (prior) ones as well. For the LSTM,
+h is the cell's output; its cell state c is carried forward too and is not probed.
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ sys.path.insert(0, ROOT)
 from common import TRACKS  # noqa: E402
 
 SCREENING = TRACKS["screening"][0]
-PROBE_RIDGES = (1e-4, 1e-3, 1e-2, 1e-1, 1.0)  # the probe's ridge penalty per sample (lambda / N), chosen among these
+PROBE_RIDGES = (1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0)  # the probe's ridge penalty per sample (lambda / N)
 PROBE_TIME_DEGREE = 3  # the time baseline: speed as a polynomial of this degree in the decision index
 PROBE_STRETCH = (8, 48)  # a probe race holds each random pedal for this many decisions (uniform, both included)
 
@@ -97,7 +98,7 @@ def drive(agent, args, envs, track: int, after: int, pedal: float | None, horizo
     envs.seed(track)
     obs, state, first = envs.reset(), None, np.ones(1, dtype=bool)
     frames, actions = [preprocess_frames(obs, args.image_size)[0]], [np.zeros(agent.action_dim, np.float32)]
-    rewards, out, speed = [], False, 0.0
+    rewards, out, speed = [], False, float(envs.reset_infos[0].get("speed", np.nan))
     for t in range(after + (0 if pedal is None else horizon)):
         action, state = agent.act(obs, state, first, "mean-action")
         first[:] = False
@@ -184,7 +185,7 @@ def posterior(agent, frames: np.ndarray, actions: np.ndarray) -> dict:
 
 
 def posterior_features(agent, frames: np.ndarray, actions: np.ndarray) -> np.ndarray:
-    """z||h of the posterior at every frame (posterior), float64 on the CPU: what the speed probe reads."""
+    """z||h of the posterior at every frame, float64 on the CPU: what the speed probe reads."""
     import torch
 
     post = posterior(agent, frames, actions)
@@ -214,11 +215,13 @@ def r_squared(truth: np.ndarray, predicted: np.ndarray) -> float:
 
 def ridge(features: np.ndarray, speeds: np.ndarray, penalty: float) -> SpeedProbe:
     """Ridge regression of speeds on standardised features with lambda = penalty * N, the intercept (the mean speed)
-    unpenalised; float64. A feature's scale is floored at 1e-3 of the median feature's (1 if all are constant), so
-    that a unit almost constant in the fitted races cannot turn a small change elsewhere into a huge reading."""
+    unpenalised; float64. A feature's scale is floored at 1e-3 of the median of the scales that are not 0 (at 1 if
+    all are 0), so that a unit almost constant in the fitted races cannot turn a small change elsewhere into a huge
+    reading."""
     x, y = np.asarray(features, np.float64), np.asarray(speeds, np.float64)
     mean, scale = x.mean(0), x.std(0)
-    scale = np.maximum(scale, 1e-3 * np.median(scale)) if np.median(scale) > 0 else np.where(scale > 0, scale, 1.0)
+    moving = scale[scale > 0]
+    scale = np.maximum(scale, 1e-3 * np.median(moving) if len(moving) else 1.0)
     x, bias = (x - mean) / scale, float(y.mean())
     weights = np.linalg.solve(x.T @ x + penalty * len(x) * np.eye(x.shape[1]), x.T @ (y - bias))
     return SpeedProbe(mean, scale, weights, bias, penalty)
@@ -248,11 +251,13 @@ def fit_speed_probe(fitted: list[tuple], held: list[tuple], ridges=PROBE_RIDGES)
 
 def time_baseline_r2(fitted: list[np.ndarray], held: list[np.ndarray], degree: int = PROBE_TIME_DEGREE) -> float:
     """R^2 on the `held` races' speeds (one per frame: 0, 1, ... decisions in) of a polynomial in the decision index
-    fitted on the `fitted` races' speeds: how much of speed the time alone predicts."""
+    fitted on the `fitted` races' speeds: how much of speed the time alone predicts (NaN with too few frames)."""
 
     def clock(races: list[np.ndarray]) -> np.ndarray:
         return np.concatenate([np.arange(len(speeds)) / 100.0 for speeds in races])
 
+    if sum(len(speeds) for speeds in fitted) <= degree or sum(len(speeds) for speeds in held) < 2:
+        return float("nan")
     coefficients = np.polyfit(clock(fitted), np.concatenate(fitted), degree)
     return r_squared(np.concatenate(held), np.polyval(coefficients, clock(held)))
 
@@ -346,6 +351,9 @@ def pedal_response(path: str, first_track: int = SCREENING, tracks: int = 3, ped
         for track in range(first_track, first_track + tracks):
             for start in after:
                 frames, actions, _, _, start_speed = drive(agent, args, envs, track, start, None, horizon)
+                if probe is not None:  # (a posterior draws on torch's generator: every drive and imagine seeds it)
+                    torch.manual_seed(track)
+                    start_read = float(probe(posterior_features(agent, frames, actions)[-1]))
                 for pedal in pedals:
                     held_frames, held_actions, rewards, out, speed = drive(agent, args, envs, track, start, pedal,
                                                                            horizon)  # fmt: skip
@@ -356,9 +364,6 @@ def pedal_response(path: str, first_track: int = SCREENING, tracks: int = 3, ped
                                  "imagined": round(imagined, 2), "out": out, "decisions": len(rewards)})  # fmt: skip
                     if probe is None:
                         continue
-                    # (after the imagination: these posteriors draw on torch's generator, which the next drive seeds)
-                    torch.manual_seed(track)
-                    start_read = float(probe(posterior_features(agent, frames, actions)[-1]))
                     end = {"real_speed": None, "real_speed_probed": None, "imagined_speed": None}
                     if not out:
                         torch.manual_seed(track)
@@ -434,8 +439,9 @@ def table(rows: list[dict], path: str) -> str:
             real, read = next(iter(by_pedal.values()))[:2]
             spans.append(f"after {start}: speed where the pedal is first held {real:.1f}, the probe reads {read:.1f}")
         r = rows[0]
-        spans.append(f"speed probe (ridge {r['probe_ridge']:g} per sample; fitted on {r['probe_fitted']} decisions, "
-                     f"scored on {r['probe_held']}): held-out R^2 z||h {r['probe_r2_zh']:.3f}, "
+        edge = " at the grid's edge" if r["probe_ridge"] in (PROBE_RIDGES[0], PROBE_RIDGES[-1]) else ""
+        spans.append(f"speed probe (ridge {r['probe_ridge']:g} per sample{edge}; fitted on {r['probe_fitted']} frames, "
+                     f"scored on {r['probe_held']} frames): held-out R^2 z||h {r['probe_r2_zh']:.3f}, "
                      f"h {r['probe_r2_h']:.3f}, z {r['probe_r2_z']:.3f}; time alone {r['probe_r2_time']:.3f}; "
                      f"RMSE {r['probe_rmse']:.1f}")
     return "\n".join(lines + [""] + spans) + "\n"
