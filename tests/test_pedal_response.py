@@ -29,6 +29,21 @@ def trained(tmp_path_factory):
     return script, script.agent_from_checkpoint(latest, 0), args, latest
 
 
+def with_memory(agent, drive):
+    """drive()'s result and the previous action the agent remembered at each of its decisions (None at the first)."""
+    seen, act = [], agent.act
+
+    def recording(obs, state, *rest):
+        seen.append(None if state is None else state[2].clone())
+        return act(obs, state, *rest)
+
+    agent.act = recording
+    try:
+        return drive(), seen
+    finally:
+        del agent.act
+
+
 def test_a_held_pedal_drives_the_env_as_the_same_actions_do_directly(trained):
     """From rest, a pedal at or below 0 leaves the car standing whatever the steering: its per-decision rewards are
     those of the env stepped directly with no action, decision by decision (action_repeat env steps each). Full gas
@@ -50,17 +65,7 @@ def test_a_held_pedal_drives_the_env_as_the_same_actions_do_directly(trained):
         frames, actions, _, _, _ = pedal_response.drive(agent, args, envs, 10_200, 5, None, 40)
         assert frames.shape == (6, args.image_size, args.image_size, 3) and actions.shape == (6, 2)
         assert not actions[0].any() and actions[1:].any()  # the action that led to each frame; none to the first
-        seen = []
-        act = agent.act
-        def recording(obs, state, *rest):
-            seen.append(None if state is None else state[2].clone())
-            return act(obs, state, *rest)
-
-        agent.act = recording
-        try:
-            pedal_response.drive(agent, args, envs, 10_200, 2, -0.7, 4)
-        finally:
-            del agent.act
+        _, seen = with_memory(agent, lambda: pedal_response.drive(agent, args, envs, 10_200, 2, -0.7, 4))
         assert all(float(prev[0, 1]) == pytest.approx(-0.7) for prev in seen[3:])  # its memory holds the held pedal
         with pytest.raises(pedal_response.CarOut, match=r"track 10200: the car was out after \d+ decisions, before"):
             pedal_response.drive(agent, args, envs, 10_200, 150, None, 4)  # (200 env steps: at most 100 decisions)
@@ -257,18 +262,7 @@ def test_a_race_for_the_probe_holds_random_pedals_and_records_the_envs_own_speed
         stretches = np.diff(np.concatenate([[0], changes, [len(pedals)]]))
         assert len(stretches) >= 2 and np.all((stretches[:-1] >= 8) & (stretches[:-1] <= 48)) and stretches[-1] <= 48
         assert np.all(np.abs(pedals) <= 1) and np.ptp(speeds) > 0
-        seen = []
-        act = agent.act
-
-        def recording(obs, state, *rest):
-            seen.append(None if state is None else state[2].clone())
-            return act(obs, state, *rest)
-
-        agent.act = recording
-        try:
-            again = pedal_response.drive_race(agent, args, envs, 10_201)[1]
-        finally:
-            del agent.act
+        (_, again, _), seen = with_memory(agent, lambda: pedal_response.drive_race(agent, args, envs, 10_201))
         np.testing.assert_array_equal(again[:, 1], actions[:, 1])
         held = [float(prev[0, 1]) for prev in seen[1:]]  # its memory holds the pedal it held, not its own
         np.testing.assert_allclose(held, actions[1 : len(held) + 1, 1], rtol=1e-6)
