@@ -399,7 +399,8 @@ def ranges(rows: list[dict]) -> dict[int, tuple[float, float]]:
 def speed_ranges(rows: list[dict]) -> dict[int, dict[str, float]]:
     """Per start, the range over the pedals of the mean speeds after the H decisions: real (the env's), read by the
     probe on the real drive's posterior, and on the imagined states; over the pedals after which a car was still
-    in on some track (NaN with fewer than two such pedals), with their count under "pedals"."""
+    in on some track (NaN with fewer than two such pedals), with their count under "pedals". Each pedal's mean is
+    over its own tracks with a car still in, so with cars out a range can compare different tracks."""
     keys = ("real_speed", "real_speed_probed", "imagined_speed")
     out = {}
     for start, by_pedal in means(rows, keys).items():
