@@ -83,6 +83,16 @@ class Args:
     """also write every track's values to this file"""
 
 
+def hold_pedal(action: np.ndarray, state: tuple, pedal: float) -> tuple[np.ndarray, tuple]:
+    """The agent's action with its pedal replaced by `pedal`, and its acting state (Agent.act's cell, z, previous
+    action, noise) remembering that action as its previous one, as the world model must see what was driven."""
+    import torch
+
+    action = action.copy()
+    action[:, 1] = pedal
+    return action, (state[0], state[1], torch.as_tensor(action, device=state[2].device), state[3])
+
+
 def drive(agent, args, envs, track: int, after: int, pedal: float | None, horizon: int) -> tuple:
     """One race on `track`: `after` decisions with the mean action, then (if `pedal` is given) `horizon` decisions
     steering with the mean action and the pedal held. Returns the first frame and those of every decision after
@@ -102,10 +112,8 @@ def drive(agent, args, envs, track: int, after: int, pedal: float | None, horizo
     for t in range(after + (0 if pedal is None else horizon)):
         action, state = agent.act(obs, state, first, "mean-action")
         first[:] = False
-        if t >= after:  # the held pedal, in the action and in the agent's memory of it (its previous action)
-            action = action.copy()
-            action[:, 1] = pedal
-            state = (state[0], state[1], torch.as_tensor(action, device=state[2].device), state[3])
+        if t >= after:
+            action, state = hold_pedal(action, state, pedal)
         reward = 0.0
         for _ in range(args.action_repeat):
             obs, step_rewards, dones, infos = envs.step(action)
@@ -155,9 +163,7 @@ def drive_race(agent, args, envs, track: int) -> tuple[np.ndarray, np.ndarray, n
         left -= 1
         action, state = agent.act(obs, state, first, "mean-action")
         first[:] = False
-        action = action.copy()
-        action[:, 1] = pedal
-        state = (state[0], state[1], torch.as_tensor(action, device=state[2].device), state[3])
+        action, state = hold_pedal(action, state, pedal)
         for _ in range(args.action_repeat):
             obs, _, dones, infos = envs.step(action)
             if dones[0]:
@@ -245,7 +251,8 @@ def fit_speed_probe(fitted: list[tuple], held: list[tuple], ridges=PROBE_RIDGES)
     penalty = min(ridges, key=error)
     probe = ridge(np.concatenate([f for f, _ in fitted]), np.concatenate([s for _, s in fitted]), penalty)
     features, speeds = np.concatenate([f for f, _ in held]), np.concatenate([s for _, s in held])
-    probe.r2, probe.rmse = r_squared(speeds, probe(features)), float(np.sqrt(np.mean((probe(features) - speeds) ** 2)))
+    read = probe(features)
+    probe.r2, probe.rmse = r_squared(speeds, read), float(np.sqrt(np.mean((read - speeds) ** 2)))
     return probe
 
 
@@ -269,7 +276,7 @@ def speed_probe(agent, args, envs, first_track: int, tracks: int) -> tuple[Speed
     """The probe of speed on z||h, fitted on the races (drive_race) of the first 2 * tracks // 3 of tracks
     first_track.. and scored on the rest; each race's features are its posterior's z||h at every frame. Returns it
     with its summary: R^2 of the probes on z||h, h and z, the time baseline's, the z||h probe's
-    RMSE, its ridge penalty and the fitted and held-out decisions."""
+    RMSE, its ridge penalty and the numbers of fitted and held-out frames."""
     import torch
 
     races = []
