@@ -28,9 +28,10 @@ restores each stage's experiment). The stages follow the paper and run one after
 Then it writes (``benchmarks/experiment_report.py``) ``benchmarks/results/ghost_vs_control.csv``,
 ``head_to_head.csv`` and ``experiment.md`` (IQM and mean of the single-stage final returns per variant with
 stratified-bootstrap intervals, and the probability that the LSTM's head-to-head win rate exceeds the GRU's across
-seed pairs, both with rliable: descriptions), and the table of the paper's claims, each judged by an exact
-permutation test and a t interval (stats.paired_claim, stats.two_group_claim: a bootstrap is too narrow over so few
-runs); with ``--second-policy`` the head-to-head claims again, every tournament raced with that policy too.
+seed pairs, both with rliable: descriptions), and the table of the paper's claims, each judged by an exact test
+(sign-flip over seed pairs, stats.paired_claim; permutation between two groups, stats.two_group_claim) and a t
+interval (a bootstrap is too narrow over so few runs); with ``--second-policy`` the head-to-head claims again, every
+tournament raced with that policy too.
 """
 
 from __future__ import annotations

@@ -31,8 +31,7 @@ evaluating every 5 races on the 10 held-out tracks (seeds 10000..10009) and keep
 The final protocol (CPU budget: per variant the seeds 21..25, each a single-stage trial of ``benchmarks/experiment.py
 --single-cpu-hours 3.1``, measured on the report tracks 10300..10329; its bar and its peers' files) is
 ``final_protocol.py``, which the ``--protocol-*`` modes call. It replaces the 8,000-update protocol (final policies
-on the fresh tracks 10100..10119; ``--final``, ``--final-report``, ``--screen`` and ``--policy-rule`` of this file
-until commit 32c3b4c), whose files are in ``benchmarks/results/history/8000_updates/``.
+on the tracks 10100..10119), whose files are in ``benchmarks/results/history/8000_updates/``.
 
 This file holds the learning runs (names, settings, what their event files and progress.csv hold), the
 measurement of a saved policy on a block of tracks, the helpers of the final protocol's rows (eval_curve,

@@ -190,6 +190,16 @@ def snapshot_paths(run_dir: str) -> list[tuple[int, str]]:
     return sorted((int(n), p) for n, p in snapshots if n.isdigit())
 
 
+def read_record(run_dir: str) -> dict:
+    """A peer run's record.json (env_steps, cpu_hours, updates); a record of the first version named the same CPU
+    hours "hours"."""
+    with open(os.path.join(run_dir, "record.json")) as f:
+        record = json.load(f)
+    if "hours" in record:
+        record["cpu_hours"] = record.pop("hours")
+    return record
+
+
 def train(
     seed: int, hours: float, budget_steps: int, run_dir: str, save_every: int = 4, algo: str = "ppo",
     snapshots: tuple[int, ...] = SNAPSHOT_STEPS,
@@ -212,10 +222,7 @@ def train(
     record = {"env_steps": 0, "cpu_hours": 0.0, "updates": 0}
     venv = make_venv(seed, config["n_envs"])
     if all(os.path.exists(path) for path in paths.values()):  # (a kill between a save's renames: a newer model)
-        with open(paths["record.json"]) as f:
-            record = json.load(f)
-        if "hours" in record:  # a record of the first version, which named the same CPU hours "hours"
-            record["cpu_hours"] = record.pop("hours")
+        record = read_record(run_dir)
         norm = VecNormalize.load(paths["vecnormalize.pkl"], venv)
         model = algo_class(algo).load(paths["model.zip"], env=norm, device="cpu", tensorboard_log=run_dir)
         model.set_random_seed(sitting_seed(seed, record["env_steps"]))  # (load reseeded it with `seed`)
@@ -404,8 +411,7 @@ def main(argv=None) -> dict | list[dict]:
         curve_path = os.path.join(os.path.dirname(os.path.abspath(results)), f"{variant}_peer_curve.csv")
         return curve(args.algo, args.seed, run_dir, args.first_track, args.tracks, curve_path)
     if args.evaluate_only:
-        with open(os.path.join(run_dir, "record.json")) as f:
-            record = json.load(f)
+        record = read_record(run_dir)
     else:
         snapshots = tuple(args.snapshot_steps)
         record = train(args.seed, args.cpu_hours, budget_steps, run_dir, algo=args.algo, snapshots=snapshots)

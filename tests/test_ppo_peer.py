@@ -246,7 +246,7 @@ def test_the_evaluation_tracks_are_parameters(tmp_path, monkeypatch):
     run_dir = tmp_path / "ppo__3"
     model = ppo_peer.make_model(0, VecNormalize(ppo_peer.make_venv(0, 1), norm_obs=False), None)
     model.save(run_dir / "model.zip")
-    (run_dir / "record.json").write_text('{"env_steps": 0, "cpu_hours": 0.0, "updates": 0}')
+    (run_dir / "record.json").write_text('{"env_steps": 0, "hours": 0.25, "updates": 0}')  # the first version's
     seen = []
     monkeypatch.setattr(ppo_peer, "evaluate", lambda model, first, n: seen.append((first, n))
                         or {"return": 1.0, "progress": 0.5, "abs_steer": 0.25})  # fmt: skip
@@ -254,9 +254,9 @@ def test_the_evaluation_tracks_are_parameters(tmp_path, monkeypatch):
     ppo_peer.main(argv)  # the default: the final protocol's report tracks
     ppo_peer.main([*argv, "--first-track", "10100", "--tracks", "20"])  # the 8,000-update protocol's tracks
     assert seen == [ppo_peer.FINAL_TRACKS, ppo_peer.FRESH_TRACKS] == [(10_300, 30), (10_100, 20)]
-    assert [(r["seed"], r["tracks"]) for r in ppo_peer.read_rows(str(tmp_path / "p.csv"))] == [
-        ("3", "10100..10119"), ("3", "10300..10329")
-    ]  # the seed's row on each block of tracks
+    assert [(r["seed"], r["tracks"], r["cpu_hours"]) for r in ppo_peer.read_rows(str(tmp_path / "p.csv"))] == [
+        ("3", "10100..10119", "0.25"), ("3", "10300..10329", "0.25")
+    ]  # the seed's row on each block of tracks, with the record's CPU hours
 
 
 def test_a_row_replaces_only_the_row_of_its_seed_and_tracks_and_old_rows_are_the_fresh_tracks(tmp_path):
