@@ -61,8 +61,9 @@ VARIANT = "lstm"  # written into every checkpoint, so race.py knows which script
 class Args:
     # --- experiment
     preset: Literal["paper", "cpu"] = "paper"
-    """paper: the paper's sizes and schedule; cpu: a configuration that learns on a 2-core CPU in hours
-    (explicit flags override the preset's values; docs/deviations.md lists what it changes)"""
+    """paper: the paper's sizes and schedule; cpu: a configuration that learns on a 2-core CPU in hours: smaller
+    networks and the method options its screens chose (PRESETS below; explicit flags override the preset's values;
+    docs/deviations.md lists what it changes)"""
     exp_name: str = os.path.basename(__file__)[: -len(".py")]
     """the name of this experiment (part of the run name)"""
     seed: int = 1
@@ -110,14 +111,15 @@ class Args:
     brake_speed_threshold: float = 50.0
     """env: braking has no effect below this speed"""
     collision_penalty: float = 0.05
-    """env: reward paid per step while a car's hull touches another car"""
+    """env: subtracted from a car's reward every step its hull touches another car"""
     offroad_penalty: float = 100.0
-    """env: reward paid once when a car is eliminated (off road, off the playfield, stalled)"""
+    """env: subtracted once from a car's reward when it is eliminated (off road, off the playfield, stalled)"""
     speed_reward_coef: float = 0.0
     """env: reward per step per unit of forward speed along the track (ours: none)"""
     dead_zone_start: float = -1.0
     """dead-zone lower edge of the throttle-brake axis at episode 0 (ours; a run from --checkpoint races at the end
-    value)"""
+    value). The axis u is gas above 0; dead_zone < u <= 0 coasts; u <= dead_zone brakes with strength |u|. At -1
+    only a pedal at (or clipped to) -1 brakes"""
     dead_zone_end: float = -0.5
     """dead-zone lower edge after the schedule (the paper's -0.5)"""
     dead_zone_episodes: int = 200
@@ -238,6 +240,11 @@ class Args:
     head_sigma: float = 0.0
     """sigma of the reward and critic Gaussians: 0 learns it (softplus + 0.1, the paper); a positive value fixes it
     (1: the paper authors' code, a squared error, so that a rare -100 moves the mean instead of widening sigma)"""
+    heads: Literal["gaussian", "twohot"] = "gaussian"
+    """the reward and critic heads' distribution: gaussian (the paper; --head-sigma, --reward-nll-beta) or twohot
+    (DreamerV3: a softmax over 255 bins spaced symexp(-20 .. 20), learned by cross-entropy against the target's
+    two-hot encoding and read as its mean, so a rare -100 is a class of its own, not a wider sigma; output layers
+    start at zero; the critic also regresses on the slow critic's value, weight 1)"""
     action_noise_corr: float = 0.0
     """rho: correlation of the sampled policy's noise from one decision to the next while it drives (an AR(1)
     process, eps_t = rho eps_{t-1} + sqrt(1 - rho^2) xi_t, each eps_t N(0, 1): temporally correlated exploration,
@@ -336,6 +343,7 @@ def race_seed(seed: int, episode: int) -> int:
 LATENT_MIN_STD = 0.1  # sigma of posterior and prior: softplus(.) + this minimum
 LOG_SIGMA_RANGE = (-5.0, 2.0)  # the decoder's log sigma: the lowest floor --decoder-min-log-sigma may set, the cap
 HEAD_MIN_STD = 0.1  # sigma of the reward and critic Gaussians
+TWOHOT_BINS, TWOHOT_SPAN = 255, 20.0  # --heads twohot: DreamerV3's bins, symexp(-20 .. 20) (+-4.9e8, 0 in the middle)
 ACTOR_STD_BOUNDS = (0.1, 1.0)  # the paper authors' soft bounds of the actor's sigma (0.1 .. 1.34: soft_bounded)
 
 
@@ -501,11 +509,94 @@ def gaussian_params(out: torch.Tensor, min_std: float) -> tuple[torch.Tensor, to
     return mean, F.softplus(raw_std) + min_std
 
 
-def head_gaussian(out: torch.Tensor, sigma: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """The reward's or the critic's Gaussian: sigma learned (gaussian_params, floored at HEAD_MIN_STD) when `sigma`
-    is 0, else fixed at `sigma` (--head-sigma; the head's second output is then unused)."""
-    mean, std = gaussian_params(out, HEAD_MIN_STD)
-    return (mean, std) if sigma == 0 else (mean, torch.full_like(mean, sigma))
+def symlog(x: torch.Tensor) -> torch.Tensor:
+    """sign(x) log(1 + |x|) (DreamerV3): ~x near 0, logarithmic in |x|."""
+    return torch.sign(x) * torch.log1p(x.abs())
+
+
+def symexp(x: torch.Tensor) -> torch.Tensor:
+    """sign(x) (exp(|x|) - 1): the inverse of symlog."""
+    return torch.sign(x) * torch.expm1(x.abs())
+
+
+def twohot_bins(count: int = TWOHOT_BINS, span: float = TWOHOT_SPAN) -> torch.Tensor:
+    """`count` (odd) bins evenly spaced in symlog space over [-span, span]: symexp of a linspace, built from its
+    lower half so that the middle bin is exactly 0 and the bins are exactly symmetric."""
+    half = symexp(torch.linspace(-span, 0.0, count // 2 + 1))
+    return torch.cat([half, -half[:-1].flip(0)])
+
+
+def twohot(x: torch.Tensor, bins: torch.Tensor) -> torch.Tensor:
+    """Two-hot encoding (..., K) of x (...): x clipped to the bins' range, its mass split between the two bins
+    around it in proportion to nearness, so that the encoding's mean sum_k w_k b_k is x."""
+    x = x.detach().float().clamp(bins[0], bins[-1])
+    upper = torch.bucketize(x, bins).clamp(1, len(bins) - 1)  # bins[upper - 1] < x <= bins[upper]
+    low, high = bins[upper - 1], bins[upper]
+    weight_high = (x - low) / (high - low)
+    encoding = torch.zeros(*x.shape, len(bins), device=x.device)
+    encoding.scatter_(-1, (upper - 1).unsqueeze(-1), (1 - weight_high).unsqueeze(-1))
+    return encoding.scatter_(-1, upper.unsqueeze(-1), weight_high.unsqueeze(-1))
+
+
+class Gaussian:
+    """A scalar's Gaussian from a head's two outputs: mean, and sigma learned (softplus, floored at HEAD_MIN_STD)
+    when `sigma` is 0, else fixed at `sigma` (--head-sigma; the second output is then unused)."""
+
+    def __init__(self, out: torch.Tensor, sigma: float):
+        mean, std = gaussian_params(out, HEAD_MIN_STD)
+        self.mean, self.std = mean.squeeze(-1), (std if sigma == 0 else torch.full_like(mean, sigma)).squeeze(-1)
+
+    def nll(self, x: torch.Tensor, beta: float = 0.0) -> torch.Tensor:
+        """-log N(x; mean, sigma), weighted by sg(sigma)^(2 beta) (beta_nll; beta 0: the NLL itself)."""
+        return beta_nll(x, self.mean, self.std, beta)
+
+
+class TwoHot:
+    """A scalar's distribution as a softmax over fixed bins (DreamerV3): mean sum_k p_k b_k; a target x is learned
+    by cross-entropy against its two-hot encoding, whose mean is x."""
+
+    def __init__(self, logits: torch.Tensor, bins: torch.Tensor):
+        self.logits, self.bins = logits.float(), bins
+
+    @property
+    def mean(self) -> torch.Tensor:
+        """sum_k p_k b_k, summed in pairs from the middle out (b_{m-i} with b_{m+i}), as DreamerV3 does: uniform
+        probabilities over symmetric bins then give exactly 0, as a left-to-right sum over +-4.9e8 would not."""
+        products, middle = self.logits.softmax(-1) * self.bins, len(self.bins) // 2
+        pairs = products[..., :middle].flip(-1) + products[..., middle + 1 :]
+        return products[..., middle] + pairs.sum(-1)
+
+    @property
+    def std(self) -> torch.Tensor:
+        return (self.logits.softmax(-1) * (self.bins - self.mean.unsqueeze(-1)).pow(2)).sum(-1).sqrt()
+
+    def nll(self, x: torch.Tensor, beta: float = 0.0) -> torch.Tensor:
+        """Cross-entropy -sum_k twohot(x)_k log p_k (beta-NLL has no two-hot form: beta must be 0)."""
+        if beta != 0:
+            raise ValueError(f"a two-hot head has no beta-NLL (beta={beta})")
+        return -(twohot(x, self.bins) * self.logits.log_softmax(-1)).sum(-1)
+
+
+class ScalarHead(MLP):
+    """The reward head and the critic's network: an MLP whose output is a scalar's distribution (--heads):
+    a Gaussian (2 outputs: mean, sigma) or DreamerV3's two-hot (TWOHOT_BINS logits, output layer zeroed, so that
+    every prediction starts at exactly 0)."""
+
+    def __init__(self, in_size: int, hidden_sizes: list[int], norm: str, kind: str = "gaussian", sigma: float = 0.0):
+        super().__init__(in_size, hidden_sizes, 2 if kind == "gaussian" else TWOHOT_BINS, norm)
+        self.kind, self.sigma = kind, sigma
+        if kind == "twohot":
+            self.register_buffer("bins", twohot_bins(), persistent=False)  # (not in checkpoints: a constant)
+            nn.init.zeros_(self.net[-1].weight)
+            nn.init.zeros_(self.net[-1].bias)
+
+    def distribution(self, out: torch.Tensor) -> Gaussian | TwoHot:
+        """The scalar's distribution given this head's output: .mean, .std and .nll(x), of shape out.shape[:-1]."""
+        return Gaussian(out, self.sigma) if self.kind == "gaussian" else TwoHot(out, self.bins)
+
+    def dist(self, features: torch.Tensor) -> Gaussian | TwoHot:
+        """The scalar's distribution at `features` (..., F)."""
+        return self.distribution(self(features))
 
 
 class WorldModel(nn.Module):
@@ -533,7 +624,7 @@ class WorldModel(nn.Module):
         self.transition = MLP(args.deter_size, hidden, 2 * latent, args.norm)  # on h
         self.decoder = Decoder(feature_size, args.cnn_depth, args.image_size, args.norm, args.decoder_min_log_sigma)
         self.decoder.to(memory_format=torch.channels_last)
-        self.reward = MLP(feature_size, [args.mlp_size] * 2, 2, args.norm)
+        self.reward = ScalarHead(feature_size, [args.mlp_size] * 2, args.norm, args.heads, args.head_sigma)
         self.cont = MLP(feature_size, [args.mlp_size] * 2, 1, args.norm)
 
     def reset_where(self, is_first: torch.Tensor, state: tuple, z: torch.Tensor, prev_action: torch.Tensor):
@@ -590,8 +681,8 @@ class WorldModel(nn.Module):
 
 
 def soft_bounded(x: torch.Tensor, low: float, high: float) -> torch.Tensor:
-    """low + softplus(high - softplus(high - x) - low): smooth, increasing, ~x in between, above low, and
-    saturating at low + softplus(high - low) (the actor's sigma: 0.1 .. 1.34 for the bounds (0.1, 1))."""
+    """low + softplus(high - softplus(high - x) - low): smooth and increasing, above low, saturating at
+    low + softplus(high - low) (the actor's sigma for the bounds (0.1, 1): 0.1 .. 1.34, 0.61 at x = 0)."""
     return low + F.softplus(high - F.softplus(high - x) - low)
 
 
@@ -641,15 +732,19 @@ def extreme_action_term(action: torch.Tensor) -> torch.Tensor:
 
 
 class Critic(nn.Module):
-    """MLP 572->512->512->2 with LayerNorm (appendix): Gaussian over the lambda-return (sigma: head_gaussian)."""
+    """MLP 572->512->512->2 with LayerNorm (appendix): the lambda-return's distribution (ScalarHead: a Gaussian, or
+    255 two-hot logits with --heads twohot)."""
 
-    def __init__(self, feature_size: int, mlp_size: int, sigma: float = 0.0):
+    def __init__(self, feature_size: int, mlp_size: int, kind: str = "gaussian", sigma: float = 0.0):
         super().__init__()
-        self.net, self.sigma = MLP(feature_size, [mlp_size] * 2, 2, "layer"), sigma
+        self.net = ScalarHead(feature_size, [mlp_size] * 2, "layer", kind, sigma)
 
-    def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        mean, std = head_gaussian(self.net(features), self.sigma)
-        return mean.squeeze(-1), std.squeeze(-1)
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        return self.net(features)
+
+    def dist(self, features: torch.Tensor) -> Gaussian | TwoHot:
+        """The lambda-return's distribution at `features` (..., F): .mean is the value V(s)."""
+        return self.net.distribution(self(features))
 
 
 # =====================================================================================
@@ -852,7 +947,7 @@ class Agent:
         feature_size = args.latent_size + args.deter_size
         self.world_model = WorldModel(args, action_dim).to(self.device)
         self.actor = Actor(feature_size, args.mlp_size, action_dim, args.norm).to(self.device)
-        self.critic = Critic(feature_size, args.mlp_size, args.head_sigma).to(self.device)
+        self.critic = Critic(feature_size, args.mlp_size, args.heads, args.head_sigma).to(self.device)
         # Target networks (hard copy now, soft updates later): the stop-gradient sides of the KL terms
         # and the slow critic for bootstrap values. They never receive gradient.
         self.targets = nn.ModuleDict(
@@ -914,9 +1009,9 @@ class Agent:
         prior_mean, prior_std = gaussian_params(wm.transition(h), LATENT_MIN_STD)  # batched over B*L
         # L_pred: -log p(x|s) - log p(r|s) - log p(cont|s); cont = 1 - terminated (truncation is not termination)
         image_nll = image_gaussian_nll(frames_to_input(obs), wm.decoder(features), wm.decoder.sigma())
-        reward_mean, reward_std = head_gaussian(wm.reward(features), args.head_sigma)
-        reward_nll = gaussian_nll(rewards, reward_mean.squeeze(-1), reward_std.squeeze(-1))  # (logged as is)
-        reward_loss = beta_nll(rewards, reward_mean.squeeze(-1), reward_std.squeeze(-1), args.reward_nll_beta)
+        reward = wm.reward.dist(features)
+        reward_nll = reward.nll(rewards)  # (logged as is)
+        reward_loss = reward.nll(rewards, args.reward_nll_beta)
         cont_logits = wm.cont(features).float().squeeze(-1)
         cont_nll = F.binary_cross_entropy_with_logits(cont_logits, 1.0 - terminated, reduction="none")
         # The KL terms' stop-gradient sides, sg(.), come from slowly updated copies of the encoder, posterior and
@@ -977,16 +1072,21 @@ class Agent:
         self.actor.eval()
         with frozen(wm, self.critic):  # only the actor's parameters take gradient from the actor loss
             features, log_pi, samples, stds = imagine_rollout(wm, self.actor, state, h, z, args.imagination_horizon)
-            rewards = head_gaussian(wm.reward(features[1:]), args.head_sigma)[0].squeeze(-1)  # r_1..r_H
+            rewards = wm.reward.dist(features[1:]).mean  # r_1..r_H
             continues = torch.sigmoid(wm.cont(features[1:]).float().squeeze(-1))  # c_1..c_H
-            values = bootstrap(features[1:])[0]  # V(s_1..s_H)
+            values = bootstrap.dist(features[1:]).mean  # V(s_1..s_H)
             weights = discount_weights(continues, args.gamma, start_cont)
             returns, objective = self.returns_and_objective(rewards, continues, values, log_pi, samples)
             actor_loss = -(weights * objective).mean()  # its gradient flows back through the imagined dynamics
         wm.train()
         self.actor.train()
-        value_mean, value_std = self.critic(features[:-1].detach())  # V(s_0..s_{H-1}) on detached states
-        critic_loss = (weights * gaussian_nll(returns.detach(), value_mean, value_std)).mean()
+        value = self.critic.dist(features[:-1].detach())  # V(s_0..s_{H-1}) on detached states
+        critic_nll = value.nll(returns.detach())
+        if args.heads == "twohot":  # DreamerV3: also regress on the slow critic's value (weight 1)
+            with torch.no_grad():
+                slow_value = self.targets["critic"].dist(features[:-1]).mean
+            critic_nll = critic_nll + value.nll(slow_value)
+        critic_loss = (weights * critic_nll).mean()
         metrics = {
             "actor": actor_loss, "critic": critic_loss, "actor_std": stds.mean(),
             "entropy": -log_pi.mean(),  # -log pi with the extreme-action term: an entropy estimate minus that penalty

@@ -100,9 +100,10 @@ def calibrate_checkpoint(path: str, first_track: int = TRACKS["fresh"][0], track
             is_first[0, 0] = True
             post = wm.observe(wm.encoder(torch.as_tensor(frames[None])), torch.as_tensor(actions[None]), is_first)
             features = torch.cat([post["z"], post["h"]], -1)[0]
-            values = agent.critic(features)[0].numpy()
-            reward_mean, reward_std = script.gaussian_params(wm.reward(features), script.HEAD_MIN_STD)
-            sigmas.append(reward_std.squeeze(-1).numpy())
+            values = agent.critic.dist(features).mean.numpy()
+            reward = wm.reward.dist(features)  # the head's distribution (a Gaussian, or two-hot: its std)
+            reward_mean, reward_std = reward.mean, reward.std
+            sigmas.append(reward_std.numpy())
             if reason is not None:
                 last_continue = torch.sigmoid(wm.cont(features[-1:]).float()).item()
                 terminal.append((rewards[-1], reward_mean[-1].item(), reward_std[-1].item(), last_continue))
@@ -114,7 +115,7 @@ def calibrate_checkpoint(path: str, first_track: int = TRACKS["fresh"][0], track
                 sums["bootstrap_weight"] += float(np.sum(gamma ** (last - np.arange(last))))
             state = tuple(s[0, :-1] for s in post["states"])
             imagined, _, _, _ = script.imagine_rollout(wm, actor, state, post["h"][0, :-1], post["z"][0, :-1], horizon)
-            reward = script.gaussian_params(wm.reward(imagined[1:]), script.HEAD_MIN_STD)[0].squeeze(-1)
+            reward = wm.reward.dist(imagined[1:]).mean
             continues = torch.sigmoid(wm.cont(imagined[1:]).float().squeeze(-1))
             i_task = (script.discount_weights(continues, gamma) * reward).sum(0).numpy()
             j_task = horizon_task_returns(rewards, terminated, gamma, horizon)

@@ -314,7 +314,7 @@ def imagine(script, agent, frames: np.ndarray, actions: np.ndarray, pedal: float
             action[:, 1] = pedal
             state, h, z = wm.imagine_step(state, z, action.clamp(-1.0, 1.0))
             features = torch.cat([z, h], -1)
-            rewards.append(script.gaussian_params(wm.reward(features), script.HEAD_MIN_STD)[0].squeeze(-1))
+            rewards.append(wm.reward.dist(features).mean)
             continues.append(torch.sigmoid(wm.cont(features).float().squeeze(-1)))
         weights = script.discount_weights(torch.stack(continues), gamma)
         return float((weights * torch.stack(rewards)).sum(0).mean()), features.double().cpu().numpy()

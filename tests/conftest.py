@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib
 import math
 import os
+import types
 
 import numpy as np
 import pytest
@@ -76,15 +77,15 @@ def random_batch(batch=3, length=8, size=64, seed=0, episode_starts=(0,)):
 
 
 class ColumnHead(nn.Module):
-    """A stand-in head whose output's first half is column `index` of its input (a reward mean or a value)."""
+    """A stand-in reward head or critic whose distribution (`dist`) has mean column `index` of its input, sigma 1."""
 
-    def __init__(self, index: int, pair: bool):
+    def __init__(self, index: int):
         super().__init__()
-        self.index, self.pair = index, pair
+        self.index = index
 
-    def forward(self, features):
-        x = features[..., self.index : self.index + 1]
-        return (x.squeeze(-1), torch.ones_like(x.squeeze(-1))) if self.pair else torch.cat([x, torch.zeros_like(x)], -1)
+    def dist(self, features):
+        mean = features[..., self.index]
+        return types.SimpleNamespace(mean=mean, std=torch.ones_like(mean))
 
 
 class ConstantHead(nn.Module):

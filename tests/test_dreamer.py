@@ -125,8 +125,8 @@ def test_shapes_through_every_network(script, image_size, norm):
     assert wm.transition(post["h"]).shape == (B, L, 2 * args.latent_size)
     action, log_pi = agent.actor.sample(features)
     assert action.shape == (B, L, 2) and log_pi.shape == (B, L) and (action.abs() <= 1).all()
-    mean, std = agent.critic(features)
-    assert mean.shape == std.shape == (B, L)
+    value = agent.critic.dist(features)
+    assert value.mean.shape == value.std.shape == (B, L)
     # imagination from every posterior state
     state, h, z, cont = agent.start_states(post, torch.zeros(B, L))
     feats, log_pis, actions, stds = script.imagine_rollout(wm, agent.actor, state, h, z, horizon=4)
@@ -387,16 +387,16 @@ def test_return_norm_scales_the_task_part_of_the_actor_objective(script, monkeyp
     monkeypatch.setattr(script, "imagine_rollout", lambda *a: (features, log_pi, None, torch.ones(1, 5, 2)))
     start_cont = torch.tensor([1.0, 1.0, 1.0, 1.0, 0.0])  # the fifth start is a terminal state
     monkeypatch.setattr(agent, "start_states", lambda post, terminated: (None, None, None, start_cont))
-    agent.world_model.reward = ColumnHead(0, pair=False)
+    agent.world_model.reward = ColumnHead(0)
     agent.world_model.cont = ConstantHead(100.0)  # sigmoid(100) = 1 in float32
-    agent.targets["critic"] = ColumnHead(1, pair=True)
+    agent.targets["critic"] = ColumnHead(1)
     agent.return_scale.fill_(scale_before)
     actor_loss, critic_loss, metrics = agent.behaviour_losses(post, terminated)
     # the critic learns the unscaled return R_i = r_i + gamma V(s_1) + alpha (-log pi_i), its Gaussian NLL at s_0
     # weighted by the start's continue flag (the terminal fifth start counts 0)
     returns = torch.tensor(rewards) + 0.5 * 1.0 + 0.2 * torch.arange(1.0, 6.0)
-    value_mean, value_std = agent.critic(features[:1])
-    nll = -torch.distributions.Normal(value_mean, value_std).log_prob(returns[None])
+    value = agent.critic.dist(features[:1])
+    nll = -torch.distributions.Normal(value.mean, value.std).log_prob(returns[None])
     torch.testing.assert_close(critic_loss, (start_cont * nll).mean())
     torch.testing.assert_close(agent.return_scale, torch.tensor(scale_after), rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(metrics["return_scale"], torch.tensor(scale_after), rtol=1e-5, atol=1e-6)

@@ -1,13 +1,16 @@
-"""Options screened to make the agents race (issue 40): an adaptive entropy weight, fixed-sigma heads, the paper
-authors' normalisation mix, and a CPU-time budget. Each is off by default (tests/test_reference_runs.py holds the
-default to what it computed before); here each does what it says when on."""
+"""Options screened to make the agents race (issue 40): an adaptive entropy weight, fixed-sigma and two-hot heads,
+the paper authors' normalisation mix, and a CPU-time budget. Each is off by default (tests/test_reference_runs.py
+holds the default to what it computed before); here each does what it says when on."""
 
 import csv
 import math
 import os
 
+import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
+import utils.run as run_tools
 from conftest import TINY, ColumnHead, ConstantHead, random_batch, tiny_args
 from torch import nn
 
@@ -71,10 +74,117 @@ def test_a_fixed_head_sigma_makes_the_reward_and_critic_losses_squared_errors(sc
         mean = agent.world_model.reward(features)[..., 0]
         expected = 0.5 * (torch.as_tensor(batch["reward"]) - mean).pow(2) + 0.5 * math.log(2 * math.pi)
         torch.testing.assert_close(metrics["reward"], expected.mean(), rtol=1e-5, atol=1e-6)
-        _, std = agent.critic(features)
+        std = agent.critic.dist(features).std
         assert torch.equal(std, torch.ones_like(std))
         learned = script.Agent(tiny_args(script))
-        assert not torch.equal(learned.critic(features)[1], torch.ones_like(std))
+        assert not torch.equal(learned.critic.dist(features).std, torch.ones_like(std))
+
+
+def hand_twohot(x: float, bins: np.ndarray) -> np.ndarray:
+    """The two-hot encoding by hand, in float64: the two bins around x, weights by linear interpolation."""
+    x = min(max(x, bins[0]), bins[-1])
+    k = min(max(int(np.searchsorted(bins, x, side="left")), 1), len(bins) - 1)
+    weights = np.zeros(len(bins))
+    weights[k - 1], weights[k] = (bins[k] - x) / (bins[k] - bins[k - 1]), (x - bins[k - 1]) / (bins[k] - bins[k - 1])
+    return weights
+
+
+def test_symlog_and_symexp_are_inverse_and_the_twohot_bins_are_evenly_spaced_in_symlog(script):
+    x = torch.tensor([-1e6, -100.0, -1.0, 0.0, 0.5, 3.5, 1e6], dtype=torch.float64)
+    torch.testing.assert_close(script.symexp(script.symlog(x)), x)
+    assert script.symlog(torch.tensor([math.e - 1, -(math.e**2 - 1)])).tolist() == pytest.approx([1.0, -2.0])
+    bins = script.twohot_bins()
+    assert bins.shape == (255,) and bins[127].item() == 0.0 and torch.equal(bins, -bins.flip(0))
+    torch.testing.assert_close(script.symlog(bins).diff(), torch.full((254,), 40 / 254), rtol=1e-4, atol=1e-5)
+    assert bins[-1].item() == pytest.approx(math.exp(20) - 1, rel=1e-5)
+
+
+@pytest.mark.parametrize("x", [-1e10, -100.0, -3.3, -1e-3, 0.0, 0.05, 3.5, 100.0, 1e10])
+def test_the_twohot_encoding_is_the_two_neighbouring_bins_and_its_mean_is_the_value(script, x):
+    bins = script.twohot_bins()
+    encoding = script.twohot(torch.tensor([x]), bins)[0]
+    expected = hand_twohot(x, bins.double().numpy())
+    np.testing.assert_allclose(encoding.double().numpy(), expected, atol=1e-6)
+    assert (encoding > 0).sum() <= 2 and encoding.sum().item() == pytest.approx(1.0)
+    clipped = min(max(x, bins[0].item()), bins[-1].item())
+    assert (encoding.double() @ bins.double()).item() == pytest.approx(clipped, rel=1e-6, abs=1e-6)
+
+
+def test_the_twohot_nll_is_the_cross_entropy_with_the_encoding_and_uniform_logits_predict_zero(script):
+    torch.manual_seed(0)
+    bins = script.twohot_bins()
+    logits = torch.randn(4, 255)
+    targets = torch.tensor([-100.0, 0.0, 2.7, 40.0])
+    dist = script.TwoHot(logits, bins)
+    soft = torch.tensor(np.stack([hand_twohot(float(t), bins.double().numpy()) for t in targets]), dtype=torch.float32)
+    torch.testing.assert_close(dist.nll(targets), F.cross_entropy(logits, soft, reduction="none"))
+    torch.testing.assert_close(dist.mean, logits.softmax(-1).double() @ bins.double(), check_dtype=False)
+    assert torch.equal(script.TwoHot(torch.zeros(3, 255), bins).mean, torch.zeros(3))  # exactly, not ~1e-2
+    with pytest.raises(ValueError, match="beta"):
+        dist.nll(targets, beta=0.5)
+
+
+def test_a_twohot_head_learns_the_mean_of_a_target_with_a_rare_minus_100(script):
+    """Targets +3 with probability 0.95 and -100 with 0.05 at one input: the head's mean goes to their mean,
+    0.95 * 3 - 0.05 * 100 = -2.15, with 5% of its mass below -50 (the -100 is a mode of its own; a Gaussian head fits
+    that mean with a sigma of ~16)."""
+    torch.manual_seed(0)
+    head = script.ScalarHead(4, [32], "layer", "twohot")
+    features = torch.randn(1, 4).expand(100, 4)
+    targets = torch.where(torch.arange(100) % 20 == 0, -100.0, 3.0)
+    optimiser = torch.optim.Adam(head.parameters(), lr=1e-2)
+    for _ in range(300):
+        optimiser.zero_grad()
+        head.dist(features).nll(targets).mean().backward()
+        optimiser.step()
+    with torch.no_grad():
+        dist = head.dist(features[:1])
+        assert dist.mean.item() == pytest.approx(-2.15, abs=0.1)
+        assert dist.logits.softmax(-1)[0, head.bins < -50].sum().item() == pytest.approx(0.05, abs=0.005)
+
+
+def test_twohot_agents_start_at_zero_learn_and_regress_the_critic_on_its_slow_copy(script, monkeypatch):
+    """A fresh two-hot agent predicts reward and value exactly 0; its update is finite; its critic loss is, on a
+    one-step imagination fixed by hand (reward 3, V(s_1) 4, gamma 0.5, alpha 0.25, log pi -1: R = 5.25; the slow
+    critic's value at s_0 is 7), CE(p(s_0), twohot(5.25)) + CE(p(s_0), twohot(7)), the encodings by hand."""
+    torch.manual_seed(0)
+    agent = script.Agent(tiny_args(script, heads="twohot"))
+    features = torch.randn(6, TINY["latent_size"] + TINY["deter_size"])
+    with torch.no_grad():
+        assert torch.equal(agent.world_model.reward.dist(features).mean, torch.zeros(6))
+        assert torch.equal(agent.critic.dist(features).mean, torch.zeros(6))
+    assert agent.world_model.reward(features).shape == agent.critic(features).shape == (6, 255)
+    metrics = one_update(agent)
+    assert all(math.isfinite(v) for v in metrics.values()) and agent.nonfinite_updates == 0
+
+    agent = script.Agent(tiny_args(script, heads="twohot", entropy_coef=0.25, gamma=0.5, imagination_horizon=1))
+    nn.init.normal_(agent.critic.net.net[-1].weight)  # a critic that does not predict uniformly: the targets matter
+    size = TINY["latent_size"] + TINY["deter_size"]
+    features = torch.zeros(2, 1, size)
+    features[0, :, 1] = 7.0
+    features[1, :, 0], features[1, :, 1] = 3.0, 4.0
+    monkeypatch.setattr(
+        script, "imagine_rollout", lambda *a: (features, torch.full((1, 1), -1.0), None, torch.ones(1, 1, 2))
+    )
+    monkeypatch.setattr(agent, "start_states", lambda post, terminated: (None, None, None, torch.ones(1)))
+    agent.world_model.reward = ColumnHead(0)
+    agent.world_model.cont = ConstantHead(100.0)
+    agent.targets["critic"] = ColumnHead(1)
+    post = {"z": torch.randn(1, 2, TINY["latent_size"]), "h": torch.randn(1, 2, TINY["deter_size"])}  # 2: BatchNorm
+    _, critic_loss, metrics = agent.behaviour_losses(post, torch.zeros(1, 1))
+    assert metrics["imagined_return"].item() == pytest.approx(5.25)
+    bins = agent.critic.net.bins.double().numpy()
+    soft = torch.tensor(np.stack([hand_twohot(5.25, bins), hand_twohot(7.0, bins)]), dtype=torch.float32)
+    logits = agent.critic(features[0]).detach().expand(2, -1)
+    torch.testing.assert_close(critic_loss, F.cross_entropy(logits, soft, reduction="sum"))
+
+
+def test_twohot_heads_refuse_the_gaussian_heads_options(script):
+    run_tools.validate_args(script.Args(heads="twohot"), script.LOG_SIGMA_RANGE)
+    for flags, name in (({"head_sigma": 1.0}, "--head-sigma"), ({"reward_nll_beta": 0.5}, "--reward-nll-beta"),
+                        ({"target_critic": False}, "--target-critic")):  # fmt: skip
+        with pytest.raises(ValueError, match=f"^{name} .*--heads twohot"):
+            run_tools.validate_args(script.Args(heads="twohot", **flags), script.LOG_SIGMA_RANGE)
 
 
 def test_the_mixed_norm_is_batchnorm_in_the_convolutions_and_layernorm_elsewhere(script):
@@ -120,9 +230,9 @@ def test_the_action_penalty_reweighs_the_extreme_action_term_of_the_bonus(script
     samples = torch.full((1, 1, 2), 0.5)
     monkeypatch.setattr(script, "imagine_rollout", lambda *a: (features, log_pi, samples, torch.ones(1, 1, 2)))
     monkeypatch.setattr(agent, "start_states", lambda post, terminated: (None, None, None, torch.ones(1)))
-    agent.world_model.reward = ColumnHead(0, pair=False)
+    agent.world_model.reward = ColumnHead(0)
     agent.world_model.cont = ConstantHead(100.0)
-    agent.targets["critic"] = ColumnHead(1, pair=True)
+    agent.targets["critic"] = ColumnHead(1)
     post = {"z": torch.randn(1, 2, TINY["latent_size"]), "h": torch.randn(1, 2, TINY["deter_size"])}  # 2: BatchNorm
     _, _, metrics = agent.behaviour_losses(post, torch.zeros(1, 1))
     term = 2 * -math.log(1 - math.tanh(0.5) ** 2 + 1e-6)

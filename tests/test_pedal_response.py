@@ -90,7 +90,9 @@ def test_imagined_return_is_the_discounted_sum_of_the_heads_and_holds_the_pedal(
     frames = np.zeros((3, args.image_size, args.image_size, 3), np.uint8)
     actions = np.zeros((3, 2), np.float32)
     wm = agent.world_model
-    monkeypatch.setattr(wm, "reward", _Constant([2.0, 0.0]))
+    last = wm.reward.net[-1]  # the reward head itself, its output layer set to a constant mean 2.0
+    monkeypatch.setattr(last, "weight", nn.Parameter(torch.zeros_like(last.weight)))
+    monkeypatch.setattr(last, "bias", nn.Parameter(torch.tensor([2.0, 0.0])))
     monkeypatch.setattr(wm, "cont", _Constant([0.0]))
     seen, step = [], wm.imagine_step
 

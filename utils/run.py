@@ -52,7 +52,7 @@ from utils.collector import drive_races
 
 # Arguments that fix the networks' shapes (a --checkpoint brings its own; a resumed run cannot change them),
 # and what a run is (a resumed run cannot change those either).
-ARCHITECTURE = ("image_size", "cnn_depth", "deter_size", "hidden_size", "mlp_size", "latent_size", "norm")
+ARCHITECTURE = ("image_size", "cnn_depth", "deter_size", "hidden_size", "mlp_size", "latent_size", "norm", "heads")
 IDENTITY = ("env_id", "num_agents", "num_races", "stage", "seed", "exp_name", "runs_dir", "checkpoint", "preset")
 
 
@@ -110,6 +110,10 @@ def validate_args(args, log_sigma_range: tuple[float, float]) -> None:
     require(0 <= args.lambda_ <= 1, "lambda_", "must lie in [0, 1]")
     require(0 <= args.reward_nll_beta <= 1, "reward_nll_beta", "must lie in [0, 1]")
     require(args.head_sigma >= 0, "head_sigma", "must be >= 0 (0: learned)")
+    if args.heads == "twohot":
+        require(args.head_sigma == 0, "head_sigma", "is the Gaussian heads' sigma: leave it 0 with --heads twohot")
+        require(args.reward_nll_beta == 0, "reward_nll_beta", "is the Gaussian heads': leave it 0 with --heads twohot")
+        require(args.target_critic, "target_critic", "--heads twohot regresses the critic on its slow copy: keep it on")
     require(0 <= args.action_noise_corr < 1, "action_noise_corr", "must lie in [0, 1) (0: independent noise)")
     require(args.entropy_lr > 0, "entropy_lr", "must be > 0")
     if args.action_penalty is not None:
