@@ -78,17 +78,20 @@ class Args:
     """keep freed memory in the process (glibc mallopt: utils/run.py keep_freed_memory), so an update's large
     blocks are not unmapped and page-faulted in again by the next"""
     compile: bool = False
-    """torch.compile the networks (same losses up to float rounding; minutes of compiling at the start)"""
+    """torch.compile the networks' forward passes (same losses up to float rounding; minutes of compiling at the
+    start; the recurrent core's steps are called directly and stay eager)"""
     amp: Literal["auto", "on", "off"] = "auto"
     """bfloat16 autocast of the update's forward passes (losses stay float32); auto: on a CUDA device with
     bfloat16 in hardware (Ampere or newer), off elsewhere"""
     runs_dir: str = "runs"
     """directory holding the run directories `{env_id}__{exp_name}__{seed}__{time}`"""
     resume: str | None = None
-    """continue a run: its run directory or a checkpoint file (saved args and counters are used)"""
+    """continue a run: its run directory or a checkpoint file, with its saved args and counters (flags given again
+    override them, except those that fix the networks' shapes or what the run is: those are refused)"""
     checkpoint: str | None = None
     """start the agents' networks and optimisers from this checkpoint (e.g. a single-stage best.pt for ghost), and
-    their replays from the replay saved beside it"""
+    their replays from the replay saved beside it; the checkpoint's network sizes replace any given, and car i
+    takes its agent i mod its number of agents"""
     fresh_replay: bool = False
     """--checkpoint: start with empty replays instead of the one saved beside the checkpoint"""
     stage: Literal["single", "ghost", "race"] = "race"
@@ -145,7 +148,7 @@ class Args:
     train_steps_per_episode: int = 200
     """updates per agent after every finished race"""
     replay_capacity: int = 100_000
-    """replay buffer capacity per agent, in steps"""
+    """replay buffer capacity per agent, in decisions (each --action-repeat env steps)"""
     eval_every: int = 20
     """evaluate every this many races (--eval-policy on held-out tracks); best.pt keeps the best"""
     eval_episodes: int = 10
@@ -182,9 +185,9 @@ class Args:
     batch_size: int = 50
     """B: sequences per update"""
     seq_len: int = 50
-    """L: length of every sampled sequence"""
+    """L: decisions in every sampled sequence"""
     imagination_horizon: int = 15
-    """H: imagined steps per start"""
+    """H: imagined decisions per start"""
     imagination_starts: int = 0
     """imagination starts per update, a random subset of the B*L posterior states (0: all B*L, ours; the paper
     authors' code: 100)"""
