@@ -532,7 +532,7 @@ def twohot(x: torch.Tensor, bins: torch.Tensor) -> torch.Tensor:
     """Two-hot encoding (..., K) of x (...): x clipped to the bins' range, its mass split between the two bins
     around it in proportion to nearness, so that the encoding's mean sum_k w_k b_k is x."""
     x = x.detach().float().clamp(bins[0], bins[-1])
-    upper = torch.bucketize(x, bins).clamp(1, len(bins) - 1)  # bins[upper - 1] < x <= bins[upper]
+    upper = torch.bucketize(x, bins).clamp(1, len(bins) - 1)  # bins[upper - 1] <= x <= bins[upper]
     low, high = bins[upper - 1], bins[upper]
     weight_high = (x - low) / (high - low)
     encoding = torch.zeros(*x.shape, len(bins), device=x.device)
@@ -1330,6 +1330,14 @@ def start_race(run) -> tuple[np.ndarray, int]:
     return run.envs.reset(), seed
 
 
+def record_ghost(run, final_info: dict, track_seed: int) -> None:
+    """The ghost stage (paper): each ghost track's ghost is the agent's first run on it, replaced by every run that
+    beats it (finishes earlier or, if neither finishes, has touched more tiles: envs.ghost_beaten), so the agent
+    always races its own best run on that track."""
+    if track_seed not in run.ghosts or final_info.get("ghost_beaten"):
+        run.ghosts[track_seed] = final_info["trajectory"].to_dict()
+
+
 def main(args: Args, overrides=()) -> str:
     """Train with `args` (Algorithm 1); returns the run directory. With args.resume the run continues with the
     settings it was started with, except the fields named in `overrides`, which come from `args`.
@@ -1359,6 +1367,8 @@ def main(args: Args, overrides=()) -> str:
             for j, car in enumerate(race.cars):
                 run.replays[j].add_episode(*car.arrays())
             run.counters["episode"] += 1
+            if args.stage == "ghost":
+                record_ghost(run, race.cars[0].final_info or {}, track_seed)
             log_race(run, race.cars, track_seed, env_sps)
             if args.env_id == "multi_car_racing":
                 run.envs.env_method("set_dead_zone", next_dead_zone(args, run.counters["episode"]))

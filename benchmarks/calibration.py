@@ -67,7 +67,9 @@ def calibrate_checkpoint(path: str, first_track: int = TRACKS["fresh"][0], track
     realised: the critic is optimistic; imagined > real: the actor gets more reward in the model than on the road.
     And the races that ended in an elimination (``eliminations``, ``elimination_reasons``: the env's reasons), on
     their terminal frame itself: the real reward (the penalty), the reward head's mean and sigma there and the
-    continue head's probability, against the reward head's median sigma over all frames (``reward_sigma``)."""
+    continue head's probability, against the reward head's median sigma over all frames (``reward_sigma``; of a
+    two-hot head the std of its softmax, which the tiny mass on its +-4.9e8 bins dominates: not a Gaussian's sigma,
+    compare its means instead)."""
     import torch
 
     from utils.checkpoint import read_checkpoint

@@ -1259,3 +1259,32 @@ def test_dead_zone_of_the_next_race_is_set_before_its_reset(script):
         assert script.next_dead_zone(args, 2) == script.dead_zone_at(2 + ahead, args) == -1.0 + 0.5 * (2 + ahead) / 4
     # the schedule is a warm-up for learning from scratch: agents that start trained race at its end from race 0
     assert script.dead_zone_at(0, tiny_args(script, checkpoint="best.pt", dead_zone_start=-1.0)) == -0.5
+
+
+def test_a_ghost_is_the_agents_first_run_on_its_track_until_a_run_beats_it(script):
+    """The ghost stage's rule (record_ghost): the first run on a ghost track becomes its ghost; a run that does not
+    beat it leaves it; a run that beats it (envs.ghost_beaten) replaces it; each track keeps its own."""
+    run = types.SimpleNamespace(ghosts={})
+
+    def final_info(name, **beaten):
+        return {"trajectory": types.SimpleNamespace(to_dict=lambda: {"run": name}), **beaten}
+
+    script.record_ghost(run, final_info("first"), 20_000)  # no ghost yet: the env reports no ghost_beaten
+    script.record_ghost(run, final_info("slower", ghost_beaten=False), 20_000)
+    script.record_ghost(run, final_info("other track"), 20_001)
+    assert run.ghosts == {20_000: {"run": "first"}, 20_001: {"run": "other track"}}
+    script.record_ghost(run, final_info("faster", ghost_beaten=True), 20_000)
+    assert run.ghosts == {20_000: {"run": "faster"}, 20_001: {"run": "other track"}}
+
+
+def test_a_checkpoint_that_brings_two_hot_heads_is_checked_again(script, tmp_path):
+    """--checkpoint brings its networks' form: a two-hot checkpoint makes a two-hot run, so the two-hot checks apply
+    to it even when the command line asked for Gaussian heads (its --reward-nll-beta would fail at the first update,
+    after the prefill races)."""
+    args = script.Args(heads="twohot", runs_dir=str(tmp_path), **E2E)
+    agent = script.Agent(args)
+    path = str(tmp_path / "twohot.pt")
+    ckpt.save_checkpoint(path, script.VARIANT, args, [agent], {"episode": 0, "global_step": 0})
+    with pytest.raises(ckpt.UsageError, match="^--reward-nll-beta .*--heads twohot"):
+        script.main(script.Args(checkpoint=path, reward_nll_beta=0.5, runs_dir=str(tmp_path / "run"), **E2E))
+    assert not (tmp_path / "run").exists()

@@ -126,8 +126,8 @@ def test_the_twohot_nll_is_the_cross_entropy_with_the_encoding_and_uniform_logit
 
 def test_a_twohot_head_learns_the_mean_of_a_target_with_a_rare_minus_100(script):
     """Targets +3 with probability 0.95 and -100 with 0.05 at one input: the head's mean goes to their mean,
-    0.95 * 3 - 0.05 * 100 = -2.15, with 5% of its mass below -50 (the -100 is a mode of its own; a Gaussian head fits
-    that mean with a sigma of ~16)."""
+    0.95 * 3 - 0.05 * 100 = -2.15, with 5% of its mass below -50 (the -100 is a mode of its own; a Gaussian head
+    fits that mean by widening its sigma, to sqrt(0.95 * 0.05) * 103 = 22.4 at its optimum)."""
     torch.manual_seed(0)
     head = script.ScalarHead(4, [32], "layer", "twohot")
     features = torch.randn(1, 4).expand(100, 4)

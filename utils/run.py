@@ -342,6 +342,7 @@ def setup_run(method, args, overrides=()) -> Run:
         run_dir = os.path.dirname(os.path.dirname(os.path.abspath(checkpoint_path)))
     else:
         args, start = new_run_args(method, args)
+        validate_args(args, method.LOG_SIGMA_RANGE)  # again: a --checkpoint brings its networks' form (--heads)
         run_dir = os.path.join(args.runs_dir, make_run_name(args.env_id, args.exp_name, args.seed))
     check_replay_memory(args, method.Replay.bytes_per_step(args.image_size))
     if args.malloc_fix:
@@ -496,7 +497,7 @@ def finish_run(run: Run) -> str:
 # --- After every race ------------------------------------------------------------------------
 def log_race(run: Run, cars: list, track_seed: int | None, env_sps: float) -> None:
     """Per car: return, progress, lap time and win rate (race stages; the ghost stage: beating the ghost, whose
-    record is replaced when beaten), and the env steps per second while the cars drove; charts/dead_zone is the
+    record the script's record_ghost keeps), and the env steps per second while the cars drove; charts/dead_zone is the
     schedule at the count of races ended (the next race's dead zone with one race at a time: next_dead_zone)."""
     from envs import race_winners
 
@@ -506,8 +507,6 @@ def log_race(run: Run, cars: list, track_seed: int | None, env_sps: float) -> No
     won = race_winners(final_infos) if len(cars) > 1 and racing else None  # (highway-env has no ranks)
     if args.stage == "ghost":  # a win is beating the ghost (races without a ghost yet do not count)
         won = [bool(final_infos[0]["ghost_beaten"])] if "ghost_beaten" in final_infos[0] else None
-        if track_seed not in run.ghosts or (won and won[0]):  # the first run on the track, or the ghost beaten
-            run.ghosts[track_seed] = final_infos[0]["trajectory"].to_dict()
         logger.record("ghost/track_seed", track_seed)
         logger.record("ghost/ghosts_recorded", len(run.ghosts))
     for j, car in enumerate(cars):
