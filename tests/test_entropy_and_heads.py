@@ -80,6 +80,21 @@ def test_a_fixed_head_sigma_makes_the_reward_and_critic_losses_squared_errors(sc
         assert not torch.equal(learned.critic.dist(features).std, torch.ones_like(std))
 
 
+def one_step_behaviour(script, agent, monkeypatch, features, samples=None):
+    """agent.behaviour_losses on a one-step imagination fixed by hand: features (2, 1, F) are s_0 and s_1, the
+    reward r_1 is column 0 of s_1 and the slow critic's value column 1 (of s_0 and s_1), continue 1, log pi -1, the
+    sampled actions `samples`, one start that is not terminal."""
+    monkeypatch.setattr(
+        script, "imagine_rollout", lambda *a: (features, torch.full((1, 1), -1.0), samples, torch.ones(1, 1, 2))
+    )
+    monkeypatch.setattr(agent, "start_states", lambda post, terminated: (None, None, None, torch.ones(1)))
+    agent.world_model.reward = ColumnHead(0)
+    agent.world_model.cont = ConstantHead(100.0)
+    agent.targets["critic"] = ColumnHead(1)
+    post = {"z": torch.randn(1, 2, TINY["latent_size"]), "h": torch.randn(1, 2, TINY["deter_size"])}  # 2: BatchNorm
+    return agent.behaviour_losses(post, torch.zeros(1, 1))
+
+
 def hand_twohot(x: float, bins: np.ndarray) -> np.ndarray:
     """The two-hot encoding by hand, in float64: the two bins around x, weights by linear interpolation."""
     x = min(max(x, bins[0]), bins[-1])
@@ -163,15 +178,7 @@ def test_twohot_agents_start_at_zero_learn_and_regress_the_critic_on_its_slow_co
     features = torch.zeros(2, 1, size)
     features[0, :, 1] = 7.0
     features[1, :, 0], features[1, :, 1] = 3.0, 4.0
-    monkeypatch.setattr(
-        script, "imagine_rollout", lambda *a: (features, torch.full((1, 1), -1.0), None, torch.ones(1, 1, 2))
-    )
-    monkeypatch.setattr(agent, "start_states", lambda post, terminated: (None, None, None, torch.ones(1)))
-    agent.world_model.reward = ColumnHead(0)
-    agent.world_model.cont = ConstantHead(100.0)
-    agent.targets["critic"] = ColumnHead(1)
-    post = {"z": torch.randn(1, 2, TINY["latent_size"]), "h": torch.randn(1, 2, TINY["deter_size"])}  # 2: BatchNorm
-    _, critic_loss, metrics = agent.behaviour_losses(post, torch.zeros(1, 1))
+    _, critic_loss, metrics = one_step_behaviour(script, agent, monkeypatch, features)
     assert metrics["imagined_return"].item() == pytest.approx(5.25)
     bins = agent.critic.net.bins.double().numpy()
     soft = torch.tensor(np.stack([hand_twohot(5.25, bins), hand_twohot(7.0, bins)]), dtype=torch.float32)
@@ -226,15 +233,7 @@ def test_the_action_penalty_reweighs_the_extreme_action_term_of_the_bonus(script
     size = TINY["latent_size"] + TINY["deter_size"]
     features = torch.zeros(2, 1, size)
     features[1, :, 0], features[1, :, 1] = 3.0, 4.0
-    log_pi = torch.full((1, 1), -1.0)
-    samples = torch.full((1, 1, 2), 0.5)
-    monkeypatch.setattr(script, "imagine_rollout", lambda *a: (features, log_pi, samples, torch.ones(1, 1, 2)))
-    monkeypatch.setattr(agent, "start_states", lambda post, terminated: (None, None, None, torch.ones(1)))
-    agent.world_model.reward = ColumnHead(0)
-    agent.world_model.cont = ConstantHead(100.0)
-    agent.targets["critic"] = ColumnHead(1)
-    post = {"z": torch.randn(1, 2, TINY["latent_size"]), "h": torch.randn(1, 2, TINY["deter_size"])}  # 2: BatchNorm
-    _, _, metrics = agent.behaviour_losses(post, torch.zeros(1, 1))
+    _, _, metrics = one_step_behaviour(script, agent, monkeypatch, features, samples=torch.full((1, 1, 2), 0.5))
     term = 2 * -math.log(1 - math.tanh(0.5) ** 2 + 1e-6)
     beta = 0.25 if penalty is None else penalty
     expected = 3.0 + 0.25 + (0.25 - beta) * term + 0.5 * 4.0
