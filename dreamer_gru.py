@@ -155,9 +155,9 @@ class Args:
     """races per evaluation (ours)"""
     eval_policy: Literal["deterministic", "mean-action", "stochastic"] = "mean-action"
     """evaluation's policy: deterministic = posterior mean z and mean action; mean-action = sampled z, mean action;
-    stochastic = sampled z and action (the policy that was optimised). The mean action by default: after 8,000
-    updates it drove better than the sampled action in five of six runs, a weak result (docs/learning.md); early
-    in training the mean-action car can stall where the sampled one drives"""
+    stochastic = sampled z and action (the policy that was optimised). The mean action by default, as a rule over
+    earlier runs chose it (docs/learning.md#the-evaluation-policy: a choice, not a finding that it drives better);
+    early in training the mean-action car can stall where the sampled one drives"""
     eval_checkpoints: bool = False
     """also keep checkpoints/eval_<race>.pt at every evaluation (the policy as evaluated, for later analysis)"""
     eval_seed: int = 10_000
