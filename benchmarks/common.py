@@ -15,7 +15,7 @@ import fcntl
 import json
 import os
 import tempfile
-from typing import Callable, Iterable
+from typing import Callable, Iterable, TextIO
 
 TRACKS = {
     # every run's own evaluations during training (--eval-every): they choose its best.pt
@@ -40,17 +40,18 @@ def checkpoint_updates(checkpoint: dict) -> int:
     return int(checkpoint["agents"][0]["num_updates"])
 
 
-def write_json(path: str, data) -> None:
-    """Write `data` as indented JSON to `path` atomically: a temporary file of its own (two writers never share
-    one), flushed to disk, replaces it once whole, so a reader or a kill never sees half of it. The file gets the
-    permissions ``open`` would give it (mkstemp's are the owner's alone)."""
+def replace_file(path: str, write: Callable[[TextIO], None], newline: str | None = None) -> None:
+    """Write the text file `path` atomically: write(f) into a temporary file of its own beside it (two writers never
+    share one), flushed to disk, which replaces `path` once whole, so a reader or a kill never sees half of it. An
+    error leaves `path` as it was and no temporary file. The file gets the permissions ``open`` would give it
+    (mkstemp's are the owner's alone)."""
     fd, tmp = tempfile.mkstemp(dir=os.path.dirname(os.path.abspath(path)), suffix=".tmp")
     try:
         umask = os.umask(0)
         os.umask(umask)
         os.fchmod(fd, 0o666 & ~umask)
-        with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=1)
+        with os.fdopen(fd, "w", newline=newline) as f:
+            write(f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -58,6 +59,11 @@ def write_json(path: str, data) -> None:
         with contextlib.suppress(OSError):  # (the error to raise is the write's)
             os.remove(tmp)
         raise
+
+
+def write_json(path: str, data) -> None:
+    """Write `data` as indented JSON to `path` atomically (replace_file)."""
+    replace_file(path, lambda f: json.dump(data, f, indent=1))
 
 
 def track_block(first: int, count: int) -> str:
@@ -89,19 +95,15 @@ def read_table(
 
 
 def write_table(path: str, rows: Iterable[dict], columns) -> None:
-    """Write `rows` under the header `columns` as the CSV at `path` (no rows: the header alone), atomically: a
-    temporary file replaces it once whole, so a reader or a kill never sees half a table. A row with a field outside
-    `columns` raises csv's ValueError and leaves the file as it was."""
-    f = open(path + ".tmp", "w", newline="")  # (an open that fails leaves nothing to remove: its error is raised)
-    try:
-        with f:
-            writer = csv.DictWriter(f, fieldnames=list(columns))
-            writer.writeheader()
-            writer.writerows(rows)
-    except BaseException:
-        os.remove(path + ".tmp")
-        raise
-    os.replace(path + ".tmp", path)
+    """Write `rows` under the header `columns` as the CSV at `path` (no rows: the header alone), atomically
+    (replace_file). A row with a field outside `columns` raises csv's ValueError and leaves the file as it was."""
+
+    def write(f: TextIO) -> None:
+        writer = csv.DictWriter(f, fieldnames=list(columns))
+        writer.writeheader()
+        writer.writerows(rows)
+
+    replace_file(path, write, newline="")
 
 
 def replace_rows(

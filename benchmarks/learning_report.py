@@ -22,7 +22,7 @@ import re
 
 import numpy as np
 
-from common import track_block, write_table
+from common import track_block, write_json, write_table
 from learning import RESULTS, RUNS, eval_curve, learning_runs, progress_rows
 
 # The lines the figure and table draw: the 8,000-update protocol's bar on a learning run's mean evaluation return
@@ -66,8 +66,7 @@ def baselines(
             progress.append(infos["car_0"]["progress"])
         results[reference] = {"eval_return": float(np.mean(returns)), "eval_progress": float(np.mean(progress))}
     os.makedirs(results_dir, exist_ok=True)
-    with open(path, "w") as f:
-        json.dump({**results, "tracks": tracks}, f, indent=2)
+    write_json(path, {**results, "tracks": tracks})  # atomic: final_protocol.py reads it as a cache
     return results
 
 

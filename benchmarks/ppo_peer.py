@@ -171,11 +171,6 @@ def atomic_save(save, path: str) -> None:
     os.replace(root + ".tmp" + ext, path)
 
 
-def write_json(data: dict, path: str) -> None:
-    with open(path, "w") as f:
-        json.dump(data, f)
-
-
 def sitting_seed(seed: int, env_steps: int) -> int:
     """The seed of a sitting that continues run `seed` at `env_steps`. Loading a model reseeds it with the run's seed
     (SB3's set_random_seed: python, numpy, torch, the action space and the envs' next reset), so without a seed of its
@@ -242,7 +237,7 @@ def train(
         )  # fmt: skip
         atomic_save(model.save, paths["model.zip"])
         atomic_save(norm.save, paths["vecnormalize.pkl"])
-        atomic_save(lambda tmp: write_json(record, tmp), paths["record.json"])
+        common.write_json(paths["record.json"], record)
         steps = record["updates"] * config["n_steps"] * config["n_envs"] // config["batch_size"]
         print(f"{record['env_steps']} env steps, {record['updates']} epochs ({steps} gradient steps), "
               f"{record['cpu_hours']:.2f} CPU-h")  # fmt: skip

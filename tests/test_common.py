@@ -36,7 +36,7 @@ def test_a_row_replaces_the_row_of_its_key_and_the_table_is_sorted(tmp_path):
     table = common.replace_rows(path, [{"seed": 12, "tracks": "a", "value": 5}], COLUMNS, key)
     assert read(path) == [("3", "a", "2"), ("12", "a", "5")]  # 3 before 12: the key's order, not the text's
     assert [int(r["seed"]) for r in table] == [3, 12]
-    assert not os.path.exists(path + ".tmp")
+    assert not [name for name in os.listdir(tmp_path) if name.endswith(".tmp")]  # no temporary file left
 
 
 def test_a_file_of_other_columns_is_refused_and_left_as_it_is(tmp_path):
@@ -55,7 +55,7 @@ def test_a_row_with_a_field_outside_the_columns_is_refused_and_the_file_left_as_
     common.replace_rows(path, [{"seed": 1, "tracks": "a", "value": 0}], COLUMNS, key)
     with pytest.raises(ValueError, match="fields not in fieldnames"):
         common.replace_rows(path, [{"seed": 2, "tracks": "a", "value": 0, "typo": 1}], COLUMNS, key)
-    assert read(path) == [("1", "a", "0")] and not os.path.exists(path + ".tmp")
+    assert read(path) == [("1", "a", "0")] and not [name for name in os.listdir(tmp_path) if name.endswith(".tmp")]
 
 
 def test_an_old_row_without_a_column_takes_its_default_before_the_key_sees_it(tmp_path):
@@ -107,19 +107,20 @@ def test_a_whole_table_is_written_at_once_or_not_at_all(tmp_path):
     assert open(path).read() == before and os.listdir(tmp_path) == ["table.csv"]
     common.write_table(path, [], ("seed", "score"))  # no rows: the header alone
     assert open(path).read().splitlines() == ["seed,score"]
-    full = OSError(28, "No space left on device")  # an open that fails: its own error, not one of the clean-up's
+    full = OSError(28, "No space left on device")  # a write that fails: its own error, not one of the clean-up's
 
     def refuse(*args, **kwargs):
         raise full
 
     monkeypatch_open = pytest.MonkeyPatch()
-    monkeypatch_open.setattr(common, "open", refuse, raising=False)
+    monkeypatch_open.setattr(common.os, "fdopen", refuse)
     try:
         with pytest.raises(OSError) as raised:
             common.write_table(path, [{"seed": 5, "score": 0.0}], ("seed", "score"))
     finally:
         monkeypatch_open.undo()
     assert raised.value is full and open(path).read().splitlines() == ["seed,score"]
+    assert os.listdir(tmp_path) == ["table.csv"]  # the temporary file is gone
 
 
 def test_a_json_file_is_written_whole_with_the_permissions_open_gives(tmp_path):
