@@ -87,11 +87,11 @@ class Args:
     """directory holding the run directories `{env_id}__{exp_name}__{seed}__{time}`"""
     resume: str | None = None
     """continue a run: its run directory or a checkpoint file, with its saved args and counters (flags given again
-    override them, except those that fix the networks' shapes or what the run is: those are refused)"""
+    override them, except that a change to what fixes the networks or what the run is, is refused)"""
     checkpoint: str | None = None
     """start the agents' networks and optimisers from this checkpoint (e.g. a single-stage best.pt for ghost), and
-    their replays from the replay saved beside it; the checkpoint's network sizes replace any given, and car i
-    takes its agent i mod its number of agents"""
+    their replays from the replay saved beside it; the checkpoint's network sizes and form (--norm, --heads)
+    replace any given, and car i takes its agent i mod its number of agents"""
     fresh_replay: bool = False
     """--checkpoint: start with empty replays instead of the one saved beside the checkpoint"""
     stage: Literal["single", "ghost", "race"] = "race"

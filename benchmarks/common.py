@@ -47,10 +47,15 @@ def replace_file(path: str, write: Callable[[TextIO], None], newline: str | None
     (mkstemp's are the owner's alone)."""
     fd, tmp = tempfile.mkstemp(dir=os.path.dirname(os.path.abspath(path)), suffix=".tmp")
     try:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.fchmod(fd, 0o666 & ~umask)
-        with os.fdopen(fd, "w", newline=newline) as f:
+        try:
+            umask = os.umask(0)
+            os.umask(umask)
+            os.fchmod(fd, 0o666 & ~umask)
+            f = os.fdopen(fd, "w", newline=newline)
+        except BaseException:
+            os.close(fd)  # (once fdopen has it, closing f closes it)
+            raise
+        with f:
             write(f)
             f.flush()
             os.fsync(f.fileno())

@@ -107,7 +107,7 @@ def test_a_whole_table_is_written_at_once_or_not_at_all(tmp_path):
     assert open(path).read() == before and os.listdir(tmp_path) == ["table.csv"]
     common.write_table(path, [], ("seed", "score"))  # no rows: the header alone
     assert open(path).read().splitlines() == ["seed,score"]
-    full = OSError(28, "No space left on device")  # a write that fails: its own error, not one of the clean-up's
+    full = OSError(28, "No space left on device")  # a file that cannot be opened: its own error, not the clean-up's
 
     def refuse(*args, **kwargs):
         raise full
