@@ -511,13 +511,8 @@ def gaussian_params(out: torch.Tensor, min_std: float) -> tuple[torch.Tensor, to
     return mean, F.softplus(raw_std) + min_std
 
 
-def symlog(x: torch.Tensor) -> torch.Tensor:
-    """sign(x) log(1 + |x|) (DreamerV3): ~x near 0, logarithmic in |x|."""
-    return torch.sign(x) * torch.log1p(x.abs())
-
-
 def symexp(x: torch.Tensor) -> torch.Tensor:
-    """sign(x) (exp(|x|) - 1): the inverse of symlog."""
+    """sign(x) (exp(|x|) - 1): the inverse of DreamerV3's symlog(x) = sign(x) log(1 + |x|)."""
     return torch.sign(x) * torch.expm1(x.abs())
 
 
