@@ -71,12 +71,18 @@ def evaluate_checkpoint(path: str, first_track: int = 10_000, tracks: int = 10, 
     return out
 
 
+def track_means(per_track: dict[str, list[float]]) -> dict[str, float]:
+    """The mean over the tracks of each reading of one policy (evaluate_checkpoint's answer for that policy)."""
+    return {key: float(np.mean(values)) for key, values in per_track.items()}
+
+
 def table(results: dict[str, dict[str, list[float]]]) -> str:
     """Markdown: one row per policy, the mean over tracks of every reading."""
     keys = list(next(iter(results.values())))
     lines = ["| policy | " + " | ".join(keys) + " |", "|---|" + "---|" * len(keys)]
     for policy, readings in results.items():
-        lines.append(f"| {policy} | " + " | ".join(f"{np.mean(readings[k]):.2f}" for k in keys) + " |")
+        means = track_means(readings)
+        lines.append(f"| {policy} | " + " | ".join(f"{means[k]:.2f}" for k in keys) + " |")
     return "\n".join(lines)
 
 

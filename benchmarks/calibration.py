@@ -11,8 +11,7 @@ import os
 
 import numpy as np
 
-from common import TRACKS, checkpoint_updates, replace_rows, track_block
-from learning import RESULTS
+from common import RESULTS, TRACKS, checkpoint_updates, replace_rows, track_block
 
 
 CALIBRATION_COLUMNS = (

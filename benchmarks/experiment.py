@@ -56,8 +56,9 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import learning  # noqa: E402  (the single stage is the learning benchmark's run)
-from common import checkpoint_updates, write_json  # noqa: E402
-RESULTS = learning.RESULTS
+from common import RESULTS, checkpoint_updates, write_json  # noqa: E402
+from runs import cpu_hours_of, experiment_name, numerical_stop, run_of, updates_of  # noqa: E402
+
 TOURNAMENT_SEED = 7_777  # held-out tracks of the tournaments (training races use the pair's seed)
 NO_UPDATE_TARGET = 10**12  # the update target of a trial that a CPU budget ends (--single-cpu-hours)
 
@@ -148,12 +149,6 @@ def trial_dir(spec: dict, stage: str, variant: str, seed: int) -> str:
     return os.path.join(spec["storage"], "trials", trial_label(stage, variant, seed))
 
 
-def run_of(directory: str) -> str | None:
-    """The run directory of a trial that has a checkpoint (a run killed before its first checkpoint is ignored)."""
-    runs = sorted(glob.glob(os.path.join(directory, "*", "checkpoints", "latest.pt")))
-    return os.path.dirname(os.path.dirname(runs[-1])) if runs else None
-
-
 def start_checkpoint(spec: dict, stage: str, variant: str, seed: int, name: str) -> str:
     """checkpoints/<name> of the finished `stage` trial a later stage starts from, or an error naming what is
     missing (on a cluster: a worker whose node does not see the driver's --storage)."""
@@ -222,7 +217,7 @@ def trial_args(spec: dict, stage: str, variant: str, seed: int):
         plain = plain and spec["torch_threads"] == learning.LEARNING_CONFIG["torch_threads"]
         plain = plain and spec["eval_policy"] in (script.Args().eval_policy, "stochastic")
         args = script.preset_args(
-            spec["preset"], exp_name=learning.experiment_name(variant) if plain else f"{variant}_single",
+            spec["preset"], exp_name=experiment_name(variant) if plain else f"{variant}_single",
             **{**learning.LEARNING_CONFIG, **settings},
         )  # fmt: skip
     else:  # ghost, or its control: from the single trial's best.pt, for as many updates
@@ -280,23 +275,6 @@ def dreamer_trial(config: dict) -> None:
         if done >= end:
             return
         goal = max(goal, done) + spec["report_every"]
-
-
-def updates_of(path: str, script) -> int:
-    """The updates the checkpoint at `path` has made (checkpoint_updates)."""
-    return checkpoint_updates(script.load_checkpoint(path))
-
-
-def cpu_hours_of(checkpoint: dict) -> float:
-    """The process CPU-hours a run had spent over all its sittings when it saved `checkpoint` (its "extra")."""
-    return float((checkpoint.get("extra") or {}).get("cpu_seconds", 0.0)) / 3600
-
-
-def numerical_stop(checkpoint: dict) -> bool:
-    """Whether the run of `checkpoint` was stopped by the dreamer scripts' guard: an agent had
-    --max-nonfinite-updates updates in a row with a non-finite loss or gradient (utils.run.NumericalFault)."""
-    limit = (checkpoint.get("args") or {}).get("max_nonfinite_updates")
-    return limit is not None and any(agent.get("nonfinite_in_a_row", 0) >= limit for agent in checkpoint["agents"])
 
 
 def latest_metrics(run: str) -> dict:

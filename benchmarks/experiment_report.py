@@ -17,8 +17,9 @@ import common
 import learning
 from experiment import (
     Spec, progress_text, race_tournament, tournament_checkpoints, tournament_metrics, tournament_racers,
-    trial_dir, trial_kinds, trial_label, trial_progress, updates_of,
+    trial_dir, trial_kinds, trial_label, trial_progress,
 )  # fmt: skip
+from runs import updates_of
 
 GHOST_COLUMNS = ("variant", "seed", "updates_at_start", "updates", "return_before", "return_after_ghost",
                  "return_after_control")  # fmt: skip

@@ -52,13 +52,14 @@ import os
 
 import numpy as np
 
+import evaluate
 import readings
 from common import (
-    PROTOCOL_CPU_HOURS, TRACKS, checkpoint_updates, read_table, replace_rows, track_block, write_table,
+    PROTOCOL_CPU_HOURS, RESULTS, TRACKS, checkpoint_updates, read_table, replace_rows, track_block, write_table,
 )  # fmt: skip
-from learning import RESULTS, VARIANTS, eval_curve, eval_summary, training_hours
 from learning_report import baselines
 from ppo_peer import ALGOS as PEER_ALGOS, COLUMNS as PEER_CSV_COLUMNS, CURVE_COLUMNS, read_rows as read_peer_csv
+from runs import VARIANTS, cpu_hours_of, eval_curve, eval_summary, numerical_stop, run_of, training_hours
 
 # --- The protocol ----------------------------------------------------------------------------
 # Each run is a single-stage trial of benchmarks/experiment.py trained until it has spent PROTOCOL_CPU_HOURS of
@@ -103,10 +104,8 @@ def protocol_peer_path(peer: str, results_dir: str = RESULTS, curve: bool = Fals
 
 def protocol_run(variant: str, seed: int, runs_dir: str) -> str:
     """The run directory of the protocol's trial of `variant` and `seed`: the latest run with a latest.pt under
-    ``<runs_dir>/single_<variant>_seed<S>/`` (experiment.py's trial_dir and run_of, ``runs_dir`` its
+    ``<runs_dir>/single_<variant>_seed<S>/`` (experiment.py's trial_dir, runs.run_of, ``runs_dir`` its
     ``<storage>/trials``)."""
-    from experiment import run_of  # (the experiment driver: loaded only when a row is measured)
-
     trial = os.path.join(runs_dir, f"single_{variant}_seed{seed}")
     run = run_of(trial)
     if run is None:
@@ -120,19 +119,12 @@ def protocol_cpu_hours(run: str, checkpoint: dict) -> float:
     PROTOCOL_CPU_HOURS is refused (ValueError naming the run, its CPU-hours and updates: no final policy yet),
     unless the scripts' non-finite guard stopped it (numerical_stop): every seed counts, so its last policy is its
     final one, and its row's CPU-hours show it stopped short (protocol_seeds says so)."""
-    from experiment import cpu_hours_of, numerical_stop
-
     hours = cpu_hours_of(checkpoint)
     if hours < PROTOCOL_CPU_HOURS and not numerical_stop(checkpoint):
         updates = checkpoint_updates(checkpoint)
         raise ValueError(f"{run} has spent {hours:.2f} of its {PROTOCOL_CPU_HOURS} CPU-hours ({updates} updates): "
                          f"not a final policy yet")  # fmt: skip
     return hours
-
-
-def track_means(per_track: dict[str, list[float]]) -> dict[str, float]:
-    """The mean over the tracks of each reading of one policy (evaluate.evaluate_checkpoint's per-track values)."""
-    return {key: float(np.mean(values)) for key, values in per_track.items()}
 
 
 def protocol_row(variant: str, seed: int, runs_dir: str) -> dict:
@@ -153,13 +145,12 @@ def protocol_measure(variant: str, seed: int, runs_dir: str) -> tuple[dict, dict
         raise ValueError(f"the final protocol's seeds are {', '.join(map(str, PROTOCOL_SEEDS))}, got {seed}")
     run = protocol_run(variant, seed, runs_dir)
     latest = os.path.join(run, "checkpoints", "latest.pt")
-    import evaluate
     from utils.checkpoint import read_checkpoint
 
     checkpoint = read_checkpoint(latest)[1]
     cpu_hours = protocol_cpu_hours(run, checkpoint)
     driven = evaluate.evaluate_checkpoint(latest, *REPORT_TRACKS, PROTOCOL_POLICIES)
-    sampled, mean_action = (track_means(driven[policy]) for policy in PROTOCOL_POLICIES)
+    sampled, mean_action = (evaluate.track_means(driven[policy]) for policy in PROTOCOL_POLICIES)
     best_eval, last3_eval = eval_summary(eval_curve(run))
     row = {
         "variant": variant, "seed": seed, "updates": checkpoint_updates(checkpoint),
@@ -706,7 +697,6 @@ def ship_rows(variant: str, runs_dir: str, shipped: str, seeds: tuple[int, ...] 
     not stopped by the non-finite guard: protocol_cpu_hours)
     driven with SHIP_POLICY on SHIP_TRACKS: one row each (SHIP_COLUMNS, ``shipped`` False), the shipped agent first.
     A missing shipped file is a candidate that lost already."""
-    import evaluate
     from utils.checkpoint import read_checkpoint
 
     candidates = []
@@ -717,7 +707,7 @@ def ship_rows(variant: str, runs_dir: str, shipped: str, seeds: tuple[int, ...] 
         candidates.append((f"seed {seed}", latest))
     rows = []
     for name, path in ([("shipped", shipped)] if os.path.exists(shipped) else []) + candidates:
-        means = track_means(evaluate.evaluate_checkpoint(path, *SHIP_TRACKS, (SHIP_POLICY,))[SHIP_POLICY])
+        means = evaluate.track_means(evaluate.evaluate_checkpoint(path, *SHIP_TRACKS, (SHIP_POLICY,))[SHIP_POLICY])
         rows.append({"variant": variant, "candidate": name, "checkpoint": path, "return": round(means["return"], 2),
                      "progress": round(means["progress"], 4), "abs_steer": round(means["abs_steer"], 4),
                      "shipped": False})  # fmt: skip

@@ -33,10 +33,10 @@ The final protocol (CPU budget: per variant the seeds 21..25, each a single-stag
 ``final_protocol.py``, which the ``--protocol-*`` modes call. It replaces the 8,000-update protocol (final policies
 on the tracks 10100..10119), whose files are in ``benchmarks/results/history/8000_updates/``.
 
-This file holds the learning runs (names, settings, what their event files and progress.csv hold), the
-measurement of a saved policy on a block of tracks, the helpers of the final protocol's rows (eval_curve,
-training_hours, eval_summary) and the command line. The rest lives beside it: ``learning_report.py`` (curves,
-table, figure, diagnostics), ``final_protocol.py`` and ``calibration.py``. A saved agent on other tracks, or its
+This file holds the learning runs' settings, the measurement of a saved policy on a block of tracks and the
+command line. The rest lives beside it: ``runs.py`` (where the runs are; what their event files, progress.csv and
+checkpoints hold), ``learning_report.py`` (curves, table, figure, diagnostics), ``final_protocol.py`` and
+``calibration.py``. A saved agent on other tracks, or its
 acting-only export: ``evaluate.py`` at the top level (``python evaluate.py CHECKPOINT --first-track 10100 --tracks
 20``, ``python evaluate.py CHECKPOINT --export OUT``).
 
@@ -46,28 +46,26 @@ acting-only export: ``evaluate.py`` at the top level (``python evaluate.py CHECK
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import glob
 import importlib
 import json
 import os
-import re
 import sys
 from typing import Annotated, Literal
 
-import numpy as np
 import tyro
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import common  # noqa: E402  (the blocks of tracks, the results' CSV rows)
+import final_protocol as protocol  # noqa: E402  (the --protocol-* modes)
+from calibration import calibrate_checkpoint, write_calibration_row  # noqa: E402
+from learning_report import diagnostics, diagnostics_table, report  # noqa: E402
+from runs import RUNS, experiment_name, find_run, learning_runs  # noqa: E402
 
 # --- The protocol ----------------------------------------------------------------------------
 RESULTS = common.RESULTS
-RUNS = os.path.join(ROOT, "runs", "learning")
-VARIANTS = ("lstm", "gru")
 LEARNING_UPDATES = 8000  # a learning run's updates (the 8,000-update protocol's; the final protocol's runs end on CPU
 # time)
 # What the benchmark adds to the scripts' CPU preset (--preset cpu): one car; decisions evaluated on the 10 held-out
@@ -80,24 +78,6 @@ LEARNING_CONFIG = {
     "total_episodes": 1_000_000,  # --updates (or the time limit) ends the run
     "torch_threads": 1,
 }
-
-
-def experiment_name(variant: str) -> str:
-    """The name of a learning run of `variant` (and of experiment.py's default single-stage trial)."""
-    return f"learning_{variant}"
-
-
-def learning_runs(runs_dir: str = RUNS, exp_name: str = "learning_*", seed: int | str = "*") -> list[str]:
-    """Run directories of the learning benchmark under ``runs_dir``, at any depth (benchmarks/experiment.py keeps
-    its single-stage runs, which are these runs, one directory per trial), oldest first."""
-    pattern = os.path.join(runs_dir, "**", f"*__{exp_name}__{seed}__*")
-    runs = [path for path in glob.glob(pattern, recursive=True) if os.path.isdir(path)]
-    return sorted(runs, key=lambda run: (os.path.basename(run).split("__")[-1], run))
-
-
-def find_run(exp_name: str, seed: int, runs_dir: str = RUNS) -> str | None:
-    runs = learning_runs(runs_dir, exp_name, seed)
-    return runs[-1] if runs else None
 
 
 def run_args(variant: str, seed: int, hours: float, resume: bool, updates: int = LEARNING_UPDATES,
@@ -121,89 +101,6 @@ def run_args(variant: str, seed: int, hours: float, resume: bool, updates: int =
 
 
 # --- A run's curve, from its event files and its progress.csv --------------------------------
-EVENT_FILE_PROCESS = re.compile(r"events\.out\.tfevents\.\d+\.(?P<process>.+\.\d+)\.\d+")
-"""The name SB3's TensorBoard logger gives an event file, ``events.out.tfevents.<time>.<host>.<pid>.<n>`` (no
-suffix): host (which may hold dots) and pid name the process that wrote it."""
-
-
-def sittings(run_dir: str) -> list[tuple[list, float, float]]:
-    """Each sitting of a run with anything logged, in the order they ran: its event files as (event accumulator,
-    scalar tags), and its first and last logged wall time.
-
-    A sitting is one process. Each call of a script's ``main`` opens a new event file, and an experiment trial
-    calls it again every few hundred updates in the same process, so consecutive files of one host and pid are
-    one sitting and the time between them counts; the time between processes does not."""
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-
-    out, last_process = [], None
-    for events_file in sorted(glob.glob(os.path.join(run_dir, "events.out.tfevents.*"))):
-        acc = EventAccumulator(events_file, size_guidance={"scalars": 0})
-        acc.Reload()
-        tags = acc.Tags()["scalars"]
-        if not tags:
-            continue
-        wall_times = [e.wall_time for tag in tags for e in acc.Scalars(tag)]
-        match = EVENT_FILE_PROCESS.fullmatch(os.path.basename(events_file))
-        process = match["process"] if match else events_file
-        if out and process == last_process:
-            files, start, end = out[-1]
-            out[-1] = (files + [(acc, tags)], min(start, min(wall_times)), max(end, max(wall_times)))
-        else:
-            out.append(([(acc, tags)], min(wall_times), max(wall_times)))
-        last_process = process
-    return out
-
-
-def training_hours(run_dir: str) -> float:
-    """A run's training time in hours up to its last logged scalar: each sitting from its first logged scalar to its
-    last, added up (the time between sittings does not count), as ``eval_curve``'s hours."""
-    return round(sum(end - start for _, start, end in sittings(run_dir)) / 3600, 4)
-
-
-def eval_curve(run_dir: str) -> list[dict]:
-    """Evaluation points of a run, with the update count and the training hours at each.
-
-    Hours add up the sittings (each from its first logged scalar to its last; see ``sittings``), so the time
-    between sittings does not count."""
-    rows, hours_before = [], 0.0
-    for files, start, end in sittings(run_dir):
-        for acc, tags in files:
-            if "car_0/eval/episodic_return" not in tags:
-                continue
-            progress = (
-                {e.step: e.value for e in acc.Scalars("car_0/eval/progress")} if "car_0/eval/progress" in tags else {}
-            )
-            updates = acc.Scalars("car_0/perf/updates") if "car_0/perf/updates" in tags else []
-            update_steps = np.array([e.step for e in updates])
-            update_values = np.array([e.value for e in updates])
-            for e in acc.Scalars("car_0/eval/episodic_return"):
-                before = update_steps <= e.step
-                rows.append(
-                    {
-                        "env_steps": int(e.step),
-                        "updates": int(update_values[before][-1]) if before.any() else 0,
-                        "wall_hours": round(hours_before + (e.wall_time - start) / 3600, 4),
-                        "eval_return": round(float(e.value), 2),
-                        "eval_progress": round(float(progress.get(e.step, float("nan"))), 4),
-                    }
-                )
-        hours_before += (end - start) / 3600
-    rows.sort(key=lambda row: row["env_steps"])
-    return [row for i, row in enumerate(rows) if i == 0 or row["env_steps"] != rows[i - 1]["env_steps"]]
-
-
-def progress_rows(run_dir: str) -> list[tuple[int, dict]]:
-    """A run's progress.csv rows, each with the updates made when it was logged (0 before the first update)."""
-    with open(os.path.join(run_dir, "progress.csv"), newline="") as f:
-        rows = list(csv.DictReader(f))
-    updates, out = 0, []
-    for row in rows:
-        if row.get("car_0/perf/updates"):
-            updates = int(float(row["car_0/perf/updates"]))
-        out.append((updates, row))
-    return out
-
-
 # --- A saved policy on a block of tracks -----------------------------------------------------
 def policy_summary(
     path: str, first_track: int = common.TRACKS["eval"][0], tracks: int = common.TRACKS["eval"][1],
@@ -217,7 +114,7 @@ def policy_summary(
     having been picked there."""
     if tracks < 1:
         raise ValueError(f"tracks must be >= 1, got {tracks}")
-    from evaluate import evaluate_checkpoint as drive
+    from evaluate import evaluate_checkpoint as drive, track_means
     from utils.checkpoint import read_checkpoint  # one-line errors naming the file
 
     script, checkpoint = read_checkpoint(path)
@@ -226,30 +123,21 @@ def policy_summary(
         raise ValueError(f"policy must be one of {', '.join(script.EVAL_POLICIES)}, got {policy!r}")
     args = script.args_from_checkpoint(checkpoint, path, num_agents=1)
     readings = drive(path, first_track, tracks, (policy,))[policy]
-    returns, progress, abs_steer = (np.asarray(readings[key]) for key in ("return", "progress", "abs_steer"))
+    means = track_means(readings)
     result = {
         "checkpoint": path,
         "variant": variant,
         "updates": common.checkpoint_updates(checkpoint),
         "policy": policy,
         "tracks": common.track_block(first_track, tracks),
-        "eval_return": float(returns.mean()),
-        "eval_progress": float(progress.mean()),
-        "returns": [round(float(r), 2) for r in returns],
-        "progress": [round(float(p), 4) for p in progress],
+        "eval_return": means["return"],
+        "eval_progress": means["progress"],
+        "returns": [round(float(r), 2) for r in readings["return"]],
+        "progress": [round(float(p), 4) for p in readings["progress"]],
     }
     if args.env_id == "multi_car_racing":  # action 0 is the steer there (highway-env: the acceleration)
-        result["mean_abs_steer"] = float(abs_steer.mean())
+        result["mean_abs_steer"] = means["abs_steer"]
     return result
-
-
-def eval_summary(curve: list[dict]) -> tuple[float, float]:
-    """A run's best evaluation return and the mean of its last three (eval_curve's points, its own evaluation
-    tracks 10000..10009), 2 decimals: how far its last policies fell from its best. NaN, NaN without evaluations."""
-    evals = [r["eval_return"] for r in curve]
-    if not evals:
-        return float("nan"), float("nan")
-    return round(max(evals), 2), round(float(np.mean(evals[-3:])), 2)
 
 
 # --- Command line ----------------------------------------------------------------------------
@@ -333,14 +221,10 @@ def run_mode(args: Args) -> bool:
     none. Bad input (no such run, checkpoint or kept policy) raises ValueError naming it."""
     name = experiment_name(args.variant)
     if args.calibrate is not None:
-        from calibration import calibrate_checkpoint, write_calibration_row
-
         row = calibrate_checkpoint(args.calibrate, args.first_track, args.tracks, args.horizon)
         write_calibration_row(row)
         print(json.dumps(row, indent=1))
     elif args.diagnose:
-        from learning_report import diagnostics, diagnostics_table
-
         run = find_run(name, args.seed, args.runs_dir)
         if run is None:  # an experiment.py single-stage trial of its own settings (the final protocol's runs)
             name = f"{args.variant}_single"
@@ -356,13 +240,9 @@ def run_mode(args: Args) -> bool:
             f.write(f"{os.path.basename(run)}\n\n{table}")
         print(table)
     elif args.protocol_ship:
-        import final_protocol as protocol
-
         shipped = os.path.join(ROOT, "pretrained", f"{args.variant}_cpu.pt")
         print(protocol.ship(args.variant, args.runs_dir, shipped, args.results_dir))
     elif args.protocol_row or args.protocol_report:
-        import final_protocol as protocol  # (it imports this file: not at the top)
-
         if args.protocol_row:
             path = os.path.join(args.results_dir, "learning_final.csv")
             why_path = os.path.join(args.results_dir, protocol.WHY_CSV)
@@ -404,8 +284,6 @@ def cli(argv: list[str] | None = None) -> None:
     if sitting is not None:
         script, script_args, overrides = sitting
         script.main(script_args, overrides)
-    from learning_report import report
-
     report(args.runs_dir)
 
 

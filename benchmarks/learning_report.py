@@ -22,8 +22,8 @@ import re
 
 import numpy as np
 
-from common import track_block, write_json, write_table
-from learning import RESULTS, RUNS, eval_curve, learning_runs, progress_rows
+from common import RESULTS, track_block, write_json, write_table
+from runs import RUNS, eval_curve, learning_runs, progress_rows
 
 # The lines the figure and table draw: the 8,000-update protocol's bar on a learning run's mean evaluation return
 # and progress (docs/learning.md).

@@ -21,13 +21,13 @@ final protocol's: its report tracks 10300..10329):
 from __future__ import annotations
 
 import glob
-import json
 import os
 
+import evaluate
 import numpy as np
 from calibration import calibrate_checkpoint
-from common import checkpoint_updates, track_block, write_json, write_table
-from learning import progress_rows
+from common import checkpoint_updates
+from runs import progress_rows
 
 POLICIES = ("stochastic", "mean-action")
 DRIVING = ("return", "progress", "abs_steer", "gas", "brake_share", "speed", "lap_finished", "eliminated")
@@ -72,10 +72,9 @@ def driving(path: str, first_track: int, tracks: int, driven: dict | None = None
     """Per policy, the mean of every DRIVING reading over the tracks: of evaluate.py's evaluate_checkpoint, or of
     `driven`, its answer for this policy and these tracks when it is already in hand."""
     if driven is None:
-        from evaluate import evaluate_checkpoint
-
-        driven = evaluate_checkpoint(path, first_track, tracks, POLICIES)
-    return {policy: {key: round(float(np.mean(r[key])), 4) for key in DRIVING} for policy, r in driven.items()}
+        driven = evaluate.evaluate_checkpoint(path, first_track, tracks, POLICIES)
+    means = {policy: evaluate.track_means({key: r[key] for key in DRIVING}) for policy, r in driven.items()}
+    return {policy: {key: round(value, 4) for key, value in m.items()} for policy, m in means.items()}
 
 
 def training(run_dir: str, updates: int) -> dict[str, float]:
@@ -111,73 +110,3 @@ def measure(path: str, run_dir: str, updates: int, first_track: int, tracks: int
     trained = training(run_dir, updates)
     driven = driving(path, first_track, tracks, driven)
     return {policy: {**values, **trained, **model} for policy, values in driven.items()}
-
-
-def report(sweep) -> str:
-    """Measure every finished trial of `sweep` once (kept in <storage>/<name>/readings.json), write
-    sweep_<name>.csv and .md in --results, and return the markdown table."""
-    import sweep as sweeps
-
-    cache_path = os.path.join(sweep.storage, sweep.name, "readings.json")
-    cache = {}
-    if os.path.exists(cache_path):
-        with open(cache_path) as f:
-            cache = json.load(f)
-    rows, waiting = [], []
-    for config, run, done, hours, finished, stopped in sweeps.trial_status(sweep):
-        name = f"{config['tag']}_{config['variant']}_seed{config['seed']}"
-        if not finished:
-            waiting.append(f"{name} ({sweeps.progress_text(sweep, run, done, hours)})")
-            continue
-        # a budget, or the non-finite guard's stop: latest.pt, where the run ended
-        updates = done if sweep.cpu_hours > 0 or stopped else sweep.updates
-        try:
-            path = checkpoint_at(run, updates)
-        except ValueError as e:  # e.g. updates per race that do not divide --updates: said, not measured
-            waiting.append(f"{name} (no policy kept at {updates} updates: {e})")
-            continue
-        key = f"{os.path.relpath(path, sweep.storage)}@{sweep.first_track}+{sweep.tracks}"
-        if key not in cache or PEDAL[0] not in cache[key][POLICIES[0]]:
-            if key not in cache:
-                cache[key] = measure(path, run, updates, sweep.first_track, sweep.tracks)
-            else:  # readings kept before the PEDAL columns: add them
-                extra = pedal(path, sweep.first_track)
-                cache[key] = {policy: {**values, **extra} for policy, values in cache[key].items()}
-            write_json(cache_path, cache)
-        for policy in POLICIES:
-            rows.append({"tag": config["tag"], "variant": config["variant"], "seed": config["seed"],
-                         "updates": updates, "policy": policy, **cache[key][policy],
-                         "checkpoint": os.path.relpath(path, sweep.storage)})  # fmt: skip
-    os.makedirs(sweep.results, exist_ok=True)
-    base = os.path.join(sweep.results, f"sweep_{sweep.name}")
-    write_table(base + ".csv", rows, COLUMNS)
-    text = table(sweep, rows, waiting)
-    with open(base + ".md", "w") as f:
-        f.write(text)
-    return text
-
-
-def table(sweep, rows: list[dict], waiting: list[str]) -> str:
-    """Markdown: the sweep's command, then one line per trial and policy."""
-    grid = " ".join(f'"{flags}"' for flags in sweep.grid)
-    budget, when = f"--updates {sweep.updates}", f"at {sweep.updates} updates"
-    if sweep.cpu_hours > 0:
-        budget, when = f"--cpu-hours {sweep.cpu_hours:g}", f"when its {sweep.cpu_hours:g} CPU-hours ran out"
-    lines = [
-        f"# Sweep {sweep.name}",
-        "",
-        f"`python benchmarks/sweep.py --name {sweep.name} --grid {grid} --variants {' '.join(sweep.variants)} "
-        f"--seeds {' '.join(map(str, sweep.seeds))} {budget}`, then `--report`: each trial's policy {when} on "
-        f"tracks {track_block(sweep.first_track, sweep.tracks)} (benchmarks/readings.py says what each "
-        "column is).",
-        "",
-    ]  # fmt: skip
-    hidden = ("checkpoint",) if sweep.cpu_hours > 0 else ("updates", "checkpoint")  # (a budget: updates differ)
-    shown = [c for c in COLUMNS if c not in hidden]
-    lines += ["| " + " | ".join(shown) + " |", "|" + "---|" * len(shown)]
-    for row in rows:
-        cells = [f"{row[c]:.2f}" if isinstance(row[c], float) else str(row[c]) for c in shown]
-        lines.append("| " + " | ".join(cells) + " |")
-    if waiting:
-        lines += ["", "Not finished yet: " + ", ".join(waiting) + "."]
-    return "\n".join(lines) + "\n"

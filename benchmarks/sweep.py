@@ -41,6 +41,8 @@ sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import common  # noqa: E402  (the blocks of tracks)
 import experiment  # noqa: E402  (the trials are the experiment's single-stage trials)
+import readings  # noqa: E402  (what a screened policy does and why)
+import runs  # noqa: E402
 
 SCREEN_RESULTS = os.path.join(common.RESULTS, "screening")
 
@@ -139,8 +141,8 @@ def check(sweep: Sweep) -> None:
     if len(set(tags)) != len(tags):
         raise SystemExit(f"sweep.py: --grid has flag sets with the same tag: {tags}")
     for variant in sweep.variants:
-        if variant not in experiment.learning.VARIANTS:
-            raise SystemExit(f"sweep.py: --variants: {variant!r} is not one of {experiment.learning.VARIANTS}")
+        if variant not in runs.VARIANTS:
+            raise SystemExit(f"sweep.py: --variants: {variant!r} is not one of {runs.VARIANTS}")
         script = importlib.import_module(f"dreamer_{variant}")
         for flags in sweep.grid:
             try:
@@ -227,6 +229,75 @@ def run_sweep(sweep: Sweep):
                                  sweep.max_failures)  # fmt: skip
 
 
+# --- The report ------------------------------------------------------------------------------
+def report(sweep: Sweep) -> str:
+    """Measure every finished trial of `sweep` once (kept in <storage>/<name>/readings.json), write
+    sweep_<name>.csv and .md in --results, and return the markdown table."""
+    cache_path = os.path.join(sweep.storage, sweep.name, "readings.json")
+    cache = {}
+    if os.path.exists(cache_path):
+        with open(cache_path) as f:
+            cache = json.load(f)
+    rows, waiting = [], []
+    for config, run, done, hours, finished, stopped in trial_status(sweep):
+        name = f"{config['tag']}_{config['variant']}_seed{config['seed']}"
+        if not finished:
+            waiting.append(f"{name} ({progress_text(sweep, run, done, hours)})")
+            continue
+        # a budget, or the non-finite guard's stop: latest.pt, where the run ended
+        updates = done if sweep.cpu_hours > 0 or stopped else sweep.updates
+        try:
+            path = readings.checkpoint_at(run, updates)
+        except ValueError as e:  # e.g. updates per race that do not divide --updates: said, not measured
+            waiting.append(f"{name} (no policy kept at {updates} updates: {e})")
+            continue
+        key = f"{os.path.relpath(path, sweep.storage)}@{sweep.first_track}+{sweep.tracks}"
+        if key not in cache or readings.PEDAL[0] not in cache[key][readings.POLICIES[0]]:
+            if key not in cache:
+                cache[key] = readings.measure(path, run, updates, sweep.first_track, sweep.tracks)
+            else:  # readings kept before the PEDAL columns: add them
+                extra = readings.pedal(path, sweep.first_track)
+                cache[key] = {policy: {**values, **extra} for policy, values in cache[key].items()}
+            common.write_json(cache_path, cache)
+        for policy in readings.POLICIES:
+            rows.append({"tag": config["tag"], "variant": config["variant"], "seed": config["seed"],
+                         "updates": updates, "policy": policy, **cache[key][policy],
+                         "checkpoint": os.path.relpath(path, sweep.storage)})  # fmt: skip
+    os.makedirs(sweep.results, exist_ok=True)
+    base = os.path.join(sweep.results, f"sweep_{sweep.name}")
+    common.write_table(base + ".csv", rows, readings.COLUMNS)
+    text = report_table(sweep, rows, waiting)
+    with open(base + ".md", "w") as f:
+        f.write(text)
+    return text
+
+
+def report_table(sweep: Sweep, rows: list[dict], waiting: list[str]) -> str:
+    """Markdown: the sweep's command, then one line per trial and policy."""
+    grid = " ".join(f'"{flags}"' for flags in sweep.grid)
+    budget, when = f"--updates {sweep.updates}", f"at {sweep.updates} updates"
+    if sweep.cpu_hours > 0:
+        budget, when = f"--cpu-hours {sweep.cpu_hours:g}", f"when its {sweep.cpu_hours:g} CPU-hours ran out"
+    lines = [
+        f"# Sweep {sweep.name}",
+        "",
+        f"`python benchmarks/sweep.py --name {sweep.name} --grid {grid} --variants {' '.join(sweep.variants)} "
+        f"--seeds {' '.join(map(str, sweep.seeds))} {budget}`, then `--report`: each trial's policy {when} on "
+        f"tracks {common.track_block(sweep.first_track, sweep.tracks)} (benchmarks/readings.py says what each "
+        "column is).",
+        "",
+    ]  # fmt: skip
+    hidden = ("checkpoint",) if sweep.cpu_hours > 0 else ("updates", "checkpoint")  # (a budget: updates differ)
+    shown = [c for c in readings.COLUMNS if c not in hidden]
+    lines += ["| " + " | ".join(shown) + " |", "|" + "---|" * len(shown)]
+    for row in rows:
+        cells = [f"{row[c]:.2f}" if isinstance(row[c], float) else str(row[c]) for c in shown]
+        lines.append("| " + " | ".join(cells) + " |")
+    if waiting:
+        lines += ["", "Not finished yet: " + ", ".join(waiting) + "."]
+    return "\n".join(lines) + "\n"
+
+
 def main(sweep: Sweep) -> None:
     sweep = dataclasses.replace(sweep, storage=os.path.abspath(sweep.storage))
     saved = saved_fields(sweep)
@@ -240,9 +311,7 @@ def main(sweep: Sweep) -> None:
         return
     check(sweep)
     if sweep.report:
-        import readings
-
-        print(readings.report(sweep))
+        print(report(sweep))
         return
     run_sweep(sweep)
     print(status_text(sweep))

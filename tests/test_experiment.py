@@ -20,6 +20,7 @@ from conftest import TINY_TRIAL
 import experiment
 import experiment_report
 import race
+import runs
 import utils.checkpoint
 import stats
 
@@ -47,7 +48,7 @@ def finished(tmp_path_factory):
 
 
 def latest(spec, stage, variant):
-    run = experiment.run_of(experiment.trial_dir(dataclasses.asdict(spec), stage, variant, 3))
+    run = runs.run_of(experiment.trial_dir(dataclasses.asdict(spec), stage, variant, 3))
     return run, dreamer_lstm_or_gru(variant).load_checkpoint(os.path.join(run, "checkpoints", "latest.pt"))
 
 
@@ -64,7 +65,7 @@ def test_every_stage_runs_to_completion_and_writes_the_tables(finished):
             run, checkpoint = latest(spec, kind, variant)
             start = checkpoint["args"]["checkpoint"]
             assert start.endswith("best.pt") and f"single_{variant}_seed3" in start  # from the single trial's best.pt
-            best_updates = experiment.updates_of(start, __import__(f"dreamer_{variant}"))
+            best_updates = runs.updates_of(start, __import__(f"dreamer_{variant}"))
             assert checkpoint["agents"][0]["num_updates"] == best_updates + 1  # as many updates, ghost and control
         assert latest(spec, "ghost", variant)[1]["args"]["stage"] == "ghost"
         assert latest(spec, "control", variant)[1]["args"]["stage"] == "single"
@@ -94,7 +95,7 @@ def test_status_names_every_trial_with_how_far_it_got(finished, tmp_path, capsys
     experiment.main(experiment.Spec(storage=spec.storage, status=True))  # the experiment's own spec, not the flags'
     lines = capsys.readouterr().out.splitlines()
     start = latest(spec, "ghost", "lstm")[1]["args"]["checkpoint"]  # the single trial's best.pt
-    ghost_lstm = experiment.updates_of(start, __import__("dreamer_lstm")) + spec.ghost_updates
+    ghost_lstm = runs.updates_of(start, __import__("dreamer_lstm")) + spec.ghost_updates
     assert lines[:3] == ["single:", "  single_lstm_seed3 (2 of 2 updates)", "  single_gru_seed3 (2 of 2 updates)"]
     assert lines[3:5] == ["ghost:", f"  ghost_lstm_seed3 ({ghost_lstm} of {ghost_lstm} updates)"]
     assert len(lines) == 10 and all(" of " in line for line in lines[4:8])  # ghost and control of both variants
@@ -263,7 +264,7 @@ def test_the_default_single_stage_is_the_learning_benchmarks_run(tmp_path):
         assert differ == {"runs_dir", "total_episodes", "time_limit_hours", "total_updates"}
         assert (first, target, reference.total_updates) == (None, 8000, 8000)
         os.makedirs(os.path.join(args.runs_dir, f"multi_car_racing__{args.exp_name}__12__1700000000"))
-        assert learning.find_run(learning.experiment_name(variant), 12, str(tmp_path / "trials")) is not None
+        assert runs.find_run(runs.experiment_name(variant), 12, str(tmp_path / "trials")) is not None
     for change in ({"overrides": ("entropy_coef=0.5",)}, {"single_updates": 2000}, {"torch_threads": 2},
                    {"eval_policy": "deterministic"}):  # fmt: skip
         changed = dataclasses.asdict(experiment.Spec(storage=str(tmp_path), **change))
@@ -308,8 +309,8 @@ def test_a_whole_experiment_killed_mid_trial_resumes_on_the_same_command(tmp_pat
     script = dreamer_lstm_or_gru("lstm")
 
     def updates(kind):
-        run = experiment.run_of(experiment.trial_dir(plain, kind, "lstm", 3))
-        return experiment.updates_of(os.path.join(run, "checkpoints", "latest.pt"), script)
+        run = runs.run_of(experiment.trial_dir(plain, kind, "lstm", 3))
+        return runs.updates_of(os.path.join(run, "checkpoints", "latest.pt"), script)
 
     driver = subprocess.Popen(command, cwd=experiment.ROOT, start_new_session=True,
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
@@ -319,7 +320,7 @@ def test_a_whole_experiment_killed_mid_trial_resumes_on_the_same_command(tmp_pat
             time.sleep(0.5)
             try:
                 best = experiment.start_checkpoint(plain, "single", "lstm", 3, "best.pt")
-                start = experiment.updates_of(best, script)
+                start = runs.updates_of(best, script)
                 updates("control")  # the control has its latest.pt too (a run killed before it starts anew)
                 done = updates("ghost") - start
             except (TypeError, OSError, EOFError, RuntimeError):
@@ -335,14 +336,14 @@ def test_a_whole_experiment_killed_mid_trial_resumes_on_the_same_command(tmp_pat
 
     before = files(single)
     assert updates("single") == 2 and any(p.endswith("best.pt") for p in before)
-    kept = script.load_checkpoint(os.path.join(experiment.run_of(single), "checkpoints", "latest.pt"))
+    kept = script.load_checkpoint(os.path.join(runs.run_of(single), "checkpoints", "latest.pt"))
     kept = kept["extra"]["replays"][0]["episodes"]  # the single run's replay, where ghost and control begin
     subprocess.run(command, cwd=experiment.ROOT, check=True, capture_output=True, timeout=600)
     assert files(single) == before  # the finished trial: skipped, not a file touched
     for kind in ("ghost", "control"):
         directory = experiment.trial_dir(plain, kind, "lstm", 3)
         assert len(glob.glob(os.path.join(directory, "*", "checkpoints"))) == 1
-        checkpoint = script.load_checkpoint(os.path.join(experiment.run_of(directory), "checkpoints", "latest.pt"))
+        checkpoint = script.load_checkpoint(os.path.join(runs.run_of(directory), "checkpoints", "latest.pt"))
         assert checkpoint["agents"][0]["num_updates"] == start + 8
         assert checkpoint["extra"]["replays"][0]["episodes"] == kept + checkpoint["counters"]["episode"]
 
@@ -587,8 +588,8 @@ def test_a_race_trial_continues_a_cut_interval_and_never_retrains_a_trained_one(
     calls.clear()
     experiment.race_trial(config)  # the next sitting: only the race left, from the last pair saved together
     assert kinds(calls) == [("train", 1, "races_00004"), ("tournament", "tournament_00004.tmp")]
-    runs = sorted(os.listdir(os.path.join(directory, "races_00004")))
-    assert len(runs) == 2  # the cut run and its continuation
+    kept = sorted(os.listdir(os.path.join(directory, "races_00004")))
+    assert len(kept) == 2  # the cut run and its continuation
     assert reported == [0, 2, 0, 2, 4]
     calls.clear()
     shutil.rmtree(os.path.join(directory, "tournament_00004"))  # a tournament cut short: raced again, alone

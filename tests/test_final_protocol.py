@@ -19,6 +19,7 @@ import common
 import evaluate
 import final_protocol
 import learning
+import runs
 import readings
 from conftest import write_sitting
 
@@ -315,8 +316,8 @@ def permutation_p(x, y):
     return sum(d >= observed - 1e-9 for d in diffs) / len(diffs)
 
 
-def summary_cells(text, runs, policy):
-    line = next(line for line in text.splitlines() if line.startswith(f"| {runs} | {policy} |"))
+def summary_cells(text, group, policy):
+    line = next(line for line in text.splitlines() if line.startswith(f"| {group} | {policy} |"))
     return [cell.strip() for cell in line.split("|")[1:-1]]
 
 
@@ -343,9 +344,9 @@ def test_the_report_gives_mean_iqm_and_exact_tests_on_the_same_tracks_only(tmp_p
     assert ("On the same tracks random actions score -61.3 (progress 0.04) and the pure-pursuit driver at speed 70 "
             "905.5 (progress 0.99; references_report.json)") in text  # fmt: skip
     # the mean counts every seed; the IQM (rliable: 25% trimmed from each end) of 5 seeds is the mean of the middle 3
-    for runs, policy, scores in [("lstm", "mean action", lstm), ("gru", "mean action", gru),
-                                 ("lstm", "sampled", [r / 2 for r in lstm]), ("SB3 PPO", "deterministic", ppo)]:
-        cells = summary_cells(text, runs, policy)
+    for group, policy, scores in [("lstm", "mean action", lstm), ("gru", "mean action", gru),
+                                  ("lstm", "sampled", [r / 2 for r in lstm]), ("SB3 PPO", "deterministic", ppo)]:
+        cells = summary_cells(text, group, policy)
         middle = sorted(scores)[1:-1] if len(scores) == 5 else scores  # of 3 it trims none: the IQM is the mean
         assert cells[2] == str(len(scores)) and cells[5] == f"{min(scores):.1f}"
         assert cells[3].startswith(f"{sum(scores) / len(scores):.1f} [")
@@ -517,11 +518,11 @@ def test_the_shipped_agent_is_replaced_only_by_a_better_seed_on_the_screening_tr
     import utils.checkpoint
 
     trials, results = str(tmp_path / "trials"), str(tmp_path)
-    runs = {seed: fake_trial(trials, seed=seed) for seed in final_protocol.PROTOCOL_SEEDS}
+    trial_runs = {seed: fake_trial(trials, seed=seed) for seed in final_protocol.PROTOCOL_SEEDS}
     shipped = tmp_path / "pretrained" / "lstm_cpu.pt"
     shipped.parent.mkdir()
     shipped.write_bytes(b"the agent shipped before")
-    returns = {str(shipped): 500.0, **{os.path.join(runs[s], "checkpoints", "latest.pt"): r
+    returns = {str(shipped): 500.0, **{os.path.join(trial_runs[s], "checkpoints", "latest.pt"): r
                                        for s, r in zip(final_protocol.PROTOCOL_SEEDS, (400, 450, 520, 510, 300))}}
 
     def screening_readings(path, first_track, tracks, policies):
@@ -539,7 +540,7 @@ def test_the_shipped_agent_is_replaced_only_by_a_better_seed_on_the_screening_tr
     monkeypatch.setattr(evaluate, "evaluate_checkpoint", screening_readings)
     monkeypatch.setattr(utils.checkpoint, "export_policy", export)
     text = final_protocol.ship("lstm", trials, str(shipped), results)
-    seed23 = os.path.join(runs[23], "checkpoints", "latest.pt")
+    seed23 = os.path.join(trial_runs[23], "checkpoints", "latest.pt")
     assert exported == [seed23] and shipped.read_bytes() == b"x" * 1000  # 520 beats the shipped 500
     with open(tmp_path / "ship_lstm.csv") as f:
         rows = list(csv.DictReader(f))
@@ -579,18 +580,16 @@ def test_the_shipped_agent_is_replaced_only_by_a_better_seed_on_the_screening_tr
 
 
 def test_the_cpu_hours_of_a_checkpoint_are_its_cpu_seconds_over_3600_and_the_guards_stop_is_read_from_it():
-    """experiment.cpu_hours_of is what the protocol, the sweeps' --cpu-hours and a trial's end read; numerical_stop
+    """runs.cpu_hours_of is what the protocol, the sweeps' --cpu-hours and a trial's end read; numerical_stop
     reads the scripts' guard: --max-nonfinite-updates faulty updates in a row, of any agent."""
-    import experiment
-
-    assert experiment.cpu_hours_of({"extra": {"cpu_seconds": 7200.0}}) == 2.0
-    assert experiment.cpu_hours_of({"extra": None}) == 0.0 == experiment.cpu_hours_of({})  # before it was recorded
+    assert runs.cpu_hours_of({"extra": {"cpu_seconds": 7200.0}}) == 2.0
+    assert runs.cpu_hours_of({"extra": None}) == 0.0 == runs.cpu_hours_of({})  # before it was recorded
 
     def checkpoint(*in_a_row):
         return {"args": {"max_nonfinite_updates": 20}, "agents": [{"nonfinite_in_a_row": n} for n in in_a_row]}
 
-    assert experiment.numerical_stop(checkpoint(0, 20)) and experiment.numerical_stop(checkpoint(21))
-    assert not experiment.numerical_stop(checkpoint(19, 0)) and not experiment.numerical_stop({"agents": [{}]})
+    assert runs.numerical_stop(checkpoint(0, 20)) and runs.numerical_stop(checkpoint(21))
+    assert not runs.numerical_stop(checkpoint(19, 0)) and not runs.numerical_stop({"agents": [{}]})
 
 
 def test_the_readings_table_gives_each_variants_mean_lowest_and_highest_seed_leaving_nans_out():

@@ -13,6 +13,7 @@ from torch.utils.tensorboard import SummaryWriter
 
 import learning
 import learning_report
+import runs
 from conftest import as_process, write_sitting
 
 BASELINES = {
@@ -23,45 +24,45 @@ BASELINES = {
 
 @pytest.fixture
 def dirs(tmp_path):
-    runs, results = tmp_path / "runs", tmp_path / "results"
+    runs_dir, results = tmp_path / "runs", tmp_path / "results"
     results.mkdir()
     with open(results / "baselines.json", "w") as f:
         json.dump(BASELINES, f)
-    return str(runs), str(results)
+    return str(runs_dir), str(results)
 
 
 def test_eval_curve_adds_up_sittings_not_the_gap_between_them(dirs):
-    runs, _ = dirs
-    run_dir = os.path.join(runs, "multi_car_racing__learning_gru__1__1700000000")
+    runs_dir, _ = dirs
+    run_dir = os.path.join(runs_dir, "multi_car_racing__learning_gru__1__1700000000")
     write_sitting(run_dir, [(500, -80.0, 0.02, 0), (1000, 50.0, 0.2, 300)], wall_start=1_000_000.0, pid=101)
     # the second sitting (another process) starts a day later: its hours continue from the first sitting's 1000 s
     write_sitting(run_dir, [(1000, 50.0, 0.2, 300), (2000, 310.0, 0.45, 800)], wall_start=1_086_400.0, pid=202)
-    rows = learning.eval_curve(run_dir)
+    rows = runs.eval_curve(run_dir)
     assert [r["env_steps"] for r in rows] == [500, 1000, 2000]  # the repeated point once
     assert [r["updates"] for r in rows] == [0, 300, 800]
     assert rows[-1]["wall_hours"] == pytest.approx(2000 / 3600, abs=1e-4)
     assert rows[-1]["eval_progress"] == pytest.approx(0.45, abs=1e-6)
-    assert learning.training_hours(run_dir) == pytest.approx(2000 / 3600, abs=1e-4)
+    assert runs.training_hours(run_dir) == pytest.approx(2000 / 3600, abs=1e-4)
 
 
 def test_event_files_of_one_process_are_one_sitting_and_the_time_between_them_counts(dirs):
     """An experiment trial calls a script's main every few hundred updates in one process, each call with a new
     event file: the training between the last scalar of one and the first of the next is training time."""
-    runs, _ = dirs
-    run_dir = os.path.join(runs, "multi_car_racing__learning_lstm__1__1700000000")
+    runs_dir, _ = dirs
+    run_dir = os.path.join(runs_dir, "multi_car_racing__learning_lstm__1__1700000000")
     write_sitting(run_dir, [(500, -80.0, 0.02, 0), (1000, 50.0, 0.2, 300)], wall_start=1_000_000.0, pid=303)
     write_sitting(run_dir, [(1500, 90.0, 0.3, 500), (2000, 310.0, 0.45, 800)], wall_start=1_002_500.0, pid=303)
     # a later sitting, another process, two days on
     write_sitting(run_dir, [(2500, 400.0, 0.5, 1000)], wall_start=1_172_800.0, pid=404)
     write_sitting(run_dir, [(3000, 450.0, 0.55, 1200)], wall_start=1_173_400.0, pid=404)
-    rows = learning.eval_curve(run_dir)
+    rows = runs.eval_curve(run_dir)
     # 0, 1000 s; 2500, 3500 s (the 1500 s between the files count); then 3500 + 0 and 3500 + 600 s
     assert [r["wall_hours"] for r in rows] == pytest.approx([0, 1000 / 3600, 2500 / 3600, 3500 / 3600,
                                                             3500 / 3600, 4100 / 3600], abs=1e-4)  # fmt: skip
-    assert learning.training_hours(run_dir) == pytest.approx(4100 / 3600, abs=1e-4)
+    assert runs.training_hours(run_dir) == pytest.approx(4100 / 3600, abs=1e-4)
     # a host name may hold dots and digits: the process is the host and the pid before the file's counter
     name = "events.out.tfevents.1796255072.node.12.example.24779.3"
-    assert learning.EVENT_FILE_PROCESS.fullmatch(name)["process"] == "node.12.example.24779"
+    assert runs.EVENT_FILE_PROCESS.fullmatch(name)["process"] == "node.12.example.24779"
 
 
 def test_first_at_bar_needs_return_and_progress_at_the_same_evaluation():
@@ -212,7 +213,7 @@ def test_policy_summary_reproduces_the_runs_own_evaluation(tmp_path, variant):
         eval_policy="deterministic",
     )  # fmt: skip
     run_dir = script.main(script.Args(stage="single", runs_dir=str(tmp_path), **tiny))
-    (logged,) = learning.eval_curve(run_dir)
+    (logged,) = runs.eval_curve(run_dir)
     result = learning.policy_summary(os.path.join(run_dir, "checkpoints", "best.pt"), 10_000, 2, "deterministic")
     assert result["variant"] == variant and result["tracks"] == "10000..10001"
     assert result["eval_return"] == pytest.approx(logged["eval_return"], abs=0.01)  # the CSV keeps 2 decimals
@@ -266,9 +267,9 @@ def test_a_runs_hours_and_evaluations_count_every_sitting_to_its_last_scalar(tmp
     writer.add_scalar("car_0/perf/updates", 400, 1234, walltime=2_000_000.0 + 1800.0)
     writer.close()
     as_process(str(run), before, pid=202)
-    assert learning.training_hours(str(run)) == pytest.approx((1000 + 1800) / 3600, abs=1e-4)  # not the gap
-    assert learning.eval_summary(learning.eval_curve(str(run))) == (50.0, pytest.approx(-15.0))
-    assert np.isnan(learning.eval_summary([])).all()  # a run without evaluations
+    assert runs.training_hours(str(run)) == pytest.approx((1000 + 1800) / 3600, abs=1e-4)  # not the gap
+    assert runs.eval_summary(runs.eval_curve(str(run))) == (50.0, pytest.approx(-15.0))
+    assert np.isnan(runs.eval_summary([])).all()  # a run without evaluations
 
 
 @pytest.mark.parametrize("argv, message", [

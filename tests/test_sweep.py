@@ -14,6 +14,7 @@ import pytest
 from conftest import TINY, TINY_TRIAL
 
 import readings
+import runs
 import sweep as sweeps
 
 TINY_FLAGS = " ".join(f"{k}={v}" for k, v in TINY_TRIAL.items())
@@ -40,7 +41,7 @@ def trial_args(sweep, flags):
 
     config = {"tag": sweeps.tag_of(flags), "variant": "lstm", "seed": 3}
     spec = sweeps.trial_spec(sweep, flags, "lstm", 3)
-    run = sweeps.experiment.run_of(sweeps.experiment.trial_dir(spec, "single", "lstm", 3))
+    run = runs.run_of(sweeps.experiment.trial_dir(spec, "single", "lstm", 3))
     return config, dreamer_lstm.load_checkpoint(os.path.join(run, "checkpoints", "latest.pt"))
 
 
@@ -98,8 +99,8 @@ def test_a_cpu_budget_ends_each_trial_and_the_report_reads_its_last_policy(finis
     monkeypatch.setattr(readings, "measure", lambda path, run_dir, updates, *a: {
         p: {"updates_measured": updates} for p in readings.POLICIES})  # fmt: skip
     monkeypatch.setattr(readings, "COLUMNS", (*readings.COLUMNS, "updates_measured"))
-    monkeypatch.setattr(readings, "table", lambda *a: "")
-    readings.report(budget)
+    monkeypatch.setattr(sweeps, "report_table", lambda *a: "")
+    sweeps.report(budget)
     with open(os.path.join(budget.results, "sweep_budget.csv")) as f:
         rows = list(csv.DictReader(f))
     assert [(r["updates"], r["updates_measured"], r["checkpoint"].endswith("latest.pt")) for r in rows] == [
@@ -127,7 +128,7 @@ def test_tags_name_flag_sets_and_stay_short():
 
 
 def test_the_report_measures_each_finished_trial_once_with_both_policies(finished, monkeypatch):
-    text = readings.report(finished)
+    text = sweeps.report(finished)
     with open(os.path.join(finished.results, "sweep_tiny.csv")) as f:
         rows = list(csv.DictReader(f))
     assert [(r["tag"], r["policy"]) for r in rows] == [
@@ -138,7 +139,7 @@ def test_the_report_measures_each_finished_trial_once_with_both_policies(finishe
     # the tiny car leaves the road before the 40 decisions a pedal reading needs: NaN, not a made-up number
     assert all(math.isnan(float(r["pedal_range_real"])) for r in rows)
     monkeypatch.setattr(readings, "measure", lambda *a: pytest.fail("measured again"))
-    assert readings.report(finished) == text  # from readings.json
+    assert sweeps.report(finished) == text  # from readings.json
     cache_path = os.path.join(finished.storage, finished.name, "readings.json")
     with open(cache_path) as f:
         cache = json.load(f)
@@ -149,7 +150,7 @@ def test_the_report_measures_each_finished_trial_once_with_both_policies(finishe
     calls = []
     monkeypatch.setattr(readings, "pedal", lambda path, first: calls.append(path) or {
         "pedal_range_imagined": 1.5, "pedal_range_real": 80.0})  # fmt: skip
-    readings.report(finished)
+    sweeps.report(finished)
     with open(os.path.join(finished.results, "sweep_tiny.csv")) as f:
         assert {(r["pedal_range_imagined"], r["pedal_range_real"]) for r in csv.DictReader(f)} == {("1.5", "80.0")}
     assert len(calls) == len(GRID)  # once per trial, for both policies
