@@ -16,7 +16,12 @@
 
 Every claim is judged by an exact test (sign-flip or permutation) and a t interval: over the few runs an RL
 comparison has (6 or fewer seeds, or seed pairs) a percentile bootstrap's interval is too narrow (over 3 it is the
-range of the values). rliable's bootstrap intervals stay as descriptions.
+range of the values). rliable's bootstrap intervals stay as descriptions. The exact tests enumerate here rather
+than call ``scipy.stats.permutation_test``: returns kept to cents tie often (600.9 + 601.1 and 601.0 + 601.0 are one
+sum in decimal, not in binary), and scipy's tie tolerance (1e-14 relative) counts such splits as unequal (600.9,
+600.7, 601.1, 600.9, 601.1 against 601.0, 601.0, 600.8: exact one-sided p 4/7, scipy's 1/2; tests/test_stats.py).
+The t intervals equal scipy's ``ttest_1samp`` and ``ttest_ind(equal_var=False)`` intervals and also cover one run
+and no spread.
 
 rliable's scores are arrays of shape (runs, tasks); one task is a column of one. The tests and intervals take one
 value per run (a run is the unit: several values of one run are not independent).
