@@ -48,6 +48,20 @@ def horizon_task_returns(rewards: np.ndarray, terminated: np.ndarray, gamma: flo
     return returns
 
 
+def posterior(agent, frames: np.ndarray, actions: np.ndarray) -> dict:
+    """The world model's posterior over one race's `frames` observed with `actions` (world_model.observe from the
+    learned initial state; BatchNorm with its running statistics, as when acting)."""
+    import torch
+
+    wm = agent.world_model
+    agent._set_training(False)
+    with torch.no_grad():
+        is_first = torch.zeros(1, len(frames), dtype=torch.bool, device=agent.device)
+        is_first[0, 0] = True
+        embed = wm.encoder(torch.as_tensor(frames[None], device=agent.device))
+        return wm.observe(embed, torch.as_tensor(actions[None], device=agent.device), is_first)
+
+
 def calibrate_checkpoint(path: str, first_track: int = TRACKS["fresh"][0], tracks: int = 5, horizon: int | None = None
                          ) -> dict:
     """Is the agent's value of real states, and its imagination from them, optimistic? The saved agent (a training
@@ -97,9 +111,7 @@ def calibrate_checkpoint(path: str, first_track: int = TRACKS["fresh"][0], track
     agent._set_training(False)  # running statistics, as when acting
     with torch.no_grad():
         for (frames, actions, rewards, terminated), reason in zip(episodes, reasons):
-            is_first = torch.zeros(1, len(frames), dtype=torch.bool)
-            is_first[0, 0] = True
-            post = wm.observe(wm.encoder(torch.as_tensor(frames[None])), torch.as_tensor(actions[None]), is_first)
+            post = posterior(agent, frames, actions)
             features = torch.cat([post["z"], post["h"]], -1)[0]
             values = agent.critic.dist(features).mean.numpy()
             reward = wm.reward.dist(features)  # the head's distribution (a Gaussian, or two-hot: its std)

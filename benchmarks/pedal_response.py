@@ -48,6 +48,7 @@ import tyro
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
+from calibration import posterior  # noqa: E402  (one race through the world model)
 from common import TRACKS  # noqa: E402
 
 SCREENING = TRACKS["screening"][0]
@@ -174,20 +175,6 @@ def drive_race(agent, args, envs, track: int) -> tuple[np.ndarray, np.ndarray, n
         actions.append(action[0].astype(np.float32))
         speeds.append(car_speed(infos[0]))
     return np.stack(frames), np.stack(actions), np.array(speeds)
-
-
-def posterior(agent, frames: np.ndarray, actions: np.ndarray) -> dict:
-    """The world model's posterior over one race's `frames` observed with `actions` (world_model.observe from the
-    learned initial state; BatchNorm with its running statistics, as when acting)."""
-    import torch
-
-    wm = agent.world_model
-    agent._set_training(False)
-    with torch.no_grad():
-        is_first = torch.zeros(1, len(frames), dtype=torch.bool, device=agent.device)
-        is_first[0, 0] = True
-        embed = wm.encoder(torch.as_tensor(frames[None], device=agent.device))
-        return wm.observe(embed, torch.as_tensor(actions[None], device=agent.device), is_first)
 
 
 def posterior_features(agent, frames: np.ndarray, actions: np.ndarray) -> np.ndarray:
