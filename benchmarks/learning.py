@@ -100,7 +100,6 @@ def run_args(variant: str, seed: int, hours: float, resume: bool, updates: int =
     return script, args, set()
 
 
-# --- A run's curve, from its event files and its progress.csv --------------------------------
 # --- A saved policy on a block of tracks -----------------------------------------------------
 def policy_summary(
     path: str, first_track: int = common.TRACKS["eval"][0], tracks: int = common.TRACKS["eval"][1],

@@ -25,6 +25,7 @@ import torch
 import tyro
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from utils.run import keep_freed_memory  # noqa: E402  (glibc keeps freed memory: --malloc-fix)
 
 
 @dataclasses.dataclass
@@ -60,7 +61,7 @@ def main(args: Args) -> dict:
     from utils.collector import CarEpisode, preprocess_frames
 
     if args.malloc_fix:
-        script.keep_freed_memory()
+        keep_freed_memory()
     if args.threads:
         torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)

@@ -32,6 +32,7 @@ from torch import nn
 from torch.utils.flop_counter import FlopCounterMode
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from utils.run import keep_freed_memory  # noqa: E402  (glibc keeps freed memory: --malloc-fix)
 
 CONFIGS = {
     "paper-100": {"imagination_starts": 100},  # the paper authors' setting
@@ -169,7 +170,7 @@ def env_throughput(script, overrides: dict, steps: int) -> tuple[float, float]:
 def main(args: Args) -> None:
     script = importlib.import_module(args.script)
     if args.malloc_fix:
-        print(f"malloc fix: {script.keep_freed_memory()}")
+        print(f"malloc fix: {keep_freed_memory()}")
     if args.threads:
         torch.set_num_threads(args.threads)
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, script {args.script}")

@@ -1,6 +1,6 @@
-"""benchmarks/learning.py and its reports (learning_report.py): curves from event files over resumed sittings, the
-saved CSVs that stand in for runs not on this machine, diagnostics, a saved policy's summary, and the command
-line."""
+"""benchmarks/learning.py and its reports (learning_report.py): curves from event files over resumed sittings
+(runs.py), the saved CSVs that stand in for runs not on this machine, diagnostics, a saved policy's summary, and the
+command line."""
 
 import csv
 import importlib
