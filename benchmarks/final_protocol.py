@@ -52,7 +52,6 @@ import os
 
 import numpy as np
 
-import evaluate
 import readings
 from common import (
     PROTOCOL_CPU_HOURS, RESULTS, TRACKS, checkpoint_updates, read_table, replace_rows, track_block, write_table,
@@ -145,6 +144,7 @@ def protocol_measure(variant: str, seed: int, runs_dir: str) -> tuple[dict, dict
         raise ValueError(f"the final protocol's seeds are {', '.join(map(str, PROTOCOL_SEEDS))}, got {seed}")
     run = protocol_run(variant, seed, runs_dir)
     latest = os.path.join(run, "checkpoints", "latest.pt")
+    import evaluate
     from utils.checkpoint import read_checkpoint
 
     checkpoint = read_checkpoint(latest)[1]
@@ -697,6 +697,7 @@ def ship_rows(variant: str, runs_dir: str, shipped: str, seeds: tuple[int, ...] 
     not stopped by the non-finite guard: protocol_cpu_hours)
     driven with SHIP_POLICY on SHIP_TRACKS: one row each (SHIP_COLUMNS, ``shipped`` False), the shipped agent first.
     A missing shipped file is a candidate that lost already."""
+    import evaluate
     from utils.checkpoint import read_checkpoint
 
     candidates = []

@@ -23,7 +23,6 @@ from __future__ import annotations
 import glob
 import os
 
-import evaluate
 import numpy as np
 from calibration import calibrate_checkpoint
 from common import checkpoint_updates
@@ -71,6 +70,8 @@ def checkpoint_at(run_dir: str, updates: int) -> str:
 def driving(path: str, first_track: int, tracks: int, driven: dict | None = None) -> dict[str, dict[str, float]]:
     """Per policy, the mean of every DRIVING reading over the tracks: of evaluate.py's evaluate_checkpoint, or of
     `driven`, its answer for this policy and these tracks when it is already in hand."""
+    import evaluate  # (the repository's evaluate.py: loaded when a policy is driven or averaged)
+
     if driven is None:
         driven = evaluate.evaluate_checkpoint(path, first_track, tracks, POLICIES)
     means = {policy: evaluate.track_means({key: r[key] for key in DRIVING}) for policy, r in driven.items()}

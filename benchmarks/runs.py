@@ -4,9 +4,9 @@ what a checkpoint says about its run (updates, CPU-hours, a stop by the non-fini
 
 A run directory is the dreamer scripts' ``<runs_dir>/<env>__<exp_name>__<seed>__<time>/`` (TensorBoard event files,
 ``progress.csv``, ``checkpoints/``). ``benchmarks/learning.py`` trains and measures the learning runs,
-``benchmarks/experiment.py`` its trials (one run directory per trial under ``<storage>/trials/``), and
-``final_protocol.py``, ``learning_report.py``, ``readings.py`` and ``experiment_report.py`` read them through this
-module.
+``benchmarks/experiment.py`` and ``sweep.py`` their trials (one run directory per trial under
+``<storage>/trials/``), and they, ``final_protocol.py``, ``learning_report.py``, ``readings.py`` and
+``experiment_report.py`` read them through this module.
 """
 
 from __future__ import annotations

@@ -126,8 +126,7 @@ def test_diagnose_refuses_to_guess_among_several_trials_of_the_seed(tmp_path):
 def test_a_learning_run_is_the_cpu_preset_with_the_benchmarks_settings_and_refused_values_name_their_flag(
     tmp_path, monkeypatch
 ):
-    monkeypatch.setattr(learning, "RUNS", str(tmp_path))  # no runs here: every sitting starts a new run
-    script, args, overrides = learning.run_args("gru", 2, 1.5, False)
+    script, args, overrides = learning.run_args("gru", 2, 1.5, False, runs_dir=str(tmp_path))  # no runs: a new one
     cpu = script.PRESETS["cpu"]
     assert script.VARIANT == "gru" and args.exp_name == "learning_gru" and overrides == set()
     assert (args.seed, args.time_limit_hours, args.total_updates) == (2, 1.5, 8000)

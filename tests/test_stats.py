@@ -80,7 +80,6 @@ def test_the_permutation_test_counts_every_split():
     assert stats.permutation_test(x, y) == pytest.approx(sum(d >= observed - 1e-12 for d in diffs) / 35)
 
 
-
 def test_the_exact_tests_count_ties_of_returns_in_cents_as_rational_arithmetic_does():
     """Returns kept to cents tie often (600.9 + 601.1 and 601.0 + 601.0 are one sum in decimal, not in binary):
     every split and sign assignment is compared as exact fractions of the decimal values, the reference here.
@@ -129,6 +128,7 @@ def test_the_t_intervals_are_scipys_where_scipy_gives_one():
         assert stats.t_interval(x)[1] == pytest.approx((one.low, one.high), rel=1e-9)
         welch = two.confidence_interval(0.95)
         assert stats.two_sample_t_interval(x, y)[1] == pytest.approx((welch.low, welch.high), rel=1e-9)
+
 
 def test_a_claim_is_supported_only_by_the_exact_test_and_the_t_interval_together():
     # 1..6: p = 1/64 and the t interval 3.5 +- 2.5706 * 1.8708 / sqrt(6) = [1.54, 5.46] above 0
