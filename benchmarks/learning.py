@@ -4,14 +4,14 @@
     python benchmarks/learning.py --protocol-report                        # the final protocol's learning_final.md
     python benchmarks/learning.py --runs-dir runs/final/trials --variant lstm --protocol-ship   # pretrained/lstm_cpu.pt
     python benchmarks/learning.py --variant lstm --seed 11                 # a learning run (8,000 updates)
-    python benchmarks/learning.py --variant lstm --seed 11 --resume        # continue it in a later sitting
+    python benchmarks/learning.py --variant lstm --seed 11 --resume        # continue it after a stop
     python benchmarks/learning.py --report                                 # curves + table only
     python benchmarks/learning.py --variant lstm --seed 11 --diagnose      # sigma, entropy, kl_dyn... per 500 updates
     python benchmarks/learning.py --runs-dir runs/final/trials --variant lstm --seed 21 --diagnose   # a protocol run
     python benchmarks/learning.py --calibrate runs/learning/<run>/checkpoints/latest.pt   # optimistic critic/model?
 
 Trains `dreamer_<variant>.py --preset cpu` on the single-car race (stage ``single``, one torch thread, so two runs
-share two cores) until ``--updates`` updates or ``--hours`` of wall time (resumable: a run may span sittings),
+share two cores) until ``--updates`` updates or ``--hours`` of wall time (resumable: --resume continues a run),
 evaluating every 5 races on the 10 held-out tracks (seeds 10000..10009) and keeping each evaluated policy
 (``checkpoints/eval_<race>.pt``). At most one mode flag (``--report``, ``--diagnose``, ``--protocol-row``,
 ``--protocol-report``, ``--protocol-ship``, ``--calibrate``) replaces the training. It writes, under
@@ -147,7 +147,7 @@ class Args:
     seed: int = 1
     """the run's seed"""
     hours: float = 3.0
-    """wall-clock budget of this sitting"""
+    """wall-clock budget of this invocation (a run may take several: --resume)"""
     updates: int = LEARNING_UPDATES
     """the run ends after this many updates"""
     resume: bool = False
