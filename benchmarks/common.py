@@ -71,6 +71,11 @@ def write_json(path: str, data) -> None:
     replace_file(path, lambda f: json.dump(data, f, indent=1))
 
 
+def write_text(path: str, text: str) -> None:
+    """Write `text` to `path` atomically (replace_file): the markdown reports."""
+    replace_file(path, lambda f: f.write(text))
+
+
 def track_block(first: int, count: int) -> str:
     """A block of tracks as the results name it: ``track_block(10_300, 30) == "10300..10329"``."""
     return f"{first}..{first + count - 1}"

@@ -101,8 +101,7 @@ def aggregate(spec: Spec) -> str:
         summary += "\nNot finished, left out of the statistics: " + "; ".join(left_out) + ".\n"
     if stopped:
         summary += "\nCounted with their last policies: " + "; ".join(stopped) + ".\n"
-    with open(os.path.join(spec.results, "experiment.md"), "w") as f:
-        f.write(summary)
+    common.write_text(os.path.join(spec.results, "experiment.md"), summary)
     return summary
 
 

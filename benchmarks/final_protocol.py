@@ -55,6 +55,7 @@ import numpy as np
 import readings
 from common import (
     PROTOCOL_CPU_HOURS, RESULTS, TRACKS, checkpoint_updates, read_table, replace_rows, track_block, write_table,
+    write_text,
 )  # fmt: skip
 from learning_report import baselines
 from ppo_peer import ALGOS as PEER_ALGOS, COLUMNS as PEER_CSV_COLUMNS, CURVE_COLUMNS, read_rows as read_peer_csv
@@ -676,8 +677,7 @@ def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
                 f"\nWhy they drive as they do: benchmarks/readings.py's readings of the same final policies on the "
                 f"same tracks ({WHY_CSV}), the mean over seeds [lowest, highest]:\n\n" + protocol_why(why_rows)
             )  # fmt: skip
-    with open(os.path.join(results_dir, "learning_final.md"), "w") as f:
-        f.write(text)
+    write_text(os.path.join(results_dir, "learning_final.md"), text)
     return text
 
 

@@ -235,8 +235,8 @@ def run_mode(args: Args) -> bool:
         if run is None:
             raise ValueError(f"no run of learning_{args.variant} or {name} seed {args.seed} in {args.runs_dir}")
         table = diagnostics_table(diagnostics(run))
-        with open(os.path.join(RESULTS, f"{name}_seed{args.seed}_diagnostics.md"), "w") as f:
-            f.write(f"{os.path.basename(run)}\n\n{table}")
+        common.write_text(os.path.join(RESULTS, f"{name}_seed{args.seed}_diagnostics.md"),
+                          f"{os.path.basename(run)}\n\n{table}")
         print(table)
     elif args.protocol_ship:
         shipped = os.path.join(ROOT, "pretrained", f"{args.variant}_cpu.pt")

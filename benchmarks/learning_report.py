@@ -22,7 +22,7 @@ import re
 
 import numpy as np
 
-from common import RESULTS, track_block, write_json, write_table
+from common import RESULTS, track_block, write_json, write_table, write_text
 from runs import RUNS, eval_curve, learning_runs, progress_rows
 
 # The lines the figure and table draw: the 8,000-update protocol's bar on a learning run's mean evaluation return
@@ -197,8 +197,7 @@ def report(runs_dir: str = RUNS, results_dir: str = RESULTS) -> None:
         plot_curves({n: curves[n] for n in names if n in curves}, {n: training[n] for n in names if n in training},
                     base, stem + ".png")  # fmt: skip
         table = summary_table({n: curves[n] for n in names if n in curves}, base)
-        with open(stem + ".md", "w") as f:
-            f.write(table)
+        write_text(stem + ".md", table)
         print(table)
 
 

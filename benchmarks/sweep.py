@@ -267,8 +267,7 @@ def report(sweep: Sweep) -> str:
     base = os.path.join(sweep.results, f"sweep_{sweep.name}")
     common.write_table(base + ".csv", rows, readings.COLUMNS)
     text = report_table(sweep, rows, waiting)
-    with open(base + ".md", "w") as f:
-        f.write(text)
+    common.write_text(base + ".md", text)
     return text
 
 

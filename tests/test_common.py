@@ -134,3 +134,13 @@ def test_a_json_file_is_written_whole_with_the_permissions_open_gives(tmp_path):
     with pytest.raises(TypeError, match="not JSON serializable"):  # the file stays as it was, no temporary file left
         common.write_json(path, {"seeds": {21}})
     assert json.load(open(path)) == {"seeds": [21, 22]} and os.listdir(tmp_path) == ["spec.json"]
+
+
+def test_a_report_is_written_whole_and_replaces_the_last(tmp_path):
+    path = str(tmp_path / "learning_final.md")
+    common.write_text(path, "# old\n")
+    common.write_text(path, "# new\n\n| a |\n")
+    assert open(path).read() == "# new\n\n| a |\n" and os.listdir(tmp_path) == ["learning_final.md"]
+    with pytest.raises(TypeError):  # not text: the report stays as it was, no temporary file left
+        common.write_text(path, b"bytes")
+    assert open(path).read() == "# new\n\n| a |\n" and os.listdir(tmp_path) == ["learning_final.md"]
