@@ -715,14 +715,15 @@ def ship_rows(variant: str, runs_dir: str, shipped: str, seeds: tuple[int, ...] 
     return rows
 
 
-def ship(variant: str, runs_dir: str, shipped: str, results_dir: str = RESULTS) -> str:
-    """Measure the candidates (ship_rows); if the best seed's return beats the shipped agent's, export it over
-    `shipped` (atomically; refused above SHIP_MAX_BYTES, the shipped file unchanged). ``ship_<variant>.csv`` in
-    `results_dir` keeps the rows, its ``shipped`` column marking the agent `shipped` holds afterwards. Returns a
-    markdown table of the rows."""
+def ship(variant: str, runs_dir: str, shipped: str, results_dir: str = RESULTS,
+         seeds: tuple[int, ...] = PROTOCOL_SEEDS) -> str:
+    """Measure the candidates (ship_rows: the final policies of `seeds`); if the best seed's return beats the shipped
+    agent's, export it over `shipped` (atomically; refused above SHIP_MAX_BYTES, the shipped file unchanged).
+    ``ship_<variant>.csv`` in `results_dir` keeps the rows, its ``shipped`` column marking the agent `shipped` holds
+    afterwards. Returns a markdown table of the rows."""
     from utils.checkpoint import export_policy, read_checkpoint
 
-    rows = ship_rows(variant, runs_dir, shipped)
+    rows = ship_rows(variant, runs_dir, shipped, seeds)
     check_finite(rows, ("return",), f"ship_{variant}")
     current = next((r for r in rows if r["candidate"] == "shipped"), None)
     best = max((r for r in rows if r["candidate"] != "shipped"), key=lambda r: r["return"])

@@ -175,9 +175,12 @@ class Args:
     report tracks in <peer>_peer.csv and <peer>_peer_curve.csv (no evaluation)"""
     protocol_ship: bool = False
     """mode: only choose the shipped agent of --variant: the final policies of the protocol's seeds (under
-    --runs-dir: every seed 21..25, --seed is not read) and pretrained/<variant>_cpu.pt with the mean action on the
-    screening tracks 10200..10219; the best seed is exported over the shipped file if it drives better there
-    (ship_<variant>.csv in --results-dir)"""
+    --runs-dir: the seeds of --ship-seeds, every one by default; --seed is not read) and pretrained/<variant>_cpu.pt
+    with the mean action on the screening tracks 10200..10219; the best seed is exported over the shipped file if it
+    drives better there (ship_<variant>.csv in --results-dir)"""
+    ship_seeds: tuple[int, ...] = protocol.PROTOCOL_SEEDS
+    """--protocol-ship: the seeds whose final policies are the candidates (default every seed; fewer only where a
+    run's directory is gone, e.g. a machine lost: the seeds left still drive by the same rule)"""
     results_dir: str = RESULTS
     """--protocol-row, --protocol-report, --protocol-ship: where learning_final.csv and .md (and the readings, the
     peers' CSVs, ship_<variant>.csv) are"""
@@ -207,6 +210,12 @@ def check(args: Args) -> None:
     if args.results_dir != RESULTS and not any(getattr(args, name) for name in PROTOCOL_MODES):
         raise ValueError("--results-dir is the place of learning_final.csv for --protocol-row, --protocol-report "
                          "and --protocol-ship; give one of them")  # fmt: skip
+    if args.ship_seeds != protocol.PROTOCOL_SEEDS and not args.protocol_ship:
+        raise ValueError("--ship-seeds are the candidates of --protocol-ship; give --protocol-ship")
+    wrong = [seed for seed in args.ship_seeds if seed not in protocol.PROTOCOL_SEEDS]
+    if wrong or not args.ship_seeds or len(set(args.ship_seeds)) < len(args.ship_seeds):
+        raise ValueError(f"--ship-seeds must be distinct seeds of the final protocol "
+                         f"({', '.join(map(str, protocol.PROTOCOL_SEEDS))}), got {list(args.ship_seeds)}")  # fmt: skip
     if args.hours <= 0:
         raise ValueError(f"--hours must be > 0, got {args.hours}")
     if args.updates < 1:
@@ -240,7 +249,7 @@ def run_mode(args: Args) -> bool:
         print(table)
     elif args.protocol_ship:
         shipped = os.path.join(ROOT, "pretrained", f"{args.variant}_cpu.pt")
-        print(protocol.ship(args.variant, args.runs_dir, shipped, args.results_dir))
+        print(protocol.ship(args.variant, args.runs_dir, shipped, args.results_dir, args.ship_seeds))
     elif args.protocol_row or args.protocol_report:
         if args.protocol_row:
             path = os.path.join(args.results_dir, "learning_final.csv")

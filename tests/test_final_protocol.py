@@ -444,6 +444,10 @@ def test_reaching_the_dreamers_mean_is_judged_at_the_bars_precision_and_out_of_t
     (["--results-dir", "elsewhere"], "--results-dir is the place of learning_final.csv for --protocol-row, "
                                      "--protocol-report and --protocol-ship; give one of them"),
     (["--protocol-ship", "--protocol-row"], "--protocol-row and --protocol-ship are separate modes"),
+    (["--ship-seeds", "24"], "--ship-seeds are the candidates of --protocol-ship; give --protocol-ship"),
+    (["--protocol-ship", "--ship-seeds", "24", "11"], "--ship-seeds must be distinct seeds of the final protocol "
+                                                      "(21, 22, 23, 24, 25), got [24, 11]"),
+    (["--protocol-ship", "--ship-seeds", "24", "24"], "got [24, 24]"),
 ])  # fmt: skip
 def test_the_command_line_refuses_a_protocol_mode_with_what_does_not_belong(argv, message, tmp_path):
     with pytest.raises(SystemExit) as exit_info:
@@ -577,6 +581,45 @@ def test_the_shipped_agent_is_replaced_only_by_a_better_seed_on_the_screening_tr
     monkeypatch.setattr(evaluate, "evaluate_checkpoint", refuse_to_drive)
     with pytest.raises(ValueError, match=f"{short}.*not a final policy yet"):
         final_protocol.ship("lstm", str(tmp_path / "short"), str(shipped), results)
+
+
+def test_ship_seeds_choose_among_the_final_policies_left_and_never_read_a_lost_seeds_directory(tmp_path, monkeypatch):
+    """--ship-seeds (a machine lost the other runs' directories): only those seeds' final policies are candidates,
+    by the same rule; without it the lost seed's missing run is refused, naming it, before anything is driven."""
+    import utils.checkpoint
+
+    trials, results = tmp_path / "trials", tmp_path / "results"
+    runs = {seed: fake_trial(str(trials), variant="gru", seed=seed) for seed in (24, 25)}
+    shipped = tmp_path / "pretrained" / "gru_cpu.pt"
+    shipped.parent.mkdir()
+    shipped.write_bytes(b"the agent shipped before")
+    returns = {str(shipped): 500.0, os.path.join(runs[24], "checkpoints", "latest.pt"): 520.0,
+               os.path.join(runs[25], "checkpoints", "latest.pt"): 610.0}  # fmt: skip
+    driven = []
+
+    def screening_readings(path, first_track, tracks, policies):
+        driven.append(path)
+        return {"mean-action": {"return": [returns[path]] * tracks, "progress": [0.5] * tracks,
+                                "abs_steer": [0.2] * tracks}}  # fmt: skip
+
+    def export(script, path, out, index=0):
+        with open(out, "wb") as f:
+            f.write(path.encode())
+        return 1000
+
+    monkeypatch.setattr(evaluate, "evaluate_checkpoint", screening_readings)
+    monkeypatch.setattr(utils.checkpoint, "export_policy", export)
+    monkeypatch.setattr(learning, "ROOT", str(tmp_path))  # pretrained/gru_cpu.pt of tmp_path
+    common_args = ["--protocol-ship", "--variant", "gru", "--runs-dir", str(trials), "--results-dir", str(results)]
+    with pytest.raises(SystemExit, match="no run with checkpoints/latest.pt under .*single_gru_seed21"):
+        learning.cli(common_args)
+    assert driven == [] and shipped.read_bytes() == b"the agent shipped before"
+    learning.cli([*common_args, "--ship-seeds", "24", "25"])
+    seed25 = os.path.join(runs[25], "checkpoints", "latest.pt")
+    assert shipped.read_bytes() == seed25.encode()  # seed 25's 610 beats seed 24's 520 and the shipped 500
+    with open(results / "ship_gru.csv") as f:
+        assert [(r["candidate"], float(r["return"]), r["shipped"]) for r in csv.DictReader(f)] == [
+            ("shipped", 500.0, "False"), ("seed 24", 520.0, "False"), ("seed 25", 610.0, "True")]  # fmt: skip
 
 
 def test_the_cpu_hours_of_a_checkpoint_are_its_cpu_seconds_over_3600_and_the_guards_stop_is_read_from_it():
