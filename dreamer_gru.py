@@ -140,8 +140,8 @@ class Args:
     limit)"""
     cpu_hours_limit: float = 0.0
     """stop, with checkpoints, once the run has used this many CPU-hours (checked at its start and at the end of every
-    race): process CPU time summed over every sitting of a resumed run (0: no limit); unlike wall time it does not
-    depend on what else the machine runs"""
+    race): process CPU time summed over the first invocation and every --resume of the run (0: no limit); unlike
+    wall time it does not depend on what else the machine runs"""
     prefill_episodes: int = 5
     """random-action races before the first update (ours; from a --checkpoint the agent's own policy fills
     replay)"""

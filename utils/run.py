@@ -259,14 +259,14 @@ class Run:
     from_checkpoint: bool = False  # the agents started from --checkpoint: no random prefill
     started: float = dataclasses.field(default_factory=time.time)
     cpu_started: float = dataclasses.field(default_factory=time.process_time)
-    cpu_before: float = 0.0  # CPU seconds of the run's earlier sittings (a resumed run)
+    cpu_before: float = 0.0  # CPU seconds of the run's earlier invocations (a resumed run)
     fault: str | None = None  # set when an agent had --max-nonfinite-updates faulty updates in a row
     out_of_time: bool = False  # the time or CPU budget was spent when last checked (set-up, the end of a race)
     update_seconds: list = dataclasses.field(default_factory=list)  # the first two updates' times (CPU report)
     pbar: object = None
 
     def cpu_seconds(self) -> float:
-        """Process CPU time of the run so far, over all its sittings (--cpu-hours-limit)."""
+        """Process CPU time of the run so far, over all its invocations (--cpu-hours-limit)."""
         return self.cpu_before + time.process_time() - self.cpu_started
 
     @property
@@ -288,7 +288,8 @@ class Run:
         )
 
     def check_budget(self) -> None:
-        """Whether --time-limit-hours (this process) or --cpu-hours-limit (the run, over all its sittings) is spent."""
+        """Set out_of_time: whether --time-limit-hours (this process) or --cpu-hours-limit (the run, over all its
+        invocations) is spent."""
         args = self.args
         wall = args.time_limit_hours > 0 and time.time() - self.started > 3600 * args.time_limit_hours
         cpu = args.cpu_hours_limit > 0 and self.cpu_seconds() > 3600 * args.cpu_hours_limit
