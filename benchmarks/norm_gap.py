@@ -1,0 +1,160 @@
+"""Does the agent act on the states it learned from? The world model's train/act gap of its normalisation.
+
+    python benchmarks/norm_gap.py pretrained/lstm_cpu.pt                  # screening tracks 10200..10203
+    python benchmarks/norm_gap.py runs/<run>/checkpoints/latest.pt --tracks 8 --json gap.json
+
+With ``--norm batch`` the recurrent input and the posterior's MLP hold BatchNorm layers inside the recurrence. An
+update observes B replayed sequences of L decisions, one step at a time, so at every step each of those layers
+normalises over the B rows of that step (train mode); acting, and the imagined dynamics, use the running
+statistics instead (eval mode). This measures how far apart the two make the model's states on the agent's own
+driving. The saved agent (a training checkpoint or its acting-only export) drives its sampled policy, as trained,
+on ``--tracks`` tracks; the races are cut into windows of L decisions (the agent's --seq-len), taken B at a time
+(its --batch-size), as an update samples them; each batch is observed from the learned initial state twice, with
+the posterior means (no sampling, so that the normalisation is the only difference):
+
+* train mode, as ``world_model_loss`` observes a batch (BatchNorm's running statistics are put back afterwards:
+  the agent is left as it was);
+* eval mode, as the agent acts.
+
+Readings, means over every window (L decisions each): ``h_gap``, ||h_train - h_eval|| / ||h_eval|| per step;
+``z_gap``, |mean_train - mean_eval| of the posterior in units of the eval posterior's sigma; ``steer_gap`` and
+``pedal_gap``, |a_train - a_eval| of the actor's mean action (its running statistics on both) against ``steer`` and
+``pedal``, its mean |a| on the eval states. LayerNorm (``--norm layer``; ``mixed`` keeps BatchNorm only in the
+convolutions, which see all B * L frames at once) has no batch statistics in the recurrence.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import sys
+
+import numpy as np
+import tyro
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+from common import TRACKS  # noqa: E402
+
+READINGS = ("h_gap", "z_gap", "steer_gap", "pedal_gap", "steer", "pedal")
+
+
+@dataclasses.dataclass
+class Args:
+    checkpoint: tyro.conf.Positional[str]
+    """a saved agent: a training checkpoint or an acting-only export (pretrained/<variant>_cpu.pt)"""
+    first_track: int = TRACKS["screening"][0]
+    """seed of the first track (10200..: the screening tracks)"""
+    tracks: int = 4
+    """number of tracks driven (enough for at least one batch of B windows of L decisions)"""
+    json: str | None = None
+    """also write the readings to this file"""
+
+
+def windows(episodes: list[tuple[np.ndarray, np.ndarray]], length: int, batch: int) -> list[tuple[np.ndarray, ...]]:
+    """Batches of `batch` windows of `length` consecutive decisions (frames, the actions that led to them, is_first:
+    True at an episode's first frame), cut from each episode in order from its start (a shorter rest is dropped);
+    the windows are taken in order and a last batch short of `batch` is dropped. ValueError when not one batch."""
+    cut = []
+    for frames, actions in episodes:
+        for start in range(0, len(frames) - length + 1, length):
+            first = np.zeros(length, dtype=bool)
+            first[0] = start == 0
+            cut.append((frames[start:start + length], actions[start:start + length], first))
+    if len(cut) < batch:
+        raise ValueError(f"the races gave {len(cut)} windows of {length} decisions, fewer than one batch of "
+                         f"{batch}: drive more --tracks")  # fmt: skip
+    return [tuple(np.stack(parts) for parts in zip(*cut[i:i + batch])) for i in range(0, len(cut) // batch * batch,
+                                                                                        batch)]  # fmt: skip
+
+
+def observe_both(agent, frames: np.ndarray, actions: np.ndarray, is_first: np.ndarray) -> tuple[dict, dict]:
+    """The world model's posterior (means, not samples) over one batch in train mode and in eval mode; the model's
+    buffers (BatchNorm's running statistics) and the agent's mode are as before afterwards."""
+    import torch
+
+    wm, device = agent.world_model, agent.device
+    was_training = wm.training
+    saved = [b.detach().clone() for b in wm.buffers()]
+    inputs = (torch.as_tensor(frames, device=device), torch.as_tensor(actions, device=device),
+              torch.as_tensor(is_first, device=device))  # fmt: skip
+    out = {}
+    try:
+        with torch.no_grad():
+            for mode in (True, False):
+                agent._set_training(mode)
+                out[mode] = wm.observe(wm.encoder(inputs[0]), inputs[1], inputs[2], sample=False)
+    finally:
+        with torch.no_grad():
+            for buffer, value in zip(wm.buffers(), saved):
+                buffer.copy_(value)
+        agent._set_training(was_training)
+    return out[True], out[False]
+
+
+def gaps(agent, train: dict, evaluated: dict) -> dict[str, np.ndarray]:
+    """Per window, each reading of READINGS averaged over its steps (the actor in eval mode on both states)."""
+    import torch
+
+    h_gap = (train["h"] - evaluated["h"]).norm(dim=-1) / evaluated["h"].norm(dim=-1).clamp_min(1e-8)
+    z_gap = ((train["post_mean"] - evaluated["post_mean"]).abs() / evaluated["post_std"]).mean(-1)
+    was_training = agent.actor.training
+    agent.actor.eval()
+    with torch.no_grad():
+        mean_train, _ = agent.actor(torch.cat([train["z"], train["h"]], -1))
+        mean_eval, _ = agent.actor(torch.cat([evaluated["z"], evaluated["h"]], -1))
+    agent.actor.train(was_training)
+    action_gap, action = (mean_train - mean_eval).abs(), mean_eval.abs()
+    readings = {"h_gap": h_gap, "z_gap": z_gap, "steer_gap": action_gap[..., 0], "pedal_gap": action_gap[..., 1],
+                "steer": action[..., 0], "pedal": action[..., 1]}  # fmt: skip
+    return {key: value.mean(-1).float().cpu().numpy() for key, value in readings.items()}
+
+
+def norm_gap(path: str, first_track: int = TRACKS["screening"][0], tracks: int = 4) -> dict:
+    """The readings of the agent saved at `path` (module docstring), with the settings they were read under."""
+    import torch
+
+    from utils import make_vec_env
+    from utils.checkpoint import read_checkpoint
+    from utils.collector import drive_races
+
+    script, checkpoint = read_checkpoint(path)
+    agent = script.agent_from_checkpoint(path, 0)
+    args = script.args_from_checkpoint(checkpoint, path, num_agents=1)
+    envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
+    torch.manual_seed(first_track)
+    records = []
+    try:  # the sampled policy, as it fills its replay
+        drive_races([agent], args, envs, "stochastic", range(first_track, first_track + tracks), records)
+    finally:
+        envs.close()
+    episodes = [cars[0].arrays()[:2] for cars in records]
+    per_window = {key: [] for key in READINGS}
+    for batch in windows(episodes, args.seq_len, args.batch_size):
+        for key, values in gaps(agent, *observe_both(agent, *batch)).items():
+            per_window[key].append(values)
+    means = {key: round(float(np.mean(np.concatenate(v))), 4) for key, v in per_window.items()}
+    return {"checkpoint": path, "variant": checkpoint["variant"], "norm": args.norm, "batch_size": args.batch_size,
+            "seq_len": args.seq_len, "tracks": f"{first_track}..{first_track + tracks - 1}",
+            "windows": len(np.concatenate(per_window["h_gap"])), **means}  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> dict:
+    args = tyro.cli(Args, args=argv, description=__doc__)
+    try:
+        if args.tracks < 1:
+            raise ValueError(f"--tracks must be >= 1, got {args.tracks}")
+        row = norm_gap(args.checkpoint, args.first_track, args.tracks)
+    except ValueError as e:  # (utils.checkpoint.CheckpointError is a ValueError)
+        raise SystemExit(f"norm_gap.py: error: {' '.join(str(e).split())}") from None
+    print(json.dumps(row, indent=1))
+    if args.json:
+        import common
+
+        common.write_json(args.json, row)
+    return row
+
+
+if __name__ == "__main__":
+    main()
