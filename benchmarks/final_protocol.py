@@ -693,10 +693,10 @@ SHIP_COLUMNS = ("variant", "candidate", "checkpoint", "return", "progress", "abs
 
 
 def ship_rows(variant: str, runs_dir: str, shipped: str, seeds: tuple[int, ...] = PROTOCOL_SEEDS) -> list[dict]:
-    """The shipped agent and every seed's final policy (refused, naming it, while a run is short of its budget and
-    not stopped by the non-finite guard: protocol_cpu_hours)
-    driven with SHIP_POLICY on SHIP_TRACKS: one row each (SHIP_COLUMNS, ``shipped`` False), the shipped agent first.
-    A missing shipped file is a candidate that lost already."""
+    """The shipped agent and the final policy of each of `seeds` (refused, naming it, while a run is short of its
+    budget and not stopped by the non-finite guard: protocol_cpu_hours) driven with SHIP_POLICY on SHIP_TRACKS: one
+    row each (SHIP_COLUMNS, ``shipped`` False), the shipped agent first. A missing shipped file is a candidate that
+    lost already."""
     import evaluate
     from utils.checkpoint import read_checkpoint
 

@@ -3,24 +3,29 @@
     python benchmarks/norm_gap.py pretrained/lstm_cpu.pt                  # screening tracks 10200..10203
     python benchmarks/norm_gap.py runs/<run>/checkpoints/latest.pt --tracks 8 --json gap.json
 
-With ``--norm batch`` the recurrent input and the posterior's MLP hold BatchNorm layers inside the recurrence. An
-update observes B replayed sequences of L decisions, one step at a time, so at every step each of those layers
+With ``--norm batch`` the world model holds BatchNorm in the encoder's convolutions and, inside the recurrence, in
+the recurrent input and the posterior's MLP. An update observes B replayed sequences of L decisions, the encoder
+over all B * L frames at once and the recurrence one step at a time, so at every step each BatchNorm in it
 normalises over the B rows of that step (train mode); acting, and the imagined dynamics, use the running
 statistics instead (eval mode). This measures how far apart the two make the model's states on the agent's own
 driving. The saved agent (a training checkpoint or its acting-only export) drives its sampled policy, as trained,
-on ``--tracks`` tracks; the races are cut into windows of L decisions (the agent's --seq-len), taken B at a time
-(its --batch-size), as an update samples them; each batch is observed from the learned initial state twice, with
-the posterior means (no sampling, so that the normalisation is the only difference):
+on ``--tracks`` tracks; the races are cut into windows of L decisions (the agent's --seq-len) from each race's
+start, shuffled (seeded by the first track) so that a batch mixes races as a replay sample does (replay draws its
+B sequences at random offsets, which may cross races), and taken B at a time (its --batch-size). Each batch is
+observed from the learned initial state with the posterior means (no sampling, so that the normalisation is the
+only difference), each pass from the agent's own running statistics (put back after every train-mode pass):
 
-* train mode, as ``world_model_loss`` observes a batch (BatchNorm's running statistics are put back afterwards:
-  the agent is left as it was);
-* eval mode, as the agent acts.
+* ``eval``: every BatchNorm with its running statistics, as the agent acts;
+* ``train``: every BatchNorm with the batch's statistics, as ``world_model_loss`` observes a batch;
+* ``recurrence``: the same but the encoder with its running statistics: the part of the gap that comes from
+  inside the recurrence, the part ``--norm mixed`` (LayerNorm in every MLP and the recurrent input, BatchNorm only
+  in the convolutions) and ``--norm layer`` remove.
 
-Readings, means over every window (L decisions each): ``h_gap``, ||h_train - h_eval|| / ||h_eval|| per step;
-``z_gap``, |mean_train - mean_eval| of the posterior in units of the eval posterior's sigma; ``steer_gap`` and
-``pedal_gap``, |a_train - a_eval| of the actor's mean action (its running statistics on both) against ``steer`` and
-``pedal``, its mean |a| on the eval states. LayerNorm (``--norm layer``; ``mixed`` keeps BatchNorm only in the
-convolutions, which see all B * L frames at once) has no batch statistics in the recurrence.
+Readings, means over every window (L decisions each), train against eval: ``h_gap``, ||h_train - h_eval|| /
+||h_eval|| per step (``h_gap_recurrence``: the same for the recurrence pass); ``z_gap``, |mean_train - mean_eval|
+of the posterior in units of the eval posterior's sigma; ``steer_gap`` and ``pedal_gap``, |a_train - a_eval| of
+the actor's mean action (its running statistics on both) against ``steer`` and ``pedal``, its mean |a| on the
+eval states.
 """
 
 from __future__ import annotations
@@ -37,7 +42,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 from common import TRACKS  # noqa: E402
 
-READINGS = ("h_gap", "z_gap", "steer_gap", "pedal_gap", "steer", "pedal")
+READINGS = ("h_gap", "h_gap_recurrence", "z_gap", "steer_gap", "pedal_gap", "steer", "pedal")
 
 
 @dataclasses.dataclass
@@ -52,10 +57,12 @@ class Args:
     """also write the readings to this file"""
 
 
-def windows(episodes: list[tuple[np.ndarray, np.ndarray]], length: int, batch: int) -> list[tuple[np.ndarray, ...]]:
+def windows(episodes: list[tuple[np.ndarray, np.ndarray]], length: int, batch: int,
+            rng: np.random.Generator | None = None) -> list[tuple[np.ndarray, ...]]:  # fmt: skip
     """Batches of `batch` windows of `length` consecutive decisions (frames, the actions that led to them, is_first:
-    True at an episode's first frame), cut from each episode in order from its start (a shorter rest is dropped);
-    the windows are taken in order and a last batch short of `batch` is dropped. ValueError when not one batch."""
+    True at an episode's first frame), cut from each episode from its start (a shorter rest is dropped); the windows
+    in the order `rng` permutes them (none: as cut), and a last batch short of `batch` dropped. ValueError when not
+    one batch."""
     cut = []
     for frames, actions in episodes:
         for start in range(0, len(frames) - length + 1, length):
@@ -65,32 +72,40 @@ def windows(episodes: list[tuple[np.ndarray, np.ndarray]], length: int, batch: i
     if len(cut) < batch:
         raise ValueError(f"the races gave {len(cut)} windows of {length} decisions, fewer than one batch of "
                          f"{batch}: drive more --tracks")  # fmt: skip
+    order = rng.permutation(len(cut)) if rng is not None else np.arange(len(cut))
+    cut = [cut[i] for i in order]
     return [tuple(np.stack(parts) for parts in zip(*cut[i:i + batch])) for i in range(0, len(cut) // batch * batch,
                                                                                         batch)]  # fmt: skip
 
 
-def observe_both(agent, frames: np.ndarray, actions: np.ndarray, is_first: np.ndarray) -> tuple[dict, dict]:
-    """The world model's posterior (means, not samples) over one batch in train mode and in eval mode; the model's
-    buffers (BatchNorm's running statistics) and the agent's mode are as before afterwards."""
+def observe_modes(agent, frames: np.ndarray, actions: np.ndarray, is_first: np.ndarray) -> dict[str, dict]:
+    """The world model's posterior (means, not samples) over one batch: ``eval``, with the running statistics, as
+    the agent acts; ``train``, every BatchNorm with the batch's statistics, as an update observes the batch;
+    ``recurrence``, the same with the encoder's running statistics (the batch's only inside the recurrence: what
+    ``--norm mixed`` replaces). The running statistics are put back after each train-mode pass, so each pass starts
+    from the agent's own, and the agent's modes are as before afterwards."""
     import torch
 
     wm, device = agent.world_model, agent.device
-    was_training = wm.training
+    modes = [(module, module.training) for part in (wm, agent.actor, agent.critic) for module in part.modules()]
     saved = [b.detach().clone() for b in wm.buffers()]
-    inputs = (torch.as_tensor(frames, device=device), torch.as_tensor(actions, device=device),
-              torch.as_tensor(is_first, device=device))  # fmt: skip
+    frames, actions, is_first = (torch.as_tensor(x, device=device) for x in (frames, actions, is_first))
     out = {}
     try:
         with torch.no_grad():
-            for mode in (True, False):
-                agent._set_training(mode)
-                out[mode] = wm.observe(wm.encoder(inputs[0]), inputs[1], inputs[2], sample=False)
+            for name in ("eval", "train", "recurrence"):
+                wm.train(name != "eval")
+                wm.encoder.train(name == "train")
+                out[name] = wm.observe(wm.encoder(frames), actions, is_first, sample=False)
+                for buffer, value in zip(wm.buffers(), saved):
+                    buffer.copy_(value)
     finally:
         with torch.no_grad():
             for buffer, value in zip(wm.buffers(), saved):
                 buffer.copy_(value)
-        agent._set_training(was_training)
-    return out[True], out[False]
+        for module, training in modes:
+            module.training = training
+    return out
 
 
 def gaps(agent, train: dict, evaluated: dict) -> dict[str, np.ndarray]:
@@ -131,9 +146,11 @@ def norm_gap(path: str, first_track: int = TRACKS["screening"][0], tracks: int =
         envs.close()
     episodes = [cars[0].arrays()[:2] for cars in records]
     per_window = {key: [] for key in READINGS}
-    for batch in windows(episodes, args.seq_len, args.batch_size):
-        for key, values in gaps(agent, *observe_both(agent, *batch)).items():
+    for batch in windows(episodes, args.seq_len, args.batch_size, np.random.default_rng(first_track)):
+        passes = observe_modes(agent, *batch)
+        for key, values in gaps(agent, passes["train"], passes["eval"]).items():
             per_window[key].append(values)
+        per_window["h_gap_recurrence"].append(gaps(agent, passes["recurrence"], passes["eval"])["h_gap"])
     means = {key: round(float(np.mean(np.concatenate(v))), 4) for key, v in per_window.items()}
     return {"checkpoint": path, "variant": checkpoint["variant"], "norm": args.norm, "batch_size": args.batch_size,
             "seq_len": args.seq_len, "tracks": f"{first_track}..{first_track + tracks - 1}",
