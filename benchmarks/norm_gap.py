@@ -40,7 +40,7 @@ import tyro
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
-from common import TRACKS  # noqa: E402
+from common import TRACKS, track_block  # noqa: E402
 
 READINGS = ("h_gap", "h_gap_recurrence", "z_gap", "steer_gap", "pedal_gap", "steer", "pedal")
 
@@ -153,7 +153,7 @@ def norm_gap(path: str, first_track: int = TRACKS["screening"][0], tracks: int =
         per_window["h_gap_recurrence"].append(gaps(agent, passes["recurrence"], passes["eval"])["h_gap"])
     means = {key: round(float(np.mean(np.concatenate(v))), 4) for key, v in per_window.items()}
     return {"checkpoint": path, "variant": checkpoint["variant"], "norm": args.norm, "batch_size": args.batch_size,
-            "seq_len": args.seq_len, "tracks": f"{first_track}..{first_track + tracks - 1}",
+            "seq_len": args.seq_len, "tracks": track_block(first_track, tracks),
             "windows": len(np.concatenate(per_window["h_gap"])), **means}  # fmt: skip
 
 
