@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import copy
 import csv
+import dataclasses
 import glob
 import importlib
 import io
@@ -626,3 +627,23 @@ def test_an_explicit_flag_on_resume_overrides_and_says_so(uninterrupted, tmp_pat
     assert checkpoint["args"]["torch_threads"] == 1  # not passed: kept
     refused = run_script(["--resume", str(run_dir), "--deter-size", "32"])
     assert refused.returncode == 1 and "--deter-size cannot change in a resumed run" in refused.stderr
+
+
+def test_saved_arguments_are_read_back_new_flags_default_and_removed_ones_are_named_with_their_values(capsys):
+    """args_from_checkpoint: a checkpoint written before a flag existed gets the flag's default; one written with a
+    flag this code no longer has is read without it, and the note names the flag and its saved value (a run trained
+    with another value would go on differently); a saved argument the Args cannot take is a one-line error."""
+
+    @dataclasses.dataclass
+    class Args:
+        seed: int = 1
+        gamma: float = 0.99
+        new_flag: int = 7
+
+    saved = {"args": {"seed": 3, "gamma": 0.9, "old_noise": 0.9, "old_mode": "fast"}}
+    args = ckpt.args_from_checkpoint(Args, saved, "run/latest.pt", gamma=0.95)
+    assert (args.seed, args.gamma, args.new_flag) == (3, 0.95, 7)  # an override wins, the new flag keeps 7
+    assert capsys.readouterr().out == ("note: run/latest.pt has arguments this script does not know (ignored): "
+                                       "old_mode='fast', old_noise=0.9\n")  # fmt: skip
+    with pytest.raises(ckpt.CheckpointError, match=r"^run/latest.pt: its arguments do not fit this script: "):
+        ckpt.args_from_checkpoint(Args, {"args": {"seed": 3}}, "run/latest.pt", unknown_override=1)

@@ -150,12 +150,15 @@ def load_checkpoint(path: str, variant: str, map_location="cpu", training: bool 
 
 
 def args_from_checkpoint(args_class, checkpoint: dict, path: str, **overrides):
-    """The Args a checkpoint was trained with (new flags keep their defaults, flags removed since are dropped)."""
+    """The Args a checkpoint was trained with (new flags keep their defaults, flags removed since are dropped: a note
+    names each with its saved value, since a run trained with another value than the one the code now behaves as
+    would go on differently)."""
     names = {field.name for field in dataclasses.fields(args_class)}
     saved = checkpoint["args"] if isinstance(checkpoint["args"], dict) else {}
     dropped = sorted(set(saved) - names)
     if dropped:
-        print(f"note: {path} has arguments this script does not know (ignored): {', '.join(dropped)}")
+        listed = ", ".join(f"{name}={saved[name]!r}" for name in dropped)
+        print(f"note: {path} has arguments this script does not know (ignored): {listed}")
     try:
         return args_class(**{**{k: v for k, v in saved.items() if k in names}, **overrides})
     except TypeError as e:
