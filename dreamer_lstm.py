@@ -254,6 +254,11 @@ class Args:
     Lillicrap et al.'s Ornstein-Uhlenbeck noise in discrete time). 0: independent (the paper). Imagination always
     samples independently, so in training it only changes which real data the world model learns from; a saved
     agent's sampled policy (evaluate.py, race.py) keeps the correlation it was trained with"""
+    straight_through_clip: bool = False
+    """imagination gives the world model a + (clip(a, -1, 1) - a) with the second part detached: the clipped action
+    forward, the identity's gradient backward, so a sample outside [-1, 1] still passes reward and value gradient
+    to the actor (Bengio et al., 2013's straight-through estimator). False: the clip passes none for that action
+    dimension, only the entropy bonus's (the paper authors' form)"""
 
     # --- network sizes (paper appendix; --preset cpu uses smaller ones)
     image_size: Literal[96, 64] = 96
@@ -903,7 +908,8 @@ def frozen(*modules: nn.Module):
             p.requires_grad_(True)
 
 
-def imagine_rollout(world_model: WorldModel, actor: Actor, state: tuple, h, z, horizon: int):
+def imagine_rollout(world_model: WorldModel, actor: Actor, state: tuple, h, z, horizon: int,
+                    straight_through: bool = False):  # fmt: skip
     """Roll the prior forward `horizon` steps from detached start states, acting with the actor.
 
     Returns features s_0..s_H (H+1, N, F), log pi_0..log pi_{H-1} (H, N), the sampled actions before clipping
@@ -911,6 +917,8 @@ def imagine_rollout(world_model: WorldModel, actor: Actor, state: tuple, h, z, h
     Everything is reparameterised, so the actor loss backpropagates through the learned dynamics, except where a
     sample falls outside [-1, 1]: the clip passes no gradient, so that step's action dimension gets no gradient of
     reward or value, only the entropy bonus's (a share of samples that grows with sigma and as the mean nears +-1).
+    `straight_through` (--straight-through-clip) gives the model the same clipped action with the identity's
+    gradient instead.
     """
     features, log_pis, samples, stds = [torch.cat([z, h], -1)], [], [], []
     for _ in range(horizon):
@@ -918,7 +926,10 @@ def imagine_rollout(world_model: WorldModel, actor: Actor, state: tuple, h, z, h
         action = mean + std * torch.randn_like(std)  # Actor.sample, keeping sigma for the diagnostics
         log_pis.append(policy_log_prob(action, mean, std))
         samples.append(action)
-        state, h, z = world_model.imagine_step(state, z, action.clamp(-1.0, 1.0))
+        clipped = action.clamp(-1.0, 1.0)
+        if straight_through:
+            clipped = action + (clipped - action).detach()
+        state, h, z = world_model.imagine_step(state, z, clipped)
         features.append(torch.cat([z, h], -1))
         stds.append(std)
     return torch.stack(features), torch.stack(log_pis), torch.stack(samples), torch.stack(stds)
@@ -1069,7 +1080,8 @@ class Agent:
         wm.eval()
         self.actor.eval()
         with frozen(wm, self.critic):  # only the actor's parameters take gradient from the actor loss
-            features, log_pi, samples, stds = imagine_rollout(wm, self.actor, state, h, z, args.imagination_horizon)
+            features, log_pi, samples, stds = imagine_rollout(wm, self.actor, state, h, z, args.imagination_horizon,
+                                                             args.straight_through_clip)  # fmt: skip
             rewards = wm.reward.dist(features[1:]).mean  # r_1..r_H
             continues = torch.sigmoid(wm.cont(features[1:]).float().squeeze(-1))  # c_1..c_H
             values = bootstrap.dist(features[1:]).mean  # V(s_1..s_H)

@@ -244,3 +244,45 @@ def test_the_action_penalty_reweighs_the_extreme_action_term_of_the_bonus(script
     beta = 0.25 if penalty is None else penalty
     expected = 3.0 + 0.25 + (0.25 - beta) * term + 0.5 * 4.0
     assert metrics["imagined_return"].item() == pytest.approx(expected, rel=1e-6)
+
+
+class FixedMeanActor(nn.Module):
+    """An actor whose mean is one learnable vector for every state and whose sigma is fixed: imagine_rollout's
+    sample is then mean + sigma * eps, so d(action)/d(mean) is the identity."""
+
+    def __init__(self, mean, sigma):
+        super().__init__()
+        self.mean, self.sigma = nn.Parameter(torch.tensor(mean)), sigma
+
+    def forward(self, features):
+        mean = self.mean.expand(features.shape[0], -1)
+        return mean, torch.full_like(mean, self.sigma)
+
+
+@pytest.mark.parametrize("straight_through", [False, True])
+def test_a_clipped_imagined_action_passes_gradient_only_straight_through(script, straight_through):
+    """--straight-through-clip: the model is given clip(a) either way (the same imagined state); the gradient of
+    what it imagines with respect to the actor's mean equals the model's own gradient at the clipped action, masked
+    to the samples inside [-1, 1] by the hard clip and not masked straight through. The reference calls the
+    model's imagine_step directly on the clipped action, with the same random numbers."""
+    agent = script.Agent(tiny_args(script, norm="layer"))
+    wm = agent.world_model.eval()
+    B, L = 2, 3
+    embed = wm.encoder(torch.randint(0, 256, (B, L, 64, 64, 3), dtype=torch.uint8))
+    post = wm.observe(embed, torch.zeros(B, L, 2), torch.zeros(B, L, dtype=torch.bool))
+    state, h, z, _ = agent.start_states(post, torch.zeros(B, L))
+    actor = FixedMeanActor([0.9, -0.2], 0.5)
+    torch.manual_seed(3)
+    features, _, samples, _ = script.imagine_rollout(wm, actor, state, h, z, 1, straight_through)
+    (grad,) = torch.autograd.grad(features[1].sum(), actor.mean)
+    torch.manual_seed(3)
+    torch.randn(B * L, 2)  # the rollout's action noise
+    clipped = samples[0].detach().clamp(-1.0, 1.0).requires_grad_()
+    _, h_ref, z_ref = wm.imagine_step(state, z, clipped)
+    torch.testing.assert_close(torch.cat([z_ref, h_ref], -1), features[1])  # the model saw the clipped action
+    (model_grad,) = torch.autograd.grad(torch.cat([z_ref, h_ref], -1).sum(), clipped)
+    inside = (samples[0].abs() <= 1).float()
+    assert 0 < inside[:, 0].sum() < B * L  # some samples of the first dimension were clipped, some were not
+    expected = model_grad.sum(0) if straight_through else (model_grad * inside).sum(0)
+    torch.testing.assert_close(grad, expected)
+    assert not torch.allclose(model_grad.sum(0), (model_grad * inside).sum(0))  # the two estimators differ here
