@@ -55,12 +55,15 @@ import tyro
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import learning  # noqa: E402  (the single stage is the learning benchmark's run)
 from common import RESULTS, checkpoint_updates, write_json  # noqa: E402
 from runs import cpu_hours_of, experiment_name, numerical_stop, run_of, updates_of  # noqa: E402
 
 TOURNAMENT_SEED = 7_777  # held-out tracks of the tournaments (training races use the pair's seed)
 NO_UPDATE_TARGET = 10**12  # the update target of a trial that a CPU budget ends (--single-cpu-hours)
+SINGLE_UPDATES = 8000  # a single-stage trial's updates by default (the 8,000-update protocol's runs)
+# What a single-stage trial adds to the preset: one car; its evaluations (every --eval-every races) on the 10
+# held-out tracks 10000..10009, each evaluated policy kept (checkpoints/eval_<race>.pt)
+SINGLE_CONFIG = {"stage": "single", "num_agents": 1, "eval_episodes": 10, "eval_checkpoints": True}
 
 
 @dataclasses.dataclass
@@ -75,7 +78,7 @@ class Spec:
     """the dreamer scripts' --preset"""
     overrides: tuple[str, ...] = ()
     """more flags of the dreamer scripts as name=value (e.g. entropy_coef=0.5), on top of the preset"""
-    single_updates: int = learning.LEARNING_UPDATES
+    single_updates: int = SINGLE_UPDATES
     """updates of a single-stage trial"""
     single_cpu_hours: float = 0.0
     """if > 0, a single-stage trial ends when its run has used this many CPU-hours (process CPU time over all its
@@ -208,17 +211,17 @@ def trial_args(spec: dict, stage: str, variant: str, seed: int):
         first, target = None, spec["single_updates"]
         if spec["single_cpu_hours"] > 0:  # the budget ends the trial (dreamer_trial), whatever the updates
             settings["cpu_hours_limit"], target = spec["single_cpu_hours"], NO_UPDATE_TARGET
-        # the learning benchmark's run (benchmarks/learning.py --runs-dir <storage>/trials reads it) unless the
-        # spec changes the preset, a flag, the updates, the threads or the evaluation policy (which picks best.pt):
-        # the scripts' default, or the sampled policy the 8,000-update protocol's runs were made with
+        # named learning_<variant> (the 8,000-update protocol's runs, so its storage resumes) unless the spec changes
+        # the preset, a flag, the updates, the threads or the evaluation policy (which picks best.pt): the scripts'
+        # default, or the sampled policy the 8,000-update protocol's runs were made with
         plain = spec["preset"] == "cpu" and not spec["overrides"]
-        plain = plain and spec["single_updates"] == learning.LEARNING_UPDATES
+        plain = plain and spec["single_updates"] == SINGLE_UPDATES
         plain = plain and spec["single_cpu_hours"] == 0
-        plain = plain and spec["torch_threads"] == learning.LEARNING_CONFIG["torch_threads"]
+        plain = plain and spec["torch_threads"] == 1
         plain = plain and spec["eval_policy"] in (script.Args().eval_policy, "stochastic")
         args = script.preset_args(
             spec["preset"], exp_name=experiment_name(variant) if plain else f"{variant}_single",
-            **{**learning.LEARNING_CONFIG, **settings},
+            **{**SINGLE_CONFIG, **settings},
         )  # fmt: skip
     else:  # ghost, or its control: from the single trial's best.pt, for as many updates
         best = start_checkpoint(spec, "single", variant, seed, "best.pt")

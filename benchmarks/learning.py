@@ -1,53 +1,43 @@
-"""Does the agent learn to drive, and does it keep driving? CPU-sized single-car runs, evaluated on held-out tracks.
+"""Does the agent learn to drive, and does it keep driving? The measurements of single-car runs on held-out tracks.
 
     python benchmarks/learning.py --runs-dir runs/final/trials --variant lstm --seed 21 --protocol-row   # a row
     python benchmarks/learning.py --protocol-report                        # the final protocol's learning_final.md
     python benchmarks/learning.py --runs-dir runs/final/trials --variant lstm --protocol-ship   # pretrained/lstm_cpu.pt
-    python benchmarks/learning.py --variant lstm --seed 11                 # a learning run (8,000 updates)
-    python benchmarks/learning.py --variant lstm --seed 11 --resume        # continue it after a stop
-    python benchmarks/learning.py --report                                 # curves + table only
-    python benchmarks/learning.py --variant lstm --seed 11 --diagnose      # sigma, entropy, kl_dyn... per 500 updates
-    python benchmarks/learning.py --runs-dir runs/final/trials --variant lstm --seed 21 --diagnose   # a protocol run
-    python benchmarks/learning.py --calibrate runs/learning/<run>/checkpoints/latest.pt   # optimistic critic/model?
+    python benchmarks/learning.py --runs-dir runs/final/trials --variant lstm --seed 21 --diagnose   # sigma, entropy...
+    python benchmarks/learning.py --calibrate runs/final/trials/<trial>/<run>/checkpoints/latest.pt   # optimistic?
 
-Trains `dreamer_<variant>.py --preset cpu` on the single-car race (stage ``single``, one torch thread, so two runs
-share two cores) until ``--updates`` updates or ``--hours`` of wall time (resumable: --resume continues a run),
-evaluating every 5 races on the 10 held-out tracks (seeds 10000..10009) and keeping each evaluated policy
-(``checkpoints/eval_<race>.pt``). At most one mode flag (``--report``, ``--diagnose``, ``--protocol-row``,
-``--protocol-report``, ``--protocol-ship``, ``--calibrate``) replaces the training. It writes, under
-``benchmarks/results/``:
+The runs are the single-stage trials of ``benchmarks/experiment.py`` (``dreamer_<variant>.py --preset cpu`` on the
+single-car race, one torch thread, evaluated every 5 races on the 10 held-out tracks 10000..10009, each evaluated
+policy kept as ``checkpoints/eval_<race>.pt``), under ``<storage>/trials/``: ``--runs-dir`` points every mode at
+them. Each command runs one mode (``--protocol-row``, ``--protocol-report``, ``--protocol-ship``, ``--diagnose``,
+``--calibrate``) and writes, under ``benchmarks/results/`` (the protocol's files: ``--results-dir``):
 
-* ``learning_<variant>_seed<S>.csv``: evaluation return and progress against env steps, updates and hours;
-* ``baselines.json``: random actions and the pure-pursuit driver on the same 10 tracks;
-* ``learning.png`` and ``learning.md``: every curve, with the baselines;
-* with ``--calibrate``: a row of ``calibration.csv``, the agent's value and imagined return of real states against
-  what the real episodes returned from them;
 * with ``--protocol-row``: the final protocol's row of ``learning_final.csv``, the run's readings (why it drives as
   it does, benchmarks/readings.py) in ``learning_final_readings.csv``, and ``learning_final.md``;
   ``--protocol-report`` rewrites ``learning_final.md`` alone;
 * with ``--protocol-ship``: ``ship_<variant>.csv``, the protocol's final policies and the shipped agent on the
-  screening tracks, and ``pretrained/<variant>_cpu.pt`` replaced by the best of them.
+  screening tracks, and ``pretrained/<variant>_cpu.pt`` replaced by the best of them;
+* with ``--diagnose``: ``<experiment>_seed<S>_diagnostics.md``, the run's training logs per 500 updates;
+* with ``--calibrate``: a row of ``calibration.csv``, the agent's value and imagined return of real states against
+  what the real episodes returned from them.
 
 The final protocol (CPU budget: per variant the seeds 21..25, each a single-stage trial of ``benchmarks/experiment.py
 --single-cpu-hours 3.1``, measured on the report tracks 10300..10329; its bar and its peers' files) is
 ``final_protocol.py``, which the ``--protocol-*`` modes call. It replaces the 8,000-update protocol (final policies
-on the tracks 10100..10119), whose files are in ``benchmarks/results/history/8000_updates/``.
+on the tracks 10100..10119, its runs the experiment's single stage at 8,000 updates), whose files are in
+``benchmarks/results/history/8000_updates/``. (This command line also trained and plotted such runs one at a time
+until commit b28dd0c.)
 
-This file holds the learning runs' settings, the measurement of a saved policy on a block of tracks and the
-command line. The rest lives beside it: ``runs.py`` (where the runs are; what their event files, progress.csv and
-checkpoints hold), ``learning_report.py`` (curves, table, figure, diagnostics), ``final_protocol.py`` and
-``calibration.py``. A saved agent on other tracks, or its
-acting-only export: ``evaluate.py`` at the top level (``python evaluate.py CHECKPOINT --first-track 10100 --tracks
-20``, ``python evaluate.py CHECKPOINT --export OUT``).
-
-``benchmarks/experiment.py`` trains these same runs as its single stage (under ``<storage>/trials/``);
-``--runs-dir`` points every mode at them.
+This file holds the measurement of a saved policy on a block of tracks and the command line. The rest lives beside
+it: ``runs.py`` (where the runs are; what their event files, progress.csv and checkpoints hold),
+``learning_report.py`` (the references and a run's diagnostics), ``final_protocol.py`` and ``calibration.py``. A
+saved agent on other tracks, or its acting-only export: ``evaluate.py`` at the top level (``python evaluate.py
+CHECKPOINT --first-track 10100 --tracks 20``, ``python evaluate.py CHECKPOINT --export OUT``).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import json
 import os
 import sys
@@ -61,43 +51,10 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import common  # noqa: E402  (the blocks of tracks, the results' CSV rows)
 import final_protocol as protocol  # noqa: E402  (the --protocol-* modes)
 from calibration import calibrate_checkpoint, write_calibration_row  # noqa: E402
-from learning_report import diagnostics, diagnostics_table, report  # noqa: E402
+from learning_report import diagnostics, diagnostics_table  # noqa: E402
 from runs import RUNS, experiment_name, find_run, learning_runs  # noqa: E402
 
-# --- The protocol ----------------------------------------------------------------------------
 RESULTS = common.RESULTS
-LEARNING_UPDATES = 8000  # a learning run's updates (the 8,000-update protocol's; the final protocol's runs end on CPU
-# time)
-# What the benchmark adds to the scripts' CPU preset (--preset cpu): one car; decisions evaluated on the 10 held-out
-# tracks every 5 races, each evaluated policy kept; the run ends at --updates; one thread, two runs on two cores.
-LEARNING_CONFIG = {
-    "stage": "single",
-    "num_agents": 1,
-    "eval_episodes": 10,
-    "eval_checkpoints": True,
-    "total_episodes": 1_000_000,  # --updates (or the time limit) ends the run
-    "torch_threads": 1,
-}
-
-
-def run_args(variant: str, seed: int, hours: float, resume: bool, updates: int = LEARNING_UPDATES,
-             runs_dir: str = RUNS):  # fmt: skip
-    """The dreamer script of ``variant``, the Args of this sitting and the fields they override: a new run at the
-    CPU preset plus LEARNING_CONFIG, or (``resume``) the latest run of the same name and seed, continued with its
-    own settings (only the time limit and the update target are this sitting's)."""
-    script = importlib.import_module(f"dreamer_{variant}")
-    exp_name = experiment_name(variant)
-    existing = find_run(exp_name, seed, runs_dir)
-    if resume and existing:
-        args = script.Args(resume=existing, time_limit_hours=hours, total_updates=updates)
-        return script, args, {"time_limit_hours", "total_updates"}
-    if existing and not resume:
-        print(f"note: {existing} exists; starting a new run (use --resume to continue it)")
-    args = script.preset_args(
-        "cpu", seed=seed, exp_name=exp_name, runs_dir=runs_dir, time_limit_hours=hours, total_updates=updates,
-        **LEARNING_CONFIG,
-    )  # fmt: skip
-    return script, args, set()
 
 
 # --- A saved policy on a block of tracks -----------------------------------------------------
@@ -143,25 +100,18 @@ def policy_summary(
 @dataclasses.dataclass
 class Args:
     variant: Literal["lstm", "gru"] = "lstm"
-    """the agent: dreamer_<variant>.py"""
+    """the run's agent: dreamer_<variant>.py"""
     seed: int = 1
     """the run's seed"""
-    hours: float = 3.0
-    """wall-clock budget of this invocation (a run may take several: --resume)"""
-    updates: int = LEARNING_UPDATES
-    """the run ends after this many updates"""
-    resume: bool = False
-    """continue the latest run of this variant and seed"""
     runs_dir: str = RUNS
-    """where the runs are, at any depth (e.g. runs/experiment/trials: the experiment's single stage)"""
-    report: bool = False
-    """mode: only write the curves and the table"""
+    """where the runs are, at any depth (e.g. runs/final/trials: the single-stage trials of experiment.py
+    --storage runs/final)"""
     diagnose: bool = False
-    """mode: only the run's diagnostics per 500 updates (returns, sigma, entropy, kl_dyn, reward NLL, imagined
+    """mode: the run's diagnostics per 500 updates (returns, sigma, entropy, kl_dyn, reward NLL, imagined
     return, evaluations): printed and written to benchmarks/results/<experiment>_seed<S>_diagnostics.md; the run
     is learning_<variant>, else an experiment trial <variant>_single (e.g. --runs-dir runs/final/trials --seed 21)"""
     protocol_row: bool = False
-    """mode: only measure the final protocol's run of --variant and --seed (21..25: the single-stage trial of
+    """mode: measure the final protocol's run of --variant and --seed (21..25: the single-stage trial of
     experiment.py --single-cpu-hours 3.1 under --runs-dir <storage>/trials, refused before its budget is spent
     unless the non-finite guard stopped it),
     its latest.pt sampled and with its mean action on the 30 report tracks 10300..10329: its row of
@@ -171,10 +121,10 @@ class Args:
     """--protocol-row: also measure the run's readings (--no-protocol-readings skips them; they cost another sampled
     drive of the tracks and the model's imagination from every frame of it)"""
     protocol_report: bool = False
-    """mode: only rewrite learning_final.md from the final protocol's learning_final.csv and its peers' rows of the
+    """mode: rewrite learning_final.md from the final protocol's learning_final.csv and its peers' rows of the
     report tracks in <peer>_peer.csv and <peer>_peer_curve.csv (no evaluation)"""
     protocol_ship: bool = False
-    """mode: only choose the shipped agent of --variant: the final policies of the protocol's seeds (under
+    """mode: choose the shipped agent of --variant: the final policies of the protocol's seeds (under
     --runs-dir: the seeds of --ship-seeds, every one by default; --seed is not read) and pretrained/<variant>_cpu.pt
     with the mean action on the screening tracks 10200..10219; the best seed is exported over the shipped file if it
     drives better there (ship_<variant>.csv in --results-dir)"""
@@ -185,7 +135,7 @@ class Args:
     """--protocol-row, --protocol-report, --protocol-ship: where learning_final.csv and .md (and the readings, the
     peers' CSVs, ship_<variant>.csv) are"""
     calibrate: Annotated[str | None, tyro.conf.arg(metavar="CHECKPOINT")] = None
-    """mode: only measure whether this agent's critic and imagination are optimistic on real episodes (its sampled
+    """mode: measure whether this agent's critic and imagination are optimistic on real episodes (its sampled
     policy on --tracks tracks from --first-track); a row of benchmarks/results/calibration.csv"""
     horizon: int | None = None
     """--calibrate: imagination horizon (default: the agent's own)"""
@@ -195,16 +145,17 @@ class Args:
     """--calibrate: number of tracks"""
 
 
-MODES = ("report", "diagnose", "protocol_row", "protocol_report", "protocol_ship", "calibrate")  # Args' mode fields
+MODES = ("protocol_row", "protocol_report", "protocol_ship", "diagnose", "calibrate")  # Args' mode fields
 PROTOCOL_MODES = ("protocol_row", "protocol_report", "protocol_ship")  # the modes of --results-dir
 
 
 def check(args: Args) -> None:
-    """Refuse a command line that asks for two modes or gives an impossible value, before any work: ValueError
-    naming the flags."""
-    modes = [f"--{name.replace('_', '-')}" for name in MODES if getattr(args, name) not in (None, False)]
+    """Refuse a command line that asks for two modes or none, or gives an impossible value, before any work:
+    ValueError naming the flags."""
+    flags = [f"--{name.replace('_', '-')}" for name in MODES]
+    modes = [flag for name, flag in zip(MODES, flags) if getattr(args, name) not in (None, False)]
     if len(modes) > 1:
-        raise ValueError(f"{' and '.join(modes)} are separate modes: give one at most")
+        raise ValueError(f"{' and '.join(modes)} are separate modes: give one")
     if args.horizon is not None and args.calibrate is None:
         raise ValueError("--horizon is the imagination horizon of --calibrate; give --calibrate CHECKPOINT")
     if args.results_dir != RESULTS and not any(getattr(args, name) for name in PROTOCOL_MODES):
@@ -216,17 +167,16 @@ def check(args: Args) -> None:
     if wrong or not args.ship_seeds or len(set(args.ship_seeds)) < len(args.ship_seeds):
         raise ValueError(f"--ship-seeds must be distinct seeds of the final protocol "
                          f"({', '.join(map(str, protocol.PROTOCOL_SEEDS))}), got {list(args.ship_seeds)}")  # fmt: skip
-    if args.hours <= 0:
-        raise ValueError(f"--hours must be > 0, got {args.hours}")
-    if args.updates < 1:
-        raise ValueError(f"--updates must be >= 1, got {args.updates}")
     if args.tracks < 1 or (args.horizon is not None and args.horizon < 1):
         raise ValueError(f"--tracks and --horizon must be >= 1, got {args.tracks} and {args.horizon}")
+    if not modes:
+        raise ValueError(f"give a mode: {', '.join(flags)} (the runs themselves are benchmarks/experiment.py's "
+                         "single stage)")  # fmt: skip
 
 
-def run_mode(args: Args) -> bool:
-    """Run the measuring mode `args` gives (any but --report), printing and writing what it makes; False if it gives
-    none. Bad input (no such run, checkpoint or kept policy) raises ValueError naming it."""
+def run_mode(args: Args) -> None:
+    """Run the mode `args` gives, printing and writing what it makes. Bad input (no such run, checkpoint or kept
+    policy) raises ValueError naming it."""
     name = experiment_name(args.variant)
     if args.calibrate is not None:
         row = calibrate_checkpoint(args.calibrate, args.first_track, args.tracks, args.horizon)
@@ -262,37 +212,16 @@ def run_mode(args: Args) -> bool:
             if args.protocol_readings:
                 protocol.write_why_rows(protocol.protocol_readings(row, driven, args.runs_dir), why_path)
         print(protocol.write_protocol_report(args.results_dir))
-    else:
-        return False
-    return True
-
-
-def training_sitting(args: Args) -> tuple:
-    """This sitting's (script, its Args, the fields they override) of run_args, checked by the script's own rules
-    (a value it refuses raises UsageError, a ValueError naming the flag) before any work."""
-    from utils.run import validate_args
-
-    script, script_args, overrides = run_args(args.variant, args.seed, args.hours, args.resume, args.updates,
-                                              args.runs_dir)  # fmt: skip
-    validate_args(script_args, script.LOG_SIGMA_RANGE)
-    return script, script_args, overrides
 
 
 def cli(argv: list[str] | None = None) -> None:
-    """The command line: one mode, or this sitting's training and then the report. Bad input ends with one line
-    naming it, no traceback."""
+    """The command line: one mode. Bad input ends with one line naming it, no traceback."""
     args = tyro.cli(Args, args=argv, description=__doc__)
     try:
         check(args)
-        if run_mode(args):
-            return
-        sitting = None if args.report else training_sitting(args)
-    except ValueError as e:  # (utils.checkpoint.CheckpointError and UsageError are ValueErrors)
+        run_mode(args)
+    except ValueError as e:  # (utils.checkpoint.CheckpointError is a ValueError)
         raise SystemExit(f"learning.py: error: {' '.join(str(e).split())}") from None
-    if sitting is not None:
-        script, script_args, overrides = sitting
-        script.main(script_args, overrides)
-    report(args.runs_dir)
 
 
 if __name__ == "__main__":

@@ -3,10 +3,9 @@ trial, a run's evaluation curve and training hours (from its TensorBoard event f
 what a checkpoint says about its run (updates, CPU-hours, a stop by the non-finite guard).
 
 A run directory is the dreamer scripts' ``<runs_dir>/<env>__<exp_name>__<seed>__<time>/`` (TensorBoard event files,
-``progress.csv``, ``checkpoints/``). ``benchmarks/learning.py`` trains and measures the learning runs,
-``benchmarks/experiment.py`` and ``sweep.py`` their trials (one run directory per trial under
-``<storage>/trials/``), and they, ``final_protocol.py``, ``learning_report.py``, ``readings.py`` and
-``experiment_report.py`` read them through this module.
+``progress.csv``, ``checkpoints/``). ``benchmarks/experiment.py`` and ``sweep.py`` train their trials (one run
+directory per trial under ``<storage>/trials/``), and they, ``learning.py``, ``final_protocol.py``,
+``learning_report.py``, ``readings.py`` and ``experiment_report.py`` read them through this module.
 """
 
 from __future__ import annotations
@@ -22,12 +21,12 @@ from common import checkpoint_updates
 
 # --- Where the runs are ----------------------------------------------------------------------
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-RUNS = os.path.join(ROOT, "runs", "learning")  # learning.py's runs (experiment.py's: <storage>/trials)
+RUNS = os.path.join(ROOT, "runs", "learning")  # learning.py's default --runs-dir (experiment.py's: <storage>/trials)
 VARIANTS = ("lstm", "gru")  # dreamer_<variant>.py
 
 
 def experiment_name(variant: str) -> str:
-    """The name of a learning run of `variant` (and of experiment.py's default single-stage trial)."""
+    """The name of experiment.py's default single-stage trial of `variant` (the 8,000-update protocol's runs)."""
     return f"learning_{variant}"
 
 

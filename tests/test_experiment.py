@@ -250,26 +250,30 @@ def test_the_summary_matches_hand_computed_numbers():
         stats.paired_probability_of_improvement([0.5], [0.5, 0.4])  # rates of different pairs cannot be paired
 
 
-def test_the_default_single_stage_is_the_learning_benchmarks_run(tmp_path):
-    """At the default spec (CPU preset, no overrides) a single-stage trial trains exactly the run that
-    ``benchmarks/learning.py`` would (same flags, same name), so ``learning.py --runs-dir <storage>/trials``
-    reports it; a spec that changes a flag names its trials apart."""
-    import learning
+def test_the_default_single_stage_is_the_cpu_preset_with_one_car_and_kept_evaluations(tmp_path):
+    """At the default spec (CPU preset, no overrides) a single-stage trial is the CPU preset with one car, its
+    evaluations on the 10 held-out tracks kept, one thread, 8,000 updates, named learning_<variant> as the
+    8,000-update protocol's runs were (so runs.find_run and an earlier storage find it); a spec that changes a flag
+    names its trials apart."""
+    import dreamer_gru
+    import dreamer_lstm
 
     spec = dataclasses.asdict(experiment.Spec(storage=str(tmp_path)))
-    for variant in ("lstm", "gru"):
+    for script in (dreamer_lstm, dreamer_gru):
+        variant = script.VARIANT
         _, args, first, target = experiment.trial_args(spec, "single", variant, 12)
-        _, reference, _ = learning.run_args(variant, 12, hours=1.0, resume=False, runs_dir=str(tmp_path / "learning"))
+        reference = script.preset_args("cpu", seed=12, exp_name=f"learning_{variant}", stage="single", num_agents=1,
+                                       eval_episodes=10, eval_checkpoints=True, torch_threads=1)  # fmt: skip
         differ = {f.name for f in dataclasses.fields(args) if getattr(args, f.name) != getattr(reference, f.name)}
-        assert differ == {"runs_dir", "total_episodes", "time_limit_hours", "total_updates"}
-        assert (first, target, reference.total_updates) == (None, 8000, 8000)
+        assert differ == {"runs_dir", "total_episodes"}  # the trial's directory; its chunks end it, not races
+        assert (first, target) == (None, 8000)
         os.makedirs(os.path.join(args.runs_dir, f"multi_car_racing__{args.exp_name}__12__1700000000"))
         assert runs.find_run(runs.experiment_name(variant), 12, str(tmp_path / "trials")) is not None
     for change in ({"overrides": ("entropy_coef=0.5",)}, {"single_updates": 2000}, {"torch_threads": 2},
                    {"eval_policy": "deterministic"}):  # fmt: skip
         changed = dataclasses.asdict(experiment.Spec(storage=str(tmp_path), **change))
         assert experiment.trial_args(changed, "single", "gru", 12)[1].exp_name == "gru_single"
-    # sampled evaluations, as the final protocol's runs were made: still the learning benchmark's run
+    # sampled evaluations, as the 8,000-update protocol's runs were made: still named as they were
     sampled = dataclasses.asdict(experiment.Spec(storage=str(tmp_path), eval_policy="stochastic"))
     assert experiment.trial_args(sampled, "single", "gru", 12)[1].exp_name == "learning_gru"
 

@@ -439,8 +439,8 @@ def test_reaching_the_dreamers_mean_is_judged_at_the_bars_precision_and_out_of_t
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--protocol-row", "--report"], "--report and --protocol-row are separate modes: give one at most"),
-    (["--protocol-report", "--diagnose"], "--diagnose and --protocol-report are separate modes"),
+    (["--diagnose", "--protocol-row"], "--protocol-row and --diagnose are separate modes: give one"),
+    (["--protocol-report", "--calibrate", "x.pt"], "--protocol-report and --calibrate are separate modes"),
     (["--results-dir", "elsewhere"], "--results-dir is the place of learning_final.csv for --protocol-row, "
                                      "--protocol-report and --protocol-ship; give one of them"),
     (["--protocol-ship", "--protocol-row"], "--protocol-row and --protocol-ship are separate modes"),

@@ -1,6 +1,5 @@
-"""benchmarks/learning.py and its reports (learning_report.py): curves from event files over resumed sittings
-(runs.py), the saved CSVs that stand in for runs not on this machine, diagnostics, a saved policy's summary, and the
-command line."""
+"""benchmarks/learning.py and what it reads beside the final policies (learning_report.py): curves from event files
+over resumed sittings (runs.py), diagnostics, the references, a saved policy's summary, and the command line."""
 
 import csv
 import importlib
@@ -16,19 +15,9 @@ import learning_report
 import runs
 from conftest import as_process, write_sitting
 
-BASELINES = {
-    "random": {"eval_return": -76.6, "eval_progress": 0.03},
-    "pursuit@70": {"eval_return": 909.0, "eval_progress": 1.0},
-}
-
-
 @pytest.fixture
 def dirs(tmp_path):
-    runs_dir, results = tmp_path / "runs", tmp_path / "results"
-    results.mkdir()
-    with open(results / "baselines.json", "w") as f:
-        json.dump(BASELINES, f)
-    return str(runs_dir), str(results)
+    return str(tmp_path / "runs"), str(tmp_path / "results")
 
 
 def test_eval_curve_adds_up_sittings_not_the_gap_between_them(dirs):
@@ -65,17 +54,6 @@ def test_event_files_of_one_process_are_one_sitting_and_the_time_between_them_co
     assert runs.EVENT_FILE_PROCESS.fullmatch(name)["process"] == "node.12.example.24779"
 
 
-def test_first_at_bar_needs_return_and_progress_at_the_same_evaluation():
-    bar, progress = learning_report.BAR_RETURN, learning_report.BAR_PROGRESS
-    rows = [
-        {"env_steps": 1, "eval_return": bar + 50, "eval_progress": progress - 0.1},  # return only
-        {"env_steps": 2, "eval_return": bar - 50, "eval_progress": progress + 0.1},  # progress only
-        {"env_steps": 3, "eval_return": bar, "eval_progress": progress},  # both, at the edges
-    ]
-    assert learning_report.first_at_bar(rows)["env_steps"] == 3
-    assert learning_report.first_at_bar(rows[:2]) is None
-
-
 def test_diagnostics_average_each_bucket_of_updates(tmp_path):
     tags = dict(learning_report.DIAGNOSTICS)
     columns = ["charts/episode", "car_0/perf/updates", *tags.values()]
@@ -110,7 +88,7 @@ def test_diagnose_reads_a_final_protocol_trial_when_no_learning_run_has_the_seed
         writer.writeheader()
         writer.writerow({"charts/episode": 1, "car_0/perf/updates": 100, tags["actor sigma"]: 0.3})
     monkeypatch.setattr(learning, "RESULTS", str(tmp_path))
-    assert learning.run_mode(learning.Args(diagnose=True, variant="gru", seed=21, runs_dir=str(tmp_path / "trials")))
+    learning.run_mode(learning.Args(diagnose=True, variant="gru", seed=21, runs_dir=str(tmp_path / "trials")))
     written = (tmp_path / "gru_single_seed21_diagnostics.md").read_text()
     assert written.startswith(run.name) and "| 0-499 | 0 |  |  | 0.30 |" in written  # no race logged a return
 
@@ -121,24 +99,6 @@ def test_diagnose_refuses_to_guess_among_several_trials_of_the_seed(tmp_path):
             parents=True)  # fmt: skip
     with pytest.raises(ValueError, match=r"^2 trials of lstm_single seed 11 under .*: give --runs-dir one of them"):
         learning.run_mode(learning.Args(diagnose=True, variant="lstm", seed=11, runs_dir=str(tmp_path)))
-
-
-def test_a_learning_run_is_the_cpu_preset_with_the_benchmarks_settings_and_refused_values_name_their_flag(
-    tmp_path, monkeypatch
-):
-    script, args, overrides = learning.run_args("gru", 2, 1.5, False, runs_dir=str(tmp_path))  # no runs: a new one
-    cpu = script.PRESETS["cpu"]
-    assert script.VARIANT == "gru" and args.exp_name == "learning_gru" and overrides == set()
-    assert (args.seed, args.time_limit_hours, args.total_updates) == (2, 1.5, 8000)
-    assert (args.image_size, args.batch_size, args.imagination_horizon) == (64, cpu["batch_size"], 15)
-    assert (args.stage, args.num_agents, args.eval_episodes, args.eval_checkpoints, args.preset,
-            args.torch_threads) == ("single", 1, 10, True, "cpu", 1)  # fmt: skip
-    with pytest.raises(SystemExit, match=r"^learning\.py: error: --hours must be > 0, got -1\.0$"):
-        learning.cli(["--hours", "-1", "--runs-dir", str(tmp_path)])
-    monkeypatch.setattr(learning, "LEARNING_CONFIG", {**learning.LEARNING_CONFIG, "decoder_min_log_sigma": 3.0})
-    with pytest.raises(SystemExit, match=r"^learning\.py: error: --decoder-min-log-sigma must lie in \[-5, 2\], got 3"):
-        learning.cli(["--runs-dir", str(tmp_path)])  # the script's own rule, before any work
-    assert not any(tmp_path.iterdir())
 
 
 def test_the_references_are_measured_once_for_their_tracks_and_refuse_others(tmp_path):
@@ -152,52 +112,6 @@ def test_the_references_are_measured_once_for_their_tracks_and_refuse_others(tmp
     with pytest.raises(ValueError, match=r"baselines.json holds the references on tracks 10000..10000, not "
                                          r"10000..10009: give another results_dir"):  # fmt: skip
         learning_report.baselines(10_000, 10, results_dir=str(tmp_path))
-
-
-def test_report_keeps_saved_curves_and_never_shrinks_one(dirs):
-    runs, results = dirs
-    fields = ["env_steps", "updates", "wall_hours", "eval_return", "eval_progress"]
-    saved = {
-        "learning_lstm_seed1": [[500, 0, 0.1, -80.0, 0.02], [4000, 2000, 1.2, 620.0, 0.71]],  # run not here
-        "learning_gru_seed2": [[500, 0, 0.1, -80.0, 0.02], [4000, 2000, 1.2, 40.0, 0.15]],  # restarted here
-    }
-    for name, rows in saved.items():
-        with open(os.path.join(results, name + ".csv"), "w", newline="") as f:
-            csv.writer(f).writerows([fields, *rows])
-    write_sitting(os.path.join(runs, "multi_car_racing__learning_gru__2__1700000000"), [(500, -80.0, 0.02, 0)], 1e6)
-    write_sitting(os.path.join(runs, "multi_car_racing__learning_gru__3__1700000000"), [(700, -60.0, 0.05, 100)], 1e6)
-    ablation = "learning_lstm_alpha0.03"  # an ablation's run (as named before sweep.py) is its own curve
-    write_sitting(os.path.join(runs, f"multi_car_racing__{ablation}__3__1700000000"), [(900, 10.0, 0.1, 200)], 1e6)
-
-    learning_report.report(runs, results)
-    curves = learning_report.load_curves(runs, results)
-    assert sorted(curves) == [
-        "learning_gru_seed2", "learning_gru_seed3", "learning_lstm_alpha0.03_seed3", "learning_lstm_seed1"
-    ]
-    assert curves["learning_gru_seed2"][-1]["env_steps"] == 4000  # the restarted run is behind: CSV kept
-    assert learning_report.read_curve(os.path.join(results, "learning_gru_seed3.csv"))[-1]["updates"] == 100
-    with open(os.path.join(results, "learning.md")) as f:
-        table = f.read().splitlines()
-    assert "| lstm_seed1 | 4000 | 2000 | 1.20 | 620.0 | 0.71 | 620.0 (0.71) | 4000 steps, 1.20 h |" in table
-    assert "| gru_seed2 | 4000 | 2000 | 1.20 | 40.0 | 0.15 | 40.0 (0.15) | not met |" in table
-    assert table[-1] == "| pursuit@70 (baseline) | | | | 909.0 | 1.00 | | |"
-    assert os.path.getsize(os.path.join(results, "learning.png")) > 0
-    assert not any(row.startswith("| lstm_alpha0.03_seed3 ") for row in table)  # the default method's page only
-    with open(os.path.join(results, "screening", "ablations.md")) as f:
-        runs_there = [row.split(" | ")[0].removeprefix("| ") for row in f.read().splitlines()[2:]]
-    assert runs_there[:1] == ["lstm_alpha0.03_seed3"] and "random (baseline)" in runs_there  # no default lstm seed 3
-    assert os.path.getsize(os.path.join(results, "screening", "ablations.png")) > 0
-
-
-def test_an_ablation_is_drawn_beside_the_default_run_of_its_variant_and_seed(dirs):
-    runs, results = dirs
-    for name, seed in (("learning_gru", 4), ("learning_gru_retnorm", 4), ("learning_gru", 5), ("learning_lstm", 4)):
-        write_sitting(os.path.join(runs, f"multi_car_racing__{name}__{seed}__1700000000"), [(500, 1.0, 0.1, 0)], 1e6)
-    learning_report.report(runs, results)
-    with open(os.path.join(results, "screening", "ablations.md")) as f:
-        runs_there = [row.split(" | ")[0].removeprefix("| ") for row in f.read().splitlines()[2:]]
-    assert runs_there[:2] == ["gru_seed4", "gru_retnorm_seed4"]  # not gru seed 5, not lstm seed 4
-    assert runs_there[2:] == ["random (baseline)", "pursuit@70 (baseline)"]
 
 
 @pytest.mark.parametrize("variant", ["lstm", "gru"])
@@ -234,25 +148,6 @@ def test_policy_summary_refuses_bad_input_naming_it(tmp_path):
         learning.policy_summary(str(tmp_path / "notes.pt"))
 
 
-def test_training_curves_read_the_runs_races_and_keep_them_as_csv(dirs):
-    runs, results = dirs
-    run_dir = os.path.join(runs, "multi_car_racing__learning_lstm__11__1700000000")
-    os.makedirs(run_dir)
-    with open(os.path.join(run_dir, "progress.csv"), "w", newline="") as f:
-        writer = csv.writer(f)
-        writer.writerow(["charts/episode", "car_0/charts/episodic_return", "car_0/perf/updates"])
-        writer.writerows([[1, -80.0, ""], [2, -70.0, 100], [3, 150.5, 200]])  # the prefill race has no updates
-    curves = learning_report.training_curves(runs, results)
-    assert curves == {"learning_lstm_seed11": [{"updates": 100, "return": -70.0}, {"updates": 200, "return": 150.5}]}
-    os.remove(os.path.join(run_dir, "progress.csv"))  # the run is gone from this machine: its CSV stands in
-    assert learning_report.training_curves(runs, results) == curves
-    with open(os.path.join(run_dir, "progress.csv"), "w", newline="") as f:  # a restarted run, behind the CSV
-        writer = csv.writer(f)
-        writer.writerow(["charts/episode", "car_0/charts/episodic_return", "car_0/perf/updates"])
-        writer.writerows([[1, -90.0, 100]])
-    assert learning_report.training_curves(runs, results) == curves  # the longer saved curve is kept, not overwritten
-
-
 def test_a_runs_hours_and_evaluations_count_every_sitting_to_its_last_scalar(tmp_path):
     """A run's hours (training_hours, a protocol row's wall_hours) are the whole run's, to the last logged scalar of
     each sitting, not to its last evaluation, which can lie hundreds of updates before the end; eval_summary gives
@@ -272,13 +167,14 @@ def test_a_runs_hours_and_evaluations_count_every_sitting_to_its_last_scalar(tmp
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--report", "--protocol-report"], "--report and --protocol-report are separate modes: give one at most"),
+    (["--diagnose", "--protocol-report"], "--protocol-report and --diagnose are separate modes: give one"),
     (["--diagnose", "--protocol-ship", "--calibrate", "x.pt"],
-     "--diagnose and --protocol-ship and --calibrate are separate modes"),
+     "--protocol-ship and --diagnose and --calibrate are separate modes"),
+    ([], "give a mode: --protocol-row, --protocol-report, --protocol-ship, --diagnose, --calibrate (the runs "
+         "themselves are benchmarks/experiment.py's single stage)"),
+    (["--variant", "gru", "--seed", "11"], "give a mode: --protocol-row,"),  # the training mode is gone
     (["--horizon", "5"], "--horizon is the imagination horizon of --calibrate; give --calibrate CHECKPOINT"),
     (["--results-dir", "elsewhere"], "--results-dir is the place of learning_final.csv for --protocol-row"),
-    (["--hours", "0"], "--hours must be > 0, got 0.0"),
-    (["--updates", "0"], "--updates must be >= 1, got 0"),
     (["--calibrate", "x.pt", "--tracks", "0"], "--tracks and --horizon must be >= 1, got 0 and None"),
 ])  # fmt: skip
 def test_the_command_line_refuses_bad_input_in_one_line_before_any_work(argv, message, tmp_path):
