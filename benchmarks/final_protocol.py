@@ -39,7 +39,7 @@ How to run it (``learning.py`` stays the benchmark's one command line; its ``--r
 learning_final.csv, learning_final.md and the peers' files):
 
     python benchmarks/experiment.py --stages single --single-cpu-hours 3.1 --seeds 21 22 23 24 25 \\
-        --storage runs/final                                               # the runs
+        --storage runs/final --results runs/final                          # the runs (their tables there)
     python benchmarks/learning.py --runs-dir runs/final/trials --variant lstm --seed 21 --protocol-row   # a row
     python benchmarks/ppo_peer.py --seed 14 --cpu-hours 3.1  # a peer's row (its default tracks: REPORT_TRACKS)
     python benchmarks/ppo_peer.py --seed 14 --curve           # its snapshots there (and --algo recurrent-ppo)

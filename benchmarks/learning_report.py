@@ -6,7 +6,7 @@
 
 The final protocol's ``learning_final.md`` (``--protocol-row``, ``--protocol-report``) is written by
 ``final_protocol.py``. (The curves, figure and table of the 8,000-update protocol's runs were written here until
-commit b28dd0c; they are in ``benchmarks/results/history/8000_updates/``.)
+commit b28dd0c; they are in ``benchmarks/results/history/8000_updates/``, with the ablations' beside them.)
 """
 
 from __future__ import annotations

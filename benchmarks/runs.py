@@ -21,7 +21,7 @@ from common import checkpoint_updates
 
 # --- Where the runs are ----------------------------------------------------------------------
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-RUNS = os.path.join(ROOT, "runs", "learning")  # learning.py's default --runs-dir (experiment.py's: <storage>/trials)
+RUNS = os.path.join(ROOT, "runs", "experiment", "trials")  # experiment.py's trials at its default --storage
 VARIANTS = ("lstm", "gru")  # dreamer_<variant>.py
 
 

@@ -286,3 +286,12 @@ def test_a_clipped_imagined_action_passes_gradient_only_straight_through(script,
     expected = model_grad.sum(0) if straight_through else (model_grad * inside).sum(0)
     torch.testing.assert_close(grad, expected)
     assert not torch.allclose(model_grad.sum(0), (model_grad * inside).sum(0))  # the two estimators differ here
+
+
+@pytest.mark.parametrize("straight_through", [False, True])
+def test_the_actor_update_imagines_with_the_runs_clip(script, monkeypatch, straight_through):
+    """--straight-through-clip reaches the imagination of an update (the test above checks what it does there)."""
+    seen, real = [], script.imagine_rollout
+    monkeypatch.setattr(script, "imagine_rollout", lambda *a: seen.append(a[6:]) or real(*a))
+    one_update(script.Agent(tiny_args(script, straight_through_clip=straight_through)))
+    assert seen == [(straight_through,)]

@@ -15,13 +15,13 @@ import learning_report
 import runs
 from conftest import as_process, write_sitting
 
+
 @pytest.fixture
-def dirs(tmp_path):
-    return str(tmp_path / "runs"), str(tmp_path / "results")
+def runs_dir(tmp_path):
+    return str(tmp_path / "runs")
 
 
-def test_eval_curve_adds_up_sittings_not_the_gap_between_them(dirs):
-    runs_dir, _ = dirs
+def test_eval_curve_adds_up_sittings_not_the_gap_between_them(runs_dir):
     run_dir = os.path.join(runs_dir, "multi_car_racing__learning_gru__1__1700000000")
     write_sitting(run_dir, [(500, -80.0, 0.02, 0), (1000, 50.0, 0.2, 300)], wall_start=1_000_000.0, pid=101)
     # the second sitting (another process) starts a day later: its hours continue from the first sitting's 1000 s
@@ -34,10 +34,9 @@ def test_eval_curve_adds_up_sittings_not_the_gap_between_them(dirs):
     assert runs.training_hours(run_dir) == pytest.approx(2000 / 3600, abs=1e-4)
 
 
-def test_event_files_of_one_process_are_one_sitting_and_the_time_between_them_counts(dirs):
+def test_event_files_of_one_process_are_one_sitting_and_the_time_between_them_counts(runs_dir):
     """An experiment trial calls a script's main every few hundred updates in one process, each call with a new
     event file: the training between the last scalar of one and the first of the next is training time."""
-    runs_dir, _ = dirs
     run_dir = os.path.join(runs_dir, "multi_car_racing__learning_lstm__1__1700000000")
     write_sitting(run_dir, [(500, -80.0, 0.02, 0), (1000, 50.0, 0.2, 300)], wall_start=1_000_000.0, pid=303)
     write_sitting(run_dir, [(1500, 90.0, 0.3, 500), (2000, 310.0, 0.45, 800)], wall_start=1_002_500.0, pid=303)
@@ -199,6 +198,7 @@ def test_a_mode_without_its_run_or_checkpoint_names_it_in_one_line(tmp_path):
 @pytest.mark.parametrize("argv", [
     ["--evaluate", "x.pt"], ["--export", "x.pt", "out.pt"],  # user operations: python evaluate.py now
     ["--variant", "transformer"], ["--final"], ["--return-norm"],  # the 8,000-update protocol's modes, ablations
+    ["--report"], ["--resume"], ["--hours", "3"], ["--updates", "10"],  # its training mode (experiment.py's now)
 ])  # fmt: skip
 def test_the_parser_refuses_removed_modes_and_bad_values(argv, capsys):
     with pytest.raises(SystemExit) as exit_info:
