@@ -135,6 +135,10 @@ class Args:
     """races to run (counting prefill races)"""
     total_updates: int = 0
     """stop after the first race at which every agent has made this many updates (0: no limit)"""
+    pause_at_updates: int = 0
+    """stop, with checkpoints, after the first race at which every agent has made this many updates, as a pause, not
+    the run's end: --total-updates stays the budget (benchmarks/experiment.py resumes its trials in such chunks; 0:
+    never)"""
     time_limit_hours: float = 0.0
     """stop, with checkpoints, at the start or at the end of the first race past this many hours of this process (0: no
     limit)"""
@@ -254,6 +258,11 @@ class Args:
     Lillicrap et al.'s Ornstein-Uhlenbeck noise in discrete time). 0: independent (the paper). Imagination always
     samples independently, so in training it only changes which real data the world model learns from; a saved
     agent's sampled policy (evaluate.py, race.py) keeps the correlation it was trained with"""
+    lr_anneal: float = 0.0
+    """share of the run's budget, at its end, over which every learning rate (model, actor, critic, alpha) falls
+    linearly to 0 (ours; 0: constant rates, the paper). The budget is whichever of --total-episodes, --total-updates
+    and --cpu-hours-limit the run has spent the most of, counted from the run's start, as found before each race's
+    updates; under --cpu-hours-limit the rates follow process CPU time, which differs from machine to machine"""
     straight_through_clip: bool = False
     """imagination gives the world model a + (clip(a, -1, 1) - a) with the second part detached: the clipped action
     forward, the identity's gradient backward, so a sample outside [-1, 1] still passes reward and value gradient
@@ -1002,6 +1011,18 @@ class Agent:
         soft_update(self.targets["representation"], wm.representation, tau)
         soft_update(self.targets["transition"], wm.transition, tau)
 
+    def set_learning_rates(self, scale: float = 1.0) -> None:
+        """Every optimiser's learning rate: its flag's value (--model-lr, --actor-lr, --critic-lr, --entropy-lr) times
+        `scale` (lr_scale: --lr-anneal). Also after a state is loaded, whose optimisers hold the rates they were
+        saved with, so that a resumed run's or a --checkpoint run's flags are the rates it learns at."""
+        pairs = [(self.model_optimizer, self.args.model_lr), (self.actor_optimizer, self.args.actor_lr),
+                 (self.critic_optimizer, self.args.critic_lr)]  # fmt: skip
+        if self.log_alpha is not None:
+            pairs.append((self.alpha_optimizer, self.args.entropy_lr))
+        for optimizer, lr in pairs:
+            for group in optimizer.param_groups:
+                group["lr"] = lr * scale
+
     # --- world model (paper 3.8) ------------------------------------------------------------
     def world_model_loss(self, obs, actions, rewards, is_first, terminated):
         """L = mean over batch and time of L_pred + beta_dyn L_dyn + beta_rep L_rep; also returns the posterior.
@@ -1299,6 +1320,7 @@ class Agent:
         self.num_updates = int(state["num_updates"])
         self.nonfinite_updates = int(state.get("nonfinite_updates", 0))
         self.nonfinite_in_a_row = int(state.get("nonfinite_in_a_row", 0))
+        self.set_learning_rates()  # the flags' rates, not those the saved optimisers hold
 
 
 # =====================================================================================
@@ -1322,6 +1344,14 @@ def train_agent(agent: Agent, replay: Replay, args: Args, logger, prefix: str, o
         if agent.nonfinite_in_a_row >= args.max_nonfinite_updates:
             break
     return done / max(time.time() - started, 1e-9)
+
+
+def lr_scale(args: Args, budget_spent: float) -> float:
+    """--lr-anneal's factor of every learning rate: 1 until the last lr_anneal share of the run's budget, then
+    linearly down to 0 where the budget is spent (`budget_spent`: Run.budget_spent)."""
+    if args.lr_anneal <= 0:
+        return 1.0
+    return min(1.0, max(0.0, (1.0 - budget_spent) / args.lr_anneal))
 
 
 def start_race(run) -> tuple[np.ndarray, int]:
@@ -1382,7 +1412,11 @@ def main(args: Args, overrides=()) -> str:
             # --- train: after every race that ended, each agent updates on its own replay (once the prefill races
             # are done; a ghost stage first races each of its ghost tracks once: Run.learning_starts)
             if run.learns_now():
+                scale = lr_scale(args, run.budget_spent())
+                if args.lr_anneal > 0:
+                    run.logger.record("charts/lr_scale", scale)
                 for j, (agent, replay) in enumerate(zip(run.agents, run.replays)):
+                    agent.set_learning_rates(scale)
                     updates_per_s = train_agent(agent, replay, args, run.logger, f"car_{j}/", progress_callback(run, j))
                     log_updates(run, j, updates_per_s)
                     if run.fault is not None:

@@ -259,10 +259,13 @@ def dreamer_trial(config: dict) -> None:
         progress = trial_progress(spec, stage, variant, seed)
         if not progress.finished:  # (a trial restored after its end trains no more)
             try:
+                # the run pauses every report_every updates (to report to Tune); its budget stays the trial's
+                budget = 0 if target == NO_UPDATE_TARGET else target  # (a CPU budget: --cpu-hours-limit)
+                chunk = {"total_updates": budget, "pause_at_updates": min(goal, target)}
                 if progress.run is None:
-                    script.main(dataclasses.replace(args, total_updates=min(goal, target)))
+                    script.main(dataclasses.replace(args, **chunk))
                 elif progress.done < min(goal, target):
-                    script.main(script.Args(resume=progress.run, total_updates=min(goal, target)), {"total_updates"})
+                    script.main(script.Args(resume=progress.run, **chunk), set(chunk))
             except NumericalFault as fault:  # the guard stopped the run and saved latest.pt: the trial ends with it
                 print(f"experiment.py: {trial_label(stage, variant, seed)}: {fault}", flush=True)
                 if not trial_progress(spec, stage, variant, seed).stopped:  # (a stop its latest.pt does not show)

@@ -99,6 +99,7 @@ def validate_args(args, log_sigma_range: tuple[float, float]) -> None:
         2: ("seq_len",),  # a sequence model learns from transitions: at least two steps
         0: ("torch_threads", "stall_steps", "dead_zone_episodes", "prefill_episodes", "train_steps_per_episode",
             "eval_every", "video_every", "checkpoint_every", "replay_save_every", "imagination_starts",
+            "total_updates", "pause_at_updates",
             "time_limit_hours", "cpu_hours_limit", "entropy_coef", "free_bits", "kl_dyn_scale", "kl_rep_scale",
             "brake_speed_threshold", "collision_penalty", "offroad_penalty", "eval_seed", "ghost_seed"),
     }.items():  # fmt: skip
@@ -116,6 +117,7 @@ def validate_args(args, log_sigma_range: tuple[float, float]) -> None:
         require(args.target_critic, "target_critic", "--heads twohot regresses the critic on its slow copy: keep it on")
     require(0 <= args.action_noise_corr < 1, "action_noise_corr", "must lie in [0, 1) (0: independent noise)")
     require(args.entropy_lr > 0, "entropy_lr", "must be > 0")
+    require(0 <= args.lr_anneal <= 1, "lr_anneal", "must lie in [0, 1] (a share of the budget; 0: constant rates)")
     if args.action_penalty is not None:
         require(math.isfinite(args.action_penalty) and args.action_penalty >= 0, "action_penalty", "must be >= 0")
     if args.entropy_target is not None:
@@ -262,6 +264,7 @@ class Run:
     cpu_before: float = 0.0  # CPU seconds of the run's earlier invocations (a resumed run)
     fault: str | None = None  # set when an agent had --max-nonfinite-updates faulty updates in a row
     out_of_time: bool = False  # the time or CPU budget was spent when last checked (set-up, the end of a race)
+    cpu_checked: float = 0.0  # cpu_seconds() when the budget was last checked
     update_seconds: list = dataclasses.field(default_factory=list)  # the first two updates' times (CPU report)
     pbar: object = None
 
@@ -280,19 +283,37 @@ class Run:
         """The run's end: --total-episodes races, --total-updates updates, the time or CPU budget (as found at the
         set-up or at the end of the last race: a race is never cut short, so a resume continues exactly), a fault."""
         args = self.args
+        updates = min(agent.num_updates for agent in self.agents)
         return (
             self.counters["episode"] >= args.total_episodes
-            or (args.total_updates > 0 and min(agent.num_updates for agent in self.agents) >= args.total_updates)
+            or (args.total_updates > 0 and updates >= args.total_updates)
+            or (args.pause_at_updates > 0 and updates >= args.pause_at_updates)
             or self.out_of_time
             or self.fault is not None
         )
+
+    def budget_spent(self) -> float:
+        """The share of the run's budget spent (--lr-anneal): the largest of its races over --total-episodes, its
+        updates since the run started (a --checkpoint run's own) over those --total-updates leaves it, and its process
+        CPU time over --cpu-hours-limit (the CPU time as found at the end of the last race, as check_budget reads
+        it). A --pause-at-updates pause is not the budget's end."""
+        args = self.args
+        shares = [self.counters["episode"] / args.total_episodes]
+        if args.total_updates > 0:
+            first = self.counters.get("start_updates", 0)
+            done = min(agent.num_updates for agent in self.agents) - first
+            shares.append(done / max(args.total_updates - first, 1))
+        if args.cpu_hours_limit > 0:
+            shares.append(self.cpu_checked / (3600 * args.cpu_hours_limit))
+        return max(shares)
 
     def check_budget(self) -> None:
         """Set out_of_time: whether --time-limit-hours (this process) or --cpu-hours-limit (the run, over all its
         invocations) is spent."""
         args = self.args
         wall = args.time_limit_hours > 0 and time.time() - self.started > 3600 * args.time_limit_hours
-        cpu = args.cpu_hours_limit > 0 and self.cpu_seconds() > 3600 * args.cpu_hours_limit
+        self.cpu_checked = self.cpu_seconds()
+        cpu = args.cpu_hours_limit > 0 and self.cpu_checked > 3600 * args.cpu_hours_limit
         self.out_of_time = wall or cpu
 
     def acts_randomly(self) -> bool:
@@ -406,6 +427,7 @@ def start_from_checkpoint(run: Run, start: dict) -> None:
         restore_replay(run.replays[i], directory, None, races=0)
         print(f"car {i}: continues with the replay in {directory} ({len(run.replays[i]):,} steps)")
         # (run.manifests stay None: the run's own replay directory holds no save until its first one)
+    run.counters["start_updates"] = min(agent.num_updates for agent in run.agents)  # the run's own: budget_spent
 
 
 def new_run_args(method, args):
