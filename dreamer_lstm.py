@@ -137,8 +137,8 @@ class Args:
     """stop after the first race at which every agent has made this many updates (0: no limit)"""
     pause_at_updates: int = 0
     """stop, with checkpoints, after the first race at which every agent has made this many updates, as a pause, not
-    the run's end: --total-updates stays the budget (benchmarks/experiment.py resumes its trials in such chunks; 0:
-    never)"""
+    the run's end: --total-updates stays the budget, and a --resume lifts the pause unless it is given again
+    (benchmarks/experiment.py resumes its trials in such chunks; 0: never)"""
     time_limit_hours: float = 0.0
     """stop, with checkpoints, at the start or at the end of the first race past this many hours of this process (0: no
     limit)"""
@@ -260,9 +260,10 @@ class Args:
     agent's sampled policy (evaluate.py, race.py) keeps the correlation it was trained with"""
     lr_anneal: float = 0.0
     """share of the run's budget, at its end, over which every learning rate (model, actor, critic, alpha) falls
-    linearly to 0 (ours; 0: constant rates, the paper). The budget is whichever of --total-episodes, --total-updates
-    and --cpu-hours-limit the run has spent the most of, counted from the run's start, as found before each race's
-    updates; under --cpu-hours-limit the rates follow process CPU time, which differs from machine to machine"""
+    linearly to 0 (ours; 0: constant rates, the paper), set before each race's updates from the share spent then:
+    the largest of --total-episodes, --total-updates and --cpu-hours-limit, counted from the run's start (a run from
+    --checkpoint starts at its flags' full rates). Under --cpu-hours-limit the rates follow process CPU time, so such
+    a run is not bit-reproducible"""
     straight_through_clip: bool = False
     """imagination gives the world model a + (clip(a, -1, 1) - a) with the second part detached: the clipped action
     forward, the identity's gradient backward, so a sample outside [-1, 1] still passes reward and value gradient

@@ -4,14 +4,16 @@ resumes."""
 
 from __future__ import annotations
 
+import dataclasses
 import glob
+import os
 import types
 
 import pytest
 import utils.run as run_tools
 from conftest import TINY, assert_same, tiny_args
 
-# A tiny single-car run that one update per race ends after 4 updates (the prefill race, then 4 races that learn).
+# A tiny single-car run of 4 races, one update after each (the prefill race is 1 race: updates start after it).
 RUN = dict(
     **TINY, max_steps=30, train_steps_per_episode=1, prefill_episodes=1, replay_capacity=500, eval_every=0,
     video_every=0, replay_save_every=1, torch_threads=1, total_episodes=10**9, total_updates=4, stage="single",
@@ -53,11 +55,11 @@ def test_a_loaded_state_learns_at_its_flags_rates_not_at_those_its_optimisers_we
 @pytest.mark.parametrize(
     "limits, counters, updates, cpu_seconds, spent",
     [
-        (dict(total_episodes=1000), {"episode": 250}, 99, 5.0, 0.25),  # races only
+        (dict(total_episodes=1000), {"episode": 251}, 99, 5.0, 0.25),  # races before the one just ended
         (dict(total_episodes=1000, total_updates=1000), {"episode": 10, "start_updates": 600}, 800, 0.0, 0.5),
         (dict(total_episodes=1000, total_updates=1000), {"episode": 10}, 800, 0.0, 0.8),  # a run from scratch
         (dict(total_episodes=1000, cpu_hours_limit=2.0), {"episode": 10}, 5, 5400.0, 0.75),  # CPU time
-        (dict(total_episodes=10, cpu_hours_limit=2.0, pause_at_updates=6), {"episode": 9}, 5, 5400.0, 0.9),
+        (dict(total_episodes=10, pause_at_updates=6), {"episode": 2}, 5, 0.0, 0.1),  # a pause is not a budget
     ],
 )
 def test_budget_spent_is_the_largest_share_of_a_limit_counted_from_the_runs_start(limits, counters, updates,
@@ -97,3 +99,101 @@ def test_lr_anneal_outside_zero_to_one_is_refused(script, tmp_path):
     for value in (-0.1, 1.5):
         with pytest.raises(run_tools.UsageError, match="--lr-anneal must lie in"):
             script.main(script.Args(runs_dir=str(tmp_path), lr_anneal=value, **RUN))
+
+
+def logged_scales(run_dir) -> list[float]:
+    from test_dreamer import read_events
+
+    scalars, _ = read_events(run_dir)
+    return [value for _, value in scalars["charts/lr_scale"]]
+
+
+def test_an_episode_budget_anneals_over_the_races_before_each_rounds_updates(script, tmp_path):
+    """--total-episodes 5 and one prefill race: updates follow races 1..5, at 1 - (races before that one) / 5."""
+    run_dir = script.main(script.Args(runs_dir=str(tmp_path), lr_anneal=1.0, **{**RUN, "total_episodes": 5,
+                                                                               "total_updates": 0}))  # fmt: skip
+    assert logged_scales(run_dir) == pytest.approx([1.0, 0.8, 0.6, 0.4, 0.2])
+
+
+def test_a_cpu_budget_anneals_with_the_cpu_time_found_at_the_end_of_each_race(script, tmp_path, monkeypatch):
+    """--cpu-hours-limit: the share is the process CPU time check_budget read at the end of the race before (here
+    0.1 h per race finished), over the limit of 0.45 h; F = 0.5 anneals from 0.225 h on. The run stops once a race
+    ends past the limit (race 5, at 0.5 h)."""
+    monkeypatch.setattr(run_tools.Run, "cpu_seconds", lambda self: 0.1 * 3600 * self.counters["episode"])
+    args = {**RUN, "total_updates": 0, "cpu_hours_limit": 0.45}
+    run_dir = script.main(script.Args(runs_dir=str(tmp_path), lr_anneal=0.5, **args))
+    shares = [0.0, 0.1 / 0.45, 0.2 / 0.45, 0.3 / 0.45, 0.4 / 0.45]  # before the updates after races 1..5
+    assert logged_scales(run_dir) == pytest.approx([min(1.0, (1 - s) / 0.5) for s in shares])
+    assert logged_scales(run_dir)[-2:] == pytest.approx([2 / 3, 2 / 9])
+
+
+def test_a_run_from_a_checkpoint_anneals_over_its_own_updates_from_its_flags_full_rates(script, tmp_path):
+    """A --checkpoint run (a ghost or control stage) counts --total-updates from the checkpoint's updates (4 here)
+    and starts at its flags' full rates, whatever rate the checkpoint was saved at (0.25 of them)."""
+    first = script.main(script.Args(runs_dir=str(tmp_path / "a"), lr_anneal=1.0, **RUN))
+    checkpoint = f"{first}/checkpoints/latest.pt"
+    run_dir = script.main(script.Args(runs_dir=str(tmp_path / "b"), lr_anneal=1.0, checkpoint=checkpoint,
+                                      **{**RUN, "total_updates": 8, "prefill_episodes": 0}))  # fmt: skip
+    assert logged_scales(run_dir) == pytest.approx([1.0, 0.75, 0.5, 0.25])
+    assert script.load_checkpoint(f"{run_dir}/checkpoints/latest.pt")["counters"]["start_updates"] == 4
+
+
+def test_a_resume_lifts_a_pause_unless_it_is_given_again(script, tmp_path):
+    script.main(script.Args(runs_dir=str(tmp_path), pause_at_updates=2, **RUN))
+    (run_dir,) = glob.glob(str(tmp_path / "*"))
+    script.main(script.Args(resume=run_dir, pause_at_updates=3), {"pause_at_updates"})
+    assert script.load_checkpoint(f"{run_dir}/checkpoints/latest.pt")["agents"][0]["num_updates"] == 3
+    script.main(script.Args(resume=run_dir))  # the pause at 3 is lifted: on to --total-updates 4
+    assert script.load_checkpoint(f"{run_dir}/checkpoints/latest.pt")["agents"][0]["num_updates"] == 4
+
+
+@pytest.mark.parametrize("cpu_hours, budget", [(0.0, 1000), (3.1, 0)])
+def test_an_experiment_trial_pauses_in_chunks_and_keeps_its_budget(tmp_path, monkeypatch, cpu_hours, budget):
+    """experiment.py's trial loop: each chunk of report_every updates is a --pause-at-updates; --total-updates is the
+    trial's own target (--single-updates), or 0 under a CPU budget, so that --lr-anneal sees the trial's budget."""
+    pytest.importorskip("ray")
+    import experiment
+    from ray import tune
+
+    spec = dataclasses.asdict(experiment.Spec(storage=str(tmp_path), single_updates=1000, single_cpu_hours=cpu_hours,
+                                              report_every=500))  # fmt: skip
+    script, *_ = experiment.trial_args(spec, "single", "gru", 12)
+    calls = []
+
+    class Stop(Exception):
+        pass
+
+    def main(args, overrides=()):
+        calls.append((args.resume is not None, args.total_updates, args.pause_at_updates, set(overrides)))
+        raise Stop
+
+    monkeypatch.setattr(script, "main", main)
+    with pytest.raises(Stop):  # a new trial
+        experiment.dreamer_trial({"trial": {"spec": spec, "stage": "single", "variant": "gru", "seed": 12}})
+    checkpoints = os.path.join(experiment.trial_dir(spec, "single", "gru", 12), "run", "checkpoints")
+    os.makedirs(checkpoints)
+    open(f"{checkpoints}/latest.pt", "w").close()
+    monkeypatch.setattr(script, "load_checkpoint", lambda path: {"agents": [{"num_updates": 500}], "extra": {}})
+    monkeypatch.setattr(tune, "report", lambda metrics: None)
+    monkeypatch.setattr(experiment, "latest_metrics", lambda run: {})
+    with pytest.raises(Stop):  # its first chunk done: resumed for the second
+        experiment.dreamer_trial({"trial": {"spec": spec, "stage": "single", "variant": "gru", "seed": 12}})
+    assert calls == [(False, budget, 500, set()), (True, budget, 1000, {"total_updates", "pause_at_updates"})]
+
+
+def test_an_older_checkpoint_run_without_its_first_updates_is_not_annealed_over_its_updates(script, tmp_path):
+    """A --checkpoint run saved before counters kept start_updates cannot count --total-updates from its start: a
+    resume with --lr-anneal is refused, naming the checkpoint; without it the run resumes."""
+    import torch
+
+    first = script.main(script.Args(runs_dir=str(tmp_path / "a"), **RUN))
+    run_dir = script.main(script.Args(runs_dir=str(tmp_path / "b"), checkpoint=f"{first}/checkpoints/latest.pt",
+                                      **{**RUN, "total_updates": 6, "prefill_episodes": 0}))  # fmt: skip
+    latest = f"{run_dir}/checkpoints/latest.pt"
+    saved = torch.load(latest, weights_only=True)
+    del saved["counters"]["start_updates"]  # as the parent of this change wrote it
+    torch.save(saved, latest)
+    with pytest.raises(run_tools.UsageError, match="latest.pt: this --checkpoint run was started before"):
+        script.main(script.Args(resume=run_dir, total_updates=8, lr_anneal=0.5), {"total_updates", "lr_anneal"})
+    script.main(script.Args(resume=run_dir, total_updates=8), {"total_updates"})
+    assert script.load_checkpoint(latest)["agents"][0]["num_updates"] == 8

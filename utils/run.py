@@ -293,12 +293,13 @@ class Run:
         )
 
     def budget_spent(self) -> float:
-        """The share of the run's budget spent (--lr-anneal): the largest of its races over --total-episodes, its
-        updates since the run started (a --checkpoint run's own) over those --total-updates leaves it, and its process
-        CPU time over --cpu-hours-limit (the CPU time as found at the end of the last race, as check_budget reads
-        it). A --pause-at-updates pause is not the budget's end."""
+        """The share of the run's budget spent before the updates that follow the race just ended (--lr-anneal): the
+        largest of its races before that one over --total-episodes, its updates since the run started (a
+        --checkpoint run's own) over those --total-updates leaves it, and its process CPU time over
+        --cpu-hours-limit (as check_budget found it at the end of the last race). A --pause-at-updates pause is not
+        the budget's end."""
         args = self.args
-        shares = [self.counters["episode"] / args.total_episodes]
+        shares = [max(self.counters["episode"] - 1, 0) / args.total_episodes]
         if args.total_updates > 0:
             first = self.counters.get("start_updates", 0)
             done = min(agent.num_updates for agent in self.agents) - first
@@ -454,6 +455,9 @@ def resumed_args(args_class, checkpoint: dict, path: str, args, overrides):
     """The Args of a resumed run: every setting it was started with, except the fields named in `overrides` (those
     the resuming command line set explicitly), which come from `args`; prints each change (old -> new)."""
     saved = args_from_checkpoint(args_class, checkpoint, path)
+    if saved.pause_at_updates and "pause_at_updates" not in overrides:  # a pause holds for the invocation it stopped
+        print(f"resume: the pause at {saved.pause_at_updates} updates is lifted (--pause-at-updates 0)")
+        saved = dataclasses.replace(saved, pause_at_updates=0)
     changes = {name: getattr(args, name) for name in overrides if name != "resume"}
     fixed = sorted(n for n in changes if n in ARCHITECTURE + IDENTITY and changes[n] != getattr(saved, n))
     if fixed:
@@ -472,6 +476,10 @@ def restore_run(run: Run, resumed: dict, path: str) -> None:
     for i, (agent, state) in enumerate(zip(run.agents, resumed["agents"])):
         load_agent_state(agent, state, path, i)
     run.counters.update(resumed["counters"])
+    args = run.args
+    if args.checkpoint and args.lr_anneal > 0 and args.total_updates > 0 and "start_updates" not in run.counters:
+        raise UsageError(f"{path}: this --checkpoint run was started before its first updates were kept, so "
+                         "--lr-anneal cannot count its --total-updates from its start (resume it without --lr-anneal)")
     extra = resumed.get("extra") or {}
     run.ghosts = {int(s): ghost_from_tensors(g) for s, g in extra.get("ghosts", {}).items()}
     for j, history in enumerate(extra.get("wins", [])[:n]):
