@@ -239,25 +239,14 @@ class Args:
     """DreamerV3's return normalisation: scale the task part of the lambda-return by 1 / max(1, S), S an EMA of
     its 95th - 5th percentile range, in the actor's objective only (the critic learns the unscaled return); the
     entropy part stays unscaled (DreamerV3 pairs it with --entropy-coef 3e-4)"""
-    reward_nll_beta: float = 0.0
-    """beta of the reward head's beta-NLL (Seitzer et al., ICLR 2022): each step's Gaussian NLL weighted by the
-    stop-gradient sigma^(2 beta), so that a rare large reward (an elimination's -100) moves the head's mean and not
-    only its sigma. 0: the paper's Gaussian NLL; 0.5: the value Seitzer et al. recommend; 1: the mean learns as
-    with a squared error"""
     head_sigma: float = 0.0
     """sigma of the reward and critic Gaussians: 0 learns it (softplus + 0.1, the paper); a positive value fixes it
     (1: the paper authors' code, a squared error, so that a rare -100 moves the mean instead of widening sigma)"""
     heads: Literal["gaussian", "twohot"] = "gaussian"
-    """the reward and critic heads' distribution: gaussian (the paper; --head-sigma, --reward-nll-beta) or twohot
+    """the reward and critic heads' distribution: gaussian (the paper; --head-sigma) or twohot
     (DreamerV3: a softmax over 255 bins spaced symexp(-20 .. 20), learned by cross-entropy against the target's
     two-hot encoding and read as its mean, so a rare -100 is a class of its own, not a wider sigma; output layers
     start at zero; the critic also regresses on the slow critic's value, weight 1)"""
-    action_noise_corr: float = 0.0
-    """rho: correlation of the sampled policy's noise from one decision to the next while it drives (an AR(1)
-    process, eps_t = rho eps_{t-1} + sqrt(1 - rho^2) xi_t, each eps_t N(0, 1): temporally correlated exploration,
-    Lillicrap et al.'s Ornstein-Uhlenbeck noise in discrete time). 0: independent (the paper). Imagination always
-    samples independently, so in training it only changes which real data the world model learns from; a saved
-    agent's sampled policy (evaluate.py, race.py) keeps the correlation it was trained with"""
     lr_anneal: float = 0.0
     """share of the run's budget, at its end, over which every learning rate (model, actor, critic, alpha) falls
     linearly to 0 (ours; 0: constant rates, the paper), set before each race's updates from the share spent then:
@@ -559,9 +548,9 @@ class Gaussian:
         mean, std = gaussian_params(out, HEAD_MIN_STD)
         self.mean, self.std = mean.squeeze(-1), (std if sigma == 0 else torch.full_like(mean, sigma)).squeeze(-1)
 
-    def nll(self, x: torch.Tensor, beta: float = 0.0) -> torch.Tensor:
-        """-log N(x; mean, sigma), weighted by sg(sigma)^(2 beta) (beta_nll; beta 0: the NLL itself)."""
-        return beta_nll(x, self.mean, self.std, beta)
+    def nll(self, x: torch.Tensor) -> torch.Tensor:
+        """-log N(x; mean, sigma)."""
+        return gaussian_nll(x, self.mean, self.std)
 
 
 class TwoHot:
@@ -583,10 +572,8 @@ class TwoHot:
     def std(self) -> torch.Tensor:
         return (self.logits.softmax(-1) * (self.bins - self.mean.unsqueeze(-1)).pow(2)).sum(-1).sqrt()
 
-    def nll(self, x: torch.Tensor, beta: float = 0.0) -> torch.Tensor:
-        """Cross-entropy -sum_k twohot(x)_k log p_k (beta-NLL has no two-hot form: beta must be 0)."""
-        if beta != 0:
-            raise ValueError(f"a two-hot head has no beta-NLL (beta={beta})")
+    def nll(self, x: torch.Tensor) -> torch.Tensor:
+        """Cross-entropy -sum_k twohot(x)_k log p_k."""
         return -(twohot(x, self.bins) * self.logits.log_softmax(-1)).sum(-1)
 
 
@@ -716,15 +703,15 @@ class Actor(nn.Module):
         mean, raw_std = self.net(features).float().chunk(2, dim=-1)
         return torch.tanh(mean), soft_bounded(raw_std, *ACTOR_STD_BOUNDS)
 
-    def sample(self, features: torch.Tensor, deterministic: bool = False, noise: torch.Tensor | None = None):
-        """a = tanh(mu) + sigma eps by rsample (eps ~ N(0, I), or `noise` if given), and log pi(a) = sum_d
+    def sample(self, features: torch.Tensor, deterministic: bool = False):
+        """a = tanh(mu) + sigma eps by rsample (eps ~ N(0, I)), and log pi(a) = sum_d
         [log N(a_d; tanh mu_d, sigma_d) - log(1 - tanh(a_d)^2 + 1e-6)] (paper 3.9: the second term penalises
         extreme actions). Returns the action clipped to [-1, 1] (what the env and the world model receive) and
         log pi (None if deterministic: the mean action)."""
         mean, std = self(features)
         if deterministic:
             return mean, None
-        action = mean + std * (torch.randn_like(std) if noise is None else noise)
+        action = mean + std * torch.randn_like(std)
         return action.clamp(-1.0, 1.0), policy_log_prob(action, mean, std)
 
 
@@ -763,14 +750,6 @@ class Critic(nn.Module):
 # =====================================================================================
 # 4. Losses and returns (paper 3.8 world model, 3.9 behaviour)
 # =====================================================================================
-def beta_nll(x: torch.Tensor, mean: torch.Tensor, std: torch.Tensor, beta: float) -> torch.Tensor:
-    """gaussian_nll weighted by the stop-gradient std^(2 beta), elementwise: the beta-NLL of Seitzer et al. (ICLR
-    2022). The mean's gradient is (mean - x) / std^(2 - 2 beta): at beta = 0 the Gaussian NLL's, which a large
-    std all but silences; at beta = 1 a squared error's."""
-    nll = gaussian_nll(x, mean, std)
-    return nll if beta == 0 else nll * std.detach().pow(2 * beta)
-
-
 def image_gaussian_nll(x: torch.Tensor, mean: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
     """-log N(x; mean, sigma) summed over the pixels (..., 3, S, S) of each image, with one sigma for all:
     sum((x - mean)^2) / (2 sigma^2) + P (log sigma + log(2 pi) / 2), so only two ops touch every pixel."""
@@ -1041,8 +1020,7 @@ class Agent:
         # L_pred: -log p(x|s) - log p(r|s) - log p(cont|s); cont = 1 - terminated (truncation is not termination)
         image_nll = image_gaussian_nll(frames_to_input(obs), wm.decoder(features), wm.decoder.sigma())
         reward = wm.reward.dist(features)
-        reward_nll = reward.nll(rewards)  # (logged as is)
-        reward_loss = reward.nll(rewards, args.reward_nll_beta)
+        reward_nll = reward.nll(rewards)
         cont_logits = wm.cont(features).float().squeeze(-1)
         cont_nll = F.binary_cross_entropy_with_logits(cont_logits, 1.0 - terminated, reduction="none")
         # The KL terms' stop-gradient sides, sg(.), come from slowly updated copies of the encoder, posterior and
@@ -1057,7 +1035,7 @@ class Agent:
         kl_dyn = gaussian_kl(sg_post_mean, sg_post_std, prior_mean, prior_std)  # paper eq. L_dyn: trains the prior
         kl_rep = gaussian_kl(post["post_mean"], post["post_std"], sg_prior_mean, sg_prior_std)  # paper eq. L_rep
         loss = (
-            image_nll + reward_loss + cont_nll
+            image_nll + reward_nll + cont_nll
             + args.kl_dyn_scale * kl_free_bits(kl_dyn, args.free_bits)
             + args.kl_rep_scale * kl_free_bits(kl_rep, args.free_bits)
         ).mean()  # fmt: skip
@@ -1227,20 +1205,17 @@ class Agent:
 
     # --- acting --------------------------------------------------------------------------
     def initial_state(self, n: int):
-        """Recurrent state of n cars before their first frame: (cell state, z, previous action, the sampled policy's
-        last noise: --action-noise-corr)."""
+        """Recurrent state of n cars before their first frame: (cell state, z, previous action)."""
         with torch.no_grad():
             cell = tuple(s.clone() for s in self.world_model.cell.initial_state(n))
         z = torch.zeros(n, self.args.latent_size, device=self.device)
-        zeros = torch.zeros(n, self.action_dim, device=self.device)
-        return cell, z, zeros, zeros.clone()
+        return cell, z, torch.zeros(n, self.action_dim, device=self.device)
 
     @torch.no_grad()
     def act(self, obs: np.ndarray, state=None, is_first=None, policy: str = "stochastic"):
         """Actions for the n cars this agent drives: obs (n, H, W, 3) uint8, is_first (n,) bool.
 
-        Returns actions (n, A) numpy in [-1, 1] and the new state (cell, z, action, the sampled policy's noise: an
-        AR(1) process across decisions with --action-noise-corr). state=None starts every car
+        Returns actions (n, A) numpy in [-1, 1] and the new state (cell, z, action). state=None starts every car
         fresh; is_first restarts the marked cars (a new race) and defaults to none. `policy` (EVAL_POLICIES):
         "stochastic" samples z from the posterior and the action from the actor (training); "mean-action"
         samples z and takes the actor's mean; "deterministic" takes the posterior mean and the actor's mean.
@@ -1253,18 +1228,13 @@ class Agent:
         is_first = np.zeros(n, dtype=bool) if is_first is None else np.asarray(is_first, dtype=bool)
         frames = torch.as_tensor(preprocess_frames(obs, self.args.image_size), device=self.device)
         self._set_training(False)  # BatchNorm uses its running statistics while acting
-        cell, z, prev_action, noise = state
+        cell, z, prev_action = state
         embed_part = self.world_model.representation.embed_part(self.world_model.encoder(frames))
         first = torch.as_tensor(is_first, device=self.device)
         sample_z = policy != "deterministic"
         cell, h, z, _, _ = self.world_model.observe_step(cell, z, prev_action, embed_part, first, sample_z)
-        if policy == "stochastic":  # the policy's noise: independent, or AR(1) across decisions (--action-noise-corr)
-            rho, fresh = self.args.action_noise_corr, torch.randn(n, self.action_dim, device=self.device)
-            if rho > 0:  # (a fresh draw where a race starts)
-                fresh = torch.where(first[:, None], fresh, rho * noise + math.sqrt(1.0 - rho * rho) * fresh)
-            noise = fresh
-        action, _ = self.actor.sample(torch.cat([z, h], -1), deterministic=policy != "stochastic", noise=noise)
-        return action.cpu().numpy(), (cell, z, action, noise)
+        action, _ = self.actor.sample(torch.cat([z, h], -1), deterministic=policy != "stochastic")
+        return action.cpu().numpy(), (cell, z, action)
 
     @torch.no_grad()
     def video(self, obs: np.ndarray, actions: np.ndarray, is_first: np.ndarray, context: int = 5) -> np.ndarray:

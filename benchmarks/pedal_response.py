@@ -86,12 +86,13 @@ class Args:
 
 def hold_pedal(action: np.ndarray, state: tuple, pedal: float) -> tuple[np.ndarray, tuple]:
     """The agent's action with its pedal replaced by `pedal`, and its acting state (Agent.act's cell, z, previous
-    action, noise) remembering that action as its previous one, as the world model must see what was driven."""
+    action) remembering that action as its previous one, as the world model must see what was driven."""
     import torch
 
     action = action.copy()
     action[:, 1] = pedal
-    return action, (state[0], state[1], torch.as_tensor(action, device=state[2].device), state[3])
+    cell, z, previous = state
+    return action, (cell, z, torch.as_tensor(action, device=previous.device))
 
 
 def drive(agent, args, envs, track: int, after: int, pedal: float | None, horizon: int) -> tuple:

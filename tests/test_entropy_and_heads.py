@@ -141,8 +141,6 @@ def test_the_twohot_nll_is_the_cross_entropy_with_the_encoding_and_uniform_logit
     torch.testing.assert_close(dist.nll(targets), F.cross_entropy(logits, soft, reduction="none"))
     torch.testing.assert_close(dist.mean, logits.softmax(-1).double() @ bins.double(), check_dtype=False)
     assert torch.equal(script.TwoHot(torch.zeros(3, 255), bins).mean, torch.zeros(3))  # exactly, not ~1e-2
-    with pytest.raises(ValueError, match="beta"):
-        dist.nll(targets, beta=0.5)
 
 
 def test_a_twohot_head_learns_the_mean_of_a_target_with_a_rare_minus_100(script):
@@ -194,8 +192,7 @@ def test_twohot_agents_start_at_zero_learn_and_regress_the_critic_on_its_slow_co
 
 def test_twohot_heads_refuse_the_gaussian_heads_options(script):
     run_tools.validate_args(script.Args(heads="twohot"), script.LOG_SIGMA_RANGE)
-    for flags, name in (({"head_sigma": 1.0}, "--head-sigma"), ({"reward_nll_beta": 0.5}, "--reward-nll-beta"),
-                        ({"target_critic": False}, "--target-critic")):  # fmt: skip
+    for flags, name in (({"head_sigma": 1.0}, "--head-sigma"), ({"target_critic": False}, "--target-critic")):
         with pytest.raises(ValueError, match=f"^{name} .*--heads twohot"):
             run_tools.validate_args(script.Args(heads="twohot", **flags), script.LOG_SIGMA_RANGE)
 

@@ -88,7 +88,6 @@ BAD_ARGUMENTS = [
     (["--gamma", "0"], "--gamma must lie in (0, 1], got 0.0"),
     (["--gamma", "1.01"], "--gamma must lie in (0, 1], got 1.01"),
     (["--lambda", "-0.5"], "--lambda must lie in [0, 1], got -0.5"),
-    (["--action-noise-corr", "1"], "--action-noise-corr must lie in [0, 1) (0: independent noise), got 1.0"),
     (["--entropy-coef", "-1"], "--entropy-coef must be >= 0, got -1.0"),
     (["--grad-clip", "inf"], "--grad-clip must be a finite number, got inf"),
     (["--replay-capacity", "40"], "--replay-capacity must be >= --seq-len (50), got 40"),
@@ -647,3 +646,19 @@ def test_saved_arguments_are_read_back_new_flags_default_and_removed_ones_are_na
                                        "old_mode='fast', old_noise=0.9\n")  # fmt: skip
     with pytest.raises(ckpt.CheckpointError, match=r"^run/latest.pt: its arguments do not fit this script: "):
         ckpt.args_from_checkpoint(Args, {"args": {"seed": 3}}, "run/latest.pt", unknown_override=1)
+
+
+@pytest.mark.parametrize("name", sorted(ckpt.RETIRED_ARGS))
+def test_a_retired_option_loads_quietly_at_its_neutral_value_and_is_refused_at_another(script, name, capsys):
+    """A run saved before an option was retired resumes when it used the value the code now behaves as (or had no
+    such option), with no note; one trained with another value is refused, naming the flag, its value and the
+    last commit that runs it. The real Args of both scripts no longer have the option."""
+    assert name not in {field.name for field in dataclasses.fields(script.Args)}
+    neutral, commit = ckpt.RETIRED_ARGS[name]
+    for value in (neutral, None):
+        args = ckpt.args_from_checkpoint(script.Args, {"args": {"seed": 3, name: value}}, "run/latest.pt")
+        assert args.seed == 3 and capsys.readouterr().out == ""
+    flag = "--" + name.replace("_", "-")
+    refusal = rf"^run/latest.pt: trained with {flag} 0.5, .*git checkout {commit}"
+    with pytest.raises(ckpt.CheckpointError, match=refusal):
+        ckpt.args_from_checkpoint(script.Args, {"args": {"seed": 3, name: 0.5}}, "run/latest.pt")

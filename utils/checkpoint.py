@@ -29,6 +29,10 @@ import numpy as np
 import torch
 
 CHECKPOINT_KEYS = ("variant", "args", "counters", "agents")  # and "rng", except in an acting-only export
+# Options removed after their screens rejected them (docs/lab/screens.md), each with the value the code now behaves
+# as and the last commit that has it: a saved run with that value (or None: from before the option) loads as before;
+# one trained with another value is refused, since it would go on differently.
+RETIRED_ARGS = {"reward_nll_beta": (0.0, "345bb5f"), "action_noise_corr": (0.0, "345bb5f")}
 REPLAY_FIELDS = ("obs", "action", "reward", "is_first", "terminated")  # the arrays of a Replay, one row per step
 
 
@@ -152,10 +156,15 @@ def load_checkpoint(path: str, variant: str, map_location="cpu", training: bool 
 def args_from_checkpoint(args_class, checkpoint: dict, path: str, **overrides):
     """The Args a checkpoint was trained with (new flags keep their defaults, flags removed since are dropped: a note
     names each with its saved value, since a run trained with another value than the one the code now behaves as
-    would go on differently)."""
+    would go on differently; a retired option, RETIRED_ARGS, at another value than its neutral one is refused)."""
     names = {field.name for field in dataclasses.fields(args_class)}
     saved = checkpoint["args"] if isinstance(checkpoint["args"], dict) else {}
-    dropped = sorted(set(saved) - names)
+    for name, (neutral, commit) in RETIRED_ARGS.items():
+        if name in saved and saved[name] not in (neutral, None):
+            flag = "--" + name.replace("_", "-")
+            raise CheckpointError(f"{path}: trained with {flag} {saved[name]!r}, an option removed after its screen "
+                                  f"(docs/lab/screens.md); `git checkout {commit}` runs it")
+    dropped = sorted(set(saved) - names - set(RETIRED_ARGS))
     if dropped:
         listed = ", ".join(f"{name}={saved[name]!r}" for name in dropped)
         print(f"note: {path} has arguments this script does not know (ignored): {listed}")

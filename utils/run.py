@@ -109,13 +109,10 @@ def validate_args(args, log_sigma_range: tuple[float, float]) -> None:
         require(getattr(args, name) > 0, name, "must be > 0")
     require(0 < args.gamma <= 1, "gamma", "must lie in (0, 1]")
     require(0 <= args.lambda_ <= 1, "lambda_", "must lie in [0, 1]")
-    require(0 <= args.reward_nll_beta <= 1, "reward_nll_beta", "must lie in [0, 1]")
     require(args.head_sigma >= 0, "head_sigma", "must be >= 0 (0: learned)")
     if args.heads == "twohot":
         require(args.head_sigma == 0, "head_sigma", "is the Gaussian heads' sigma: leave it 0 with --heads twohot")
-        require(args.reward_nll_beta == 0, "reward_nll_beta", "is the Gaussian heads': leave it 0 with --heads twohot")
         require(args.target_critic, "target_critic", "--heads twohot regresses the critic on its slow copy: keep it on")
-    require(0 <= args.action_noise_corr < 1, "action_noise_corr", "must lie in [0, 1) (0: independent noise)")
     require(args.entropy_lr > 0, "entropy_lr", "must be > 0")
     require(0 <= args.lr_anneal <= 1, "lr_anneal", "must lie in [0, 1] (a share of the budget; 0: constant rates)")
     if args.action_penalty is not None:
