@@ -18,6 +18,7 @@ import importlib
 import io
 import math
 import os
+import re
 import subprocess
 import sys
 import types
@@ -649,16 +650,23 @@ def test_saved_arguments_are_read_back_new_flags_default_and_removed_ones_are_na
 
 
 @pytest.mark.parametrize("name", sorted(ckpt.RETIRED_ARGS))
-def test_a_retired_option_loads_quietly_at_its_neutral_value_and_is_refused_at_another(script, name, capsys):
-    """A run saved before an option was retired resumes when it used the value the code now behaves as (or had no
-    such option), with no note; one trained with another value is refused, naming the flag, its value and the
-    last commit that runs it. The real Args of both scripts no longer have the option."""
+def test_a_retired_option_loads_quietly_at_its_neutral_value_and_another_value_is_not_resumed(script, name, capsys):
+    """A run saved before an option was retired loads and resumes when it used the value the code now behaves as,
+    with no note; one trained with another value still loads for acting, with a note naming the option, its value
+    and the last commit that runs it, but is not resumed. The real Args of both scripts no longer have the option."""
     assert name not in {field.name for field in dataclasses.fields(script.Args)}
-    neutral, commit = ckpt.RETIRED_ARGS[name]
+    neutral, commit, notebook = ckpt.RETIRED_ARGS[name]
+    assert os.path.isfile(os.path.join(ROOT, notebook))
+    args = script.Args(seed=3)
     for value in (neutral, None):
-        args = ckpt.args_from_checkpoint(script.Args, {"args": {"seed": 3, name: value}}, "run/latest.pt")
-        assert args.seed == 3 and capsys.readouterr().out == ""
-    flag = "--" + name.replace("_", "-")
-    refusal = rf"^run/latest.pt: trained with {flag} 0.5, .*git checkout {commit}"
-    with pytest.raises(ckpt.CheckpointError, match=refusal):
-        ckpt.args_from_checkpoint(script.Args, {"args": {"seed": 3, name: 0.5}}, "run/latest.pt")
+        saved = {"args": {**dataclasses.asdict(args), name: value}}
+        assert ckpt.args_from_checkpoint(script.Args, saved, "run/latest.pt").seed == 3
+        assert run_tools.resumed_args(script.Args, saved, "run/latest.pt", args, ()).seed == 3
+        assert capsys.readouterr().out == ""
+    saved = {"args": {**dataclasses.asdict(args), name: 0.5}}
+    assert ckpt.args_from_checkpoint(script.Args, saved, "run/latest.pt").seed == 3
+    note = f"{name}=0.5 (removed after its screen, {notebook}; `git checkout {commit}` runs it)"
+    assert capsys.readouterr().out == f"note: run/latest.pt has arguments this script does not know (ignored): {note}\n"
+    refusal = f"run/latest.pt: cannot be resumed by this code: trained with {note}"
+    with pytest.raises(ckpt.CheckpointError, match=re.escape(refusal)):
+        run_tools.resumed_args(script.Args, saved, "run/latest.pt", args, ())

@@ -29,10 +29,13 @@ import numpy as np
 import torch
 
 CHECKPOINT_KEYS = ("variant", "args", "counters", "agents")  # and "rng", except in an acting-only export
-# Options removed after their screens rejected them (docs/lab/screens.md), each with the value the code now behaves
-# as and the last commit that has it: a saved run with that value (or None: from before the option) loads as before;
-# one trained with another value is refused, since it would go on differently.
-RETIRED_ARGS = {"reward_nll_beta": (0.0, "345bb5f"), "action_noise_corr": (0.0, "345bb5f")}
+# Options removed after their screens rejected them: the value the code now behaves as, the last commit that has the
+# option and the notebook with its screen. A checkpoint saved with that value loads as before; one trained with
+# another value loads with a note (acting, evaluating) but cannot be resumed (retired_args).
+RETIRED_ARGS = {
+    "reward_nll_beta": (0.0, "345bb5f", "docs/lab/learning_screens.md"),
+    "action_noise_corr": (0.0, "345bb5f", "docs/lab/screens.md"),
+}
 REPLAY_FIELDS = ("obs", "action", "reward", "is_first", "terminated")  # the arrays of a Replay, one row per step
 
 
@@ -153,20 +156,27 @@ def load_checkpoint(path: str, variant: str, map_location="cpu", training: bool 
     return checkpoint
 
 
+def retired_args(checkpoint: dict) -> dict[str, str]:
+    """The retired options (RETIRED_ARGS) a checkpoint was trained with at another value than the one the code now
+    behaves as: {name: what to say of it}. Such a run would go on differently, so it is not resumed."""
+    saved = checkpoint["args"] if isinstance(checkpoint["args"], dict) else {}
+    return {
+        name: f"{name}={saved[name]!r} (removed after its screen, {notebook}; `git checkout {commit}` runs it)"
+        for name, (neutral, commit, notebook) in RETIRED_ARGS.items()
+        if saved.get(name) not in (neutral, None)  # None: saved before the option existed
+    }
+
+
 def args_from_checkpoint(args_class, checkpoint: dict, path: str, **overrides):
     """The Args a checkpoint was trained with (new flags keep their defaults, flags removed since are dropped: a note
     names each with its saved value, since a run trained with another value than the one the code now behaves as
-    would go on differently; a retired option, RETIRED_ARGS, at another value than its neutral one is refused)."""
+    would go on differently; a retired option at its neutral value goes without a note)."""
     names = {field.name for field in dataclasses.fields(args_class)}
     saved = checkpoint["args"] if isinstance(checkpoint["args"], dict) else {}
-    for name, (neutral, commit) in RETIRED_ARGS.items():
-        if name in saved and saved[name] not in (neutral, None):
-            flag = "--" + name.replace("_", "-")
-            raise CheckpointError(f"{path}: trained with {flag} {saved[name]!r}, an option removed after its screen "
-                                  f"(docs/lab/screens.md); `git checkout {commit}` runs it")
-    dropped = sorted(set(saved) - names - set(RETIRED_ARGS))
+    retired = retired_args(checkpoint)
+    dropped = sorted(set(saved) - names - (set(RETIRED_ARGS) - set(retired)))
     if dropped:
-        listed = ", ".join(f"{name}={saved[name]!r}" for name in dropped)
+        listed = ", ".join(retired.get(name, f"{name}={saved[name]!r}") for name in dropped)
         print(f"note: {path} has arguments this script does not know (ignored): {listed}")
     try:
         return args_class(**{**{k: v for k, v in saved.items() if k in names}, **overrides})

@@ -44,6 +44,7 @@ from utils.checkpoint import (
     replay_dir_of,
     resolve_checkpoint,
     restore_replay,
+    retired_args,
     save_checkpoint,
     save_replay,
     set_rng_state,
@@ -451,6 +452,9 @@ def new_run_args(method, args):
 def resumed_args(args_class, checkpoint: dict, path: str, args, overrides):
     """The Args of a resumed run: every setting it was started with, except the fields named in `overrides` (those
     the resuming command line set explicitly), which come from `args`; prints each change (old -> new)."""
+    retired = retired_args(checkpoint)
+    if retired:
+        raise CheckpointError(f"{path}: cannot be resumed by this code: trained with {'; '.join(retired.values())}")
     saved = args_from_checkpoint(args_class, checkpoint, path)
     if saved.pause_at_updates and "pause_at_updates" not in overrides:  # a pause holds for the invocation it stopped
         print(f"resume: the pause at {saved.pause_at_updates} updates is lifted (--pause-at-updates 0)")
