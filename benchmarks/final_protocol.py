@@ -689,7 +689,16 @@ def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
 SHIP_TRACKS = TRACKS["screening"]  # the shipped agents are chosen on the screening tracks
 SHIP_POLICY = "mean-action"
 SHIP_MAX_BYTES = 10_000_000
-SHIP_COLUMNS = ("variant", "candidate", "checkpoint", "return", "progress", "abs_steer", "shipped")
+SHIP_COLUMNS = ("decision", "variant", "candidate", "checkpoint", "return", "progress", "abs_steer", "shipped")
+
+
+def record_decision(path: str, rows: list[dict]) -> None:
+    """Add one shipping decision's `rows` to the record at `path` (SHIP_COLUMNS), numbered one after the record's
+    last (``decision``; rows written before the column existed are decision 1), so that no earlier decision is lost:
+    the shipped file's content changes, and the record is all that says what it held when."""
+    kept = read_table(path, SHIP_COLUMNS, defaults={"decision": "1"})
+    decision = 1 + max((int(r["decision"]) for r in kept), default=0)
+    write_table(path, kept + [{**row, "decision": decision} for row in rows], SHIP_COLUMNS)
 
 
 def ship_rows(variant: str, runs_dir: str, shipped: str, seeds: tuple[int, ...] = PROTOCOL_SEEDS) -> list[dict]:
@@ -719,8 +728,8 @@ def ship(variant: str, runs_dir: str, shipped: str, results_dir: str = RESULTS,
          seeds: tuple[int, ...] = PROTOCOL_SEEDS) -> str:
     """Measure the candidates (ship_rows: the final policies of `seeds`); if the best seed's return beats the shipped
     agent's, export it over `shipped` (atomically; refused above SHIP_MAX_BYTES, the shipped file unchanged).
-    ``ship_<variant>.csv`` in `results_dir` keeps the rows, its ``shipped`` column marking the agent `shipped` holds
-    afterwards. Returns a markdown table of the rows."""
+    ``ship_<variant>.csv`` in `results_dir` gets the rows as a new decision (record_decision), its ``shipped`` column
+    marking the agent `shipped` holds afterwards. Returns a markdown table of the rows."""
     from utils.checkpoint import export_policy, read_checkpoint
 
     rows = ship_rows(variant, runs_dir, shipped, seeds)
@@ -738,11 +747,11 @@ def ship(variant: str, runs_dir: str, shipped: str, results_dir: str = RESULTS,
             os.remove(shipped + ".new")
             if current is not None:  # the record says what stays shipped
                 current["shipped"] = True
-            write_table(record, rows, SHIP_COLUMNS)
+            record_decision(record, rows)
             raise ValueError(f"{best['checkpoint']} exports to {size / 1e6:.1f} MB, over the {SHIP_MAX_BYTES / 1e6:g}"
                              f" MB a shipped agent may take; {shipped} is unchanged (ship_{variant}.csv)")
     winner["shipped"] = True
-    write_table(record, rows, SHIP_COLUMNS)  # the record before the file it names
+    record_decision(record, rows)  # the record before the file it names
     if winner is best:
         os.replace(shipped + ".new", shipped)
     lines = [f"{variant}: {POLICY_NAMES[SHIP_POLICY]} on tracks {track_block(*SHIP_TRACKS)}", "",

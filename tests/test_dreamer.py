@@ -710,9 +710,15 @@ def test_replay_save_load_round_trip(script, tmp_path):
     a, b = replay.sample(5, 6, np.random.RandomState(1)), loaded.sample(5, 6, np.random.RandomState(1))
     for key in a:
         np.testing.assert_array_equal(a[key], b[key])
-    # later saves to the same directory rewrite only the changed chunks
+    # later saves to the same directory write only the changed chunks: 65 steps into 50 left next_index at 15, so 3
+    # new steps land at 15..17, in chunks 0 (0..15) and 1 (16..31); chunks 2 and 3 keep their files of step 65 (the
+    # earlier files of chunks 0 and 1 stay, for a checkpoint that names them, until prune_replay)
+    assert replay.next_index == 15
     replay.add_episode(*make_episode(3, 9))
-    ckpt.save_replay(replay, str(tmp_path / "replay"))
+    manifest = ckpt.save_replay(replay, str(tmp_path / "replay"))
+    assert manifest["files"] == ["chunk_00000_000000000068.npz", "chunk_00001_000000000068.npz",
+                                 "chunk_00002_000000000065.npz", "chunk_00003_000000000065.npz"]  # fmt: skip
+    assert len(glob.glob(str(tmp_path / "replay" / "chunk_*.npz"))) == 6
     ckpt.load_replay(loaded, str(tmp_path / "replay"))
     np.testing.assert_array_equal(loaded.obs, replay.obs)
 

@@ -34,6 +34,35 @@ def test_the_entropy_weight_moves_toward_its_target_by_adams_first_step(script, 
     assert other.alpha_optimizer.state_dict()["state"][0]["step"] == 1
 
 
+def test_the_entropy_alpha_weighs_is_minus_log_pi_plus_the_extreme_action_term_it_leaves_to_the_penalty(
+    script, monkeypatch
+):
+    """--entropy-target with --action-penalty (the CPU preset): alpha weighs the Gaussian part of -log pi only, so
+    its step reads -log pi plus the extreme-action term: log pi -1 and both sampled dimensions 0.5 (a one-step
+    imagination fixed by hand) give 1 + 2 * -log(1 - tanh(0.5)^2) = 1.48046."""
+    agent = script.Agent(tiny_args(script, entropy_target=0.0, action_penalty=1.0, imagination_horizon=1))
+    features = torch.zeros(2, 1, TINY["latent_size"] + TINY["deter_size"])
+    _, _, metrics = one_step_behaviour(script, agent, monkeypatch, features, samples=torch.full((1, 1, 2), 0.5))
+    term = 2 * -math.log(1 - math.tanh(0.5) ** 2)
+    assert metrics["alpha_entropy"].item() == pytest.approx(1 + term, rel=1e-5)
+
+
+@pytest.mark.parametrize("per_dimension, direction", [(0.6, -1), (0.8, +1)])
+def test_the_entropy_target_is_per_action_dimension(script, monkeypatch, per_dimension, direction):
+    """--entropy-target is in nats per action dimension: with 2 dimensions and an entropy of 1.5 nats, a target of
+    0.6 (1.2 in all) is below it and alpha falls, 0.8 (1.6 in all) above it and alpha rises, by Adam's first step."""
+    agent = script.Agent(tiny_args(script, entropy_target=per_dimension, entropy_coef=0.5, entropy_lr=0.01))
+    real = agent.behaviour_losses
+
+    def entropy_of_one_and_a_half_nats(post, terminated):
+        actor_loss, critic_loss, metrics = real(post, terminated)
+        return actor_loss, critic_loss, {**metrics, "alpha_entropy": torch.tensor(1.5)}
+
+    monkeypatch.setattr(agent, "behaviour_losses", entropy_of_one_and_a_half_nats)
+    one_update(agent)
+    assert agent.log_alpha.item() == pytest.approx(math.log(0.5) + direction * 0.01, abs=1e-6)
+
+
 def test_the_entropy_weight_scales_the_entropy_part_of_the_returns(script, monkeypatch):
     """lambda_returns gets exp(log alpha) under --entropy-target, --entropy-coef without it."""
     seen = []

@@ -548,9 +548,9 @@ def test_the_shipped_agent_is_replaced_only_by_a_better_seed_on_the_screening_tr
     assert exported == [seed23] and shipped.read_bytes() == b"x" * 1000  # 520 beats the shipped 500
     with open(tmp_path / "ship_lstm.csv") as f:
         rows = list(csv.DictReader(f))
-    assert [(r["candidate"], float(r["return"]), r["shipped"]) for r in rows] == [
-        ("shipped", 500.0, "False"), ("seed 21", 400.0, "False"), ("seed 22", 450.0, "False"),
-        ("seed 23", 520.0, "True"), ("seed 24", 510.0, "False"), ("seed 25", 300.0, "False")]  # fmt: skip
+    assert [(r["decision"], r["candidate"], float(r["return"]), r["shipped"]) for r in rows] == [
+        ("1", "shipped", 500.0, "False"), ("1", "seed 21", 400.0, "False"), ("1", "seed 22", 450.0, "False"),
+        ("1", "seed 23", 520.0, "True"), ("1", "seed 24", 510.0, "False"), ("1", "seed 25", 300.0, "False")]  # fmt: skip
     assert "| seed 23 | 520.0 | 0.50 | 0.20 | yes |" in text
     assert f"{shipped} is now seed 23's final policy: update what README.md and docs/races.md say" in text
 
@@ -558,6 +558,11 @@ def test_the_shipped_agent_is_replaced_only_by_a_better_seed_on_the_screening_tr
     shipped.write_bytes(b"the agent shipped before")
     assert "update what" not in final_protocol.ship("lstm", trials, str(shipped), results)
     assert exported == [seed23] and shipped.read_bytes() == b"the agent shipped before"
+    with open(tmp_path / "ship_lstm.csv") as f:  # a second decision is added to the record, the first one kept
+        rows = list(csv.DictReader(f))
+    assert [(r["decision"], r["candidate"], r["shipped"]) for r in rows if r["shipped"] == "True"] == [
+        ("1", "seed 23", "True"), ("2", "shipped", "True")]  # fmt: skip
+    assert [float(r["return"]) for r in rows if r["candidate"] == "shipped"] == [500.0, 600.0]
 
     returns[str(shipped)] = 100.0  # an export over the limit is refused and removed
     too_big = final_protocol.SHIP_MAX_BYTES + 1
@@ -566,8 +571,8 @@ def test_the_shipped_agent_is_replaced_only_by_a_better_seed_on_the_screening_tr
         final_protocol.ship("lstm", trials, str(shipped), results)
     assert shipped.read_bytes() == b"the agent shipped before" and not os.path.exists(str(shipped) + ".new")
     with open(tmp_path / "ship_lstm.csv") as f:  # the record names the agent that stays, not the refused one
-        assert [(r["candidate"], r["shipped"]) for r in csv.DictReader(f) if r["shipped"] == "True"] == [
-            ("shipped", "True")]  # fmt: skip
+        assert [(r["decision"], r["candidate"]) for r in csv.DictReader(f) if r["shipped"] == "True"] == [
+            ("1", "seed 23"), ("2", "shipped"), ("3", "shipped")]  # fmt: skip
 
     monkeypatch.setattr(utils.checkpoint, "export_policy", export)
     returns[seed23], before = float("nan"), list(exported)  # a failed drive is refused, not kept (max() keeps a NaN)
@@ -614,12 +619,16 @@ def test_ship_seeds_choose_among_the_final_policies_left_and_never_read_a_lost_s
     with pytest.raises(SystemExit, match="no run with checkpoints/latest.pt under .*single_gru_seed21"):
         learning.cli(common_args)
     assert driven == [] and shipped.read_bytes() == b"the agent shipped before"
+    results.mkdir()  # a record written before decisions were numbered: its rows are decision 1, kept
+    (results / "ship_gru.csv").write_text("variant,candidate,checkpoint,return,progress,abs_steer,shipped\n"
+                                          "gru,shipped,old.pt,400.0,0.4,0.3,True\n")  # fmt: skip
     learning.cli([*common_args, "--ship-seeds", "24", "25"])
     seed25 = os.path.join(runs[25], "checkpoints", "latest.pt")
     assert shipped.read_bytes() == seed25.encode()  # seed 25's 610 beats seed 24's 520 and the shipped 500
     with open(results / "ship_gru.csv") as f:
-        assert [(r["candidate"], float(r["return"]), r["shipped"]) for r in csv.DictReader(f)] == [
-            ("shipped", 500.0, "False"), ("seed 24", 520.0, "False"), ("seed 25", 610.0, "True")]  # fmt: skip
+        assert [(r["decision"], r["candidate"], float(r["return"]), r["shipped"]) for r in csv.DictReader(f)] == [
+            ("1", "shipped", 400.0, "True"), ("2", "shipped", 500.0, "False"), ("2", "seed 24", 520.0, "False"),
+            ("2", "seed 25", 610.0, "True")]  # fmt: skip
 
 
 def test_the_cpu_hours_of_a_checkpoint_are_its_cpu_seconds_over_3600_and_the_guards_stop_is_read_from_it():

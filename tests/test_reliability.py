@@ -334,12 +334,26 @@ def test_a_nonfinite_loss_or_gradient_skips_that_step(script):
     assert math.isfinite(metrics["critic"])
     assert_same(after["critic"], before["critic"], "critic")
     assert_same(after["critic_optimizer"], before["critic_optimizer"], "critic optimiser")
+    critic_targets = [k for k in after["targets"] if k.startswith("critic.")]  # no soft update toward it either
+    assert critic_targets and all(torch.equal(after["targets"][k], before["targets"][k]) for k in critic_targets)
     assert not torch.equal(after["world_model"]["decoder.fc.weight"], before["world_model"]["decoder.fc.weight"])
     assert (agent.nonfinite_updates, agent.nonfinite_in_a_row) == (2, 2)
 
-    agent.update(random_batch(seed=3))  # a clean update ends the streak; the total stays
-    assert (agent.nonfinite_updates, agent.nonfinite_in_a_row) == (2, 0)
-    assert agent.state_dict()["nonfinite_updates"] == 2  # saved with the agent
+    # The actor's: its parameters, optimiser and the running statistics its forward pass moved stay as they were.
+    before = copy.deepcopy(agent.state_dict())
+    hook = agent.actor.net.net[0].weight.register_hook(lambda grad: torch.full_like(grad, float("nan")))
+    agent.update(random_batch(seed=3))
+    hook.remove()
+    after = agent.state_dict()
+    assert any("running_mean" in k for k in after["actor"])  # (the statistics are there to be checked)
+    assert_same(after["actor"], before["actor"], "actor")
+    assert_same(after["actor_optimizer"], before["actor_optimizer"], "actor optimiser")
+    assert not torch.equal(after["critic"]["net.net.0.weight"], before["critic"]["net.net.0.weight"])  # stepped
+    assert (agent.nonfinite_updates, agent.nonfinite_in_a_row) == (3, 3)
+
+    agent.update(random_batch(seed=4))  # a clean update ends the streak; the total stays
+    assert (agent.nonfinite_updates, agent.nonfinite_in_a_row) == (3, 0)
+    assert agent.state_dict()["nonfinite_updates"] == 3  # saved with the agent
 
 
 def test_the_run_stops_after_max_nonfinite_updates_in_a_row(script, tmp_path, monkeypatch):

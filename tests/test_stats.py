@@ -194,6 +194,17 @@ def test_the_bootstrap_intervals_repeat_for_a_seed_and_leave_the_callers_random_
     assert 100.0 <= low < 438.0 < high <= 900.0
 
 
+def test_the_mean_and_iqm_intervals_are_the_bootstrap_quantiles_of_their_own_statistic():
+    """One score of 1000 among five 0s: a resample of 5 runs holds k ~ Binomial(5, 0.2) of the 1000s. Its mean is
+    200 k, its IQM (the mean of the middle 3) 0 for k <= 1, 333.3 for k = 2, 666.7 for k = 3. P(k >= 3) = 0.058 and
+    P(k >= 4) = 0.007 put the 97.5% quantile at k = 3, P(k = 0) = 0.33 the 2.5% quantile at k = 0: the mean's interval
+    is [0, 600], the IQM's [0, 666.7] (points 200 and 0)."""
+    est = stats.interval_estimates({"a": np.array([[0.0], [0.0], [1000.0], [0.0], [0.0]])}, reps=2000)["a"]
+    assert (est["mean"], est["iqm"]) == (pytest.approx(200.0), pytest.approx(0.0))
+    assert est["mean_ci"] == (pytest.approx(0.0), pytest.approx(600.0))
+    assert est["iqm_ci"] == (pytest.approx(0.0), pytest.approx(2000 / 3))
+
+
 def test_a_value_that_is_not_finite_is_refused_not_counted():
     """NaN compares false both ways: an exact test would count a failed measurement as neither higher nor lower."""
     with pytest.raises(ValueError, match=r"^a first group needs finite values, got \[1\.0, nan\]$"):
