@@ -550,7 +550,8 @@ def test_the_shipped_agent_is_replaced_only_by_a_better_seed_on_the_screening_tr
         rows = list(csv.DictReader(f))
     assert [(r["decision"], r["candidate"], float(r["return"]), r["shipped"]) for r in rows] == [
         ("1", "shipped", 500.0, "False"), ("1", "seed 21", 400.0, "False"), ("1", "seed 22", 450.0, "False"),
-        ("1", "seed 23", 520.0, "True"), ("1", "seed 24", 510.0, "False"), ("1", "seed 25", 300.0, "False")]  # fmt: skip
+        ("1", "seed 23", 520.0, "True"), ("1", "seed 24", 510.0, "False"),
+        ("1", "seed 25", 300.0, "False")]  # fmt: skip
     assert "| seed 23 | 520.0 | 0.50 | 0.20 | yes |" in text
     assert f"{shipped} is now seed 23's final policy: update what README.md and docs/races.md say" in text
 
