@@ -247,12 +247,6 @@ class Args:
     (DreamerV3: a softmax over 255 bins spaced symexp(-20 .. 20), learned by cross-entropy against the target's
     two-hot encoding and read as its mean, so a rare -100 is a class of its own, not a wider sigma; output layers
     start at zero; the critic also regresses on the slow critic's value, weight 1)"""
-    lr_anneal: float = 0.0
-    """share of the run's budget, at its end, over which every learning rate (model, actor, critic, alpha) falls
-    linearly to 0 (ours; 0: constant rates, the paper), set before each race's updates from the share spent then:
-    the largest of --total-episodes, --total-updates and --cpu-hours-limit, counted from the run's start (a run from
-    --checkpoint starts at its flags' full rates). Under --cpu-hours-limit the rates follow process CPU time, so such
-    a run is not bit-reproducible"""
     straight_through_clip: bool = False
     """imagination gives the world model a + (clip(a, -1, 1) - a) with the second part detached: the clipped action
     forward, the identity's gradient backward, so a sample outside [-1, 1] still passes reward and value gradient
@@ -991,17 +985,17 @@ class Agent:
         soft_update(self.targets["representation"], wm.representation, tau)
         soft_update(self.targets["transition"], wm.transition, tau)
 
-    def set_learning_rates(self, scale: float = 1.0) -> None:
-        """Every optimiser's learning rate: its flag's value (--model-lr, --actor-lr, --critic-lr, --entropy-lr) times
-        `scale` (lr_scale: --lr-anneal). Also after a state is loaded, whose optimisers hold the rates they were
-        saved with, so that a resumed run's or a --checkpoint run's flags are the rates it learns at."""
+    def set_learning_rates(self) -> None:
+        """Every optimiser's learning rate: its flag's value (--model-lr, --actor-lr, --critic-lr, --entropy-lr). Set
+        after a state is loaded, whose optimisers hold the rates they were saved with, so that a resumed run's or a
+        --checkpoint run's flags are the rates it learns at."""
         pairs = [(self.model_optimizer, self.args.model_lr), (self.actor_optimizer, self.args.actor_lr),
                  (self.critic_optimizer, self.args.critic_lr)]  # fmt: skip
         if self.log_alpha is not None:
             pairs.append((self.alpha_optimizer, self.args.entropy_lr))
         for optimizer, lr in pairs:
             for group in optimizer.param_groups:
-                group["lr"] = lr * scale
+                group["lr"] = lr
 
     # --- world model (paper 3.8) ------------------------------------------------------------
     def world_model_loss(self, obs, actions, rewards, is_first, terminated):
@@ -1317,14 +1311,6 @@ def train_agent(agent: Agent, replay: Replay, args: Args, logger, prefix: str, o
     return done / max(time.time() - started, 1e-9)
 
 
-def lr_scale(args: Args, budget_spent: float) -> float:
-    """--lr-anneal's factor of every learning rate: 1 until the last lr_anneal share of the run's budget, then
-    linearly down to 0 where the budget is spent (`budget_spent`: Run.budget_spent)."""
-    if args.lr_anneal <= 0:
-        return 1.0
-    return min(1.0, max(0.0, (1.0 - budget_spent) / args.lr_anneal))
-
-
 def start_race(run) -> tuple[np.ndarray, int]:
     """One race at a time (K = 1): reset on the next race's track, a ghost track with its ghost (if it has one yet)
     in the ghost stage, else the track race_seed(seed, episode), so a resumed run drives the same tracks."""
@@ -1383,11 +1369,7 @@ def main(args: Args, overrides=()) -> str:
             # --- train: after every race that ended, each agent updates on its own replay (once the prefill races
             # are done; a ghost stage first races each of its ghost tracks once: Run.learning_starts)
             if run.learns_now():
-                scale = lr_scale(args, run.budget_spent())
-                if args.lr_anneal > 0:
-                    run.logger.record("charts/lr_scale", scale)
                 for j, (agent, replay) in enumerate(zip(run.agents, run.replays)):
-                    agent.set_learning_rates(scale)
                     updates_per_s = train_agent(agent, replay, args, run.logger, f"car_{j}/", progress_callback(run, j))
                     log_updates(run, j, updates_per_s)
                     if run.fault is not None:

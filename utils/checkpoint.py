@@ -35,6 +35,7 @@ CHECKPOINT_KEYS = ("variant", "args", "counters", "agents")  # and "rng", except
 RETIRED_ARGS = {
     "reward_nll_beta": (0.0, "345bb5f", "docs/lab/learning_screens.md"),
     "action_noise_corr": (0.0, "345bb5f", "docs/lab/screens.md"),
+    "lr_anneal": (0.0, "2790f96", "docs/lab/screens.md"),
 }
 REPLAY_FIELDS = ("obs", "action", "reward", "is_first", "terminated")  # the arrays of a Replay, one row per step
 

@@ -115,7 +115,6 @@ def validate_args(args, log_sigma_range: tuple[float, float]) -> None:
         require(args.head_sigma == 0, "head_sigma", "is the Gaussian heads' sigma: leave it 0 with --heads twohot")
         require(args.target_critic, "target_critic", "--heads twohot regresses the critic on its slow copy: keep it on")
     require(args.entropy_lr > 0, "entropy_lr", "must be > 0")
-    require(0 <= args.lr_anneal <= 1, "lr_anneal", "must lie in [0, 1] (a share of the budget; 0: constant rates)")
     if args.action_penalty is not None:
         require(math.isfinite(args.action_penalty) and args.action_penalty >= 0, "action_penalty", "must be >= 0")
     if args.entropy_target is not None:
@@ -262,7 +261,6 @@ class Run:
     cpu_before: float = 0.0  # CPU seconds of the run's earlier invocations (a resumed run)
     fault: str | None = None  # set when an agent had --max-nonfinite-updates faulty updates in a row
     out_of_time: bool = False  # the time or CPU budget was spent when last checked (set-up, the end of a race)
-    cpu_checked: float = 0.0  # cpu_seconds() when the budget was last checked
     update_seconds: list = dataclasses.field(default_factory=list)  # the first two updates' times (CPU report)
     pbar: object = None
 
@@ -290,29 +288,12 @@ class Run:
             or self.fault is not None
         )
 
-    def budget_spent(self) -> float:
-        """The share of the run's budget spent before the updates that follow the race just ended (--lr-anneal): the
-        largest of its races before that one over --total-episodes, its updates since the run started (a
-        --checkpoint run's own) over those --total-updates leaves it, and its process CPU time over
-        --cpu-hours-limit (as check_budget found it at the end of the last race). A --pause-at-updates pause is not
-        the budget's end."""
-        args = self.args
-        shares = [max(self.counters["episode"] - 1, 0) / args.total_episodes]
-        if args.total_updates > 0:
-            first = self.counters.get("start_updates", 0)
-            done = min(agent.num_updates for agent in self.agents) - first
-            shares.append(done / max(args.total_updates - first, 1))
-        if args.cpu_hours_limit > 0:
-            shares.append(self.cpu_checked / (3600 * args.cpu_hours_limit))
-        return max(shares)
-
     def check_budget(self) -> None:
         """Set out_of_time: whether --time-limit-hours (this process) or --cpu-hours-limit (the run, over all its
         invocations) is spent."""
         args = self.args
         wall = args.time_limit_hours > 0 and time.time() - self.started > 3600 * args.time_limit_hours
-        self.cpu_checked = self.cpu_seconds()
-        cpu = args.cpu_hours_limit > 0 and self.cpu_checked > 3600 * args.cpu_hours_limit
+        cpu = args.cpu_hours_limit > 0 and self.cpu_seconds() > 3600 * args.cpu_hours_limit
         self.out_of_time = wall or cpu
 
     def acts_randomly(self) -> bool:
@@ -426,7 +407,6 @@ def start_from_checkpoint(run: Run, start: dict) -> None:
         restore_replay(run.replays[i], directory, None, races=0)
         print(f"car {i}: continues with the replay in {directory} ({len(run.replays[i]):,} steps)")
         # (run.manifests stay None: the run's own replay directory holds no save until its first one)
-    run.counters["start_updates"] = min(agent.num_updates for agent in run.agents)  # the run's own: budget_spent
 
 
 def new_run_args(method, args):
@@ -477,10 +457,6 @@ def restore_run(run: Run, resumed: dict, path: str) -> None:
     for i, (agent, state) in enumerate(zip(run.agents, resumed["agents"])):
         load_agent_state(agent, state, path, i)
     run.counters.update(resumed["counters"])
-    args = run.args
-    if args.checkpoint and args.lr_anneal > 0 and args.total_updates > 0 and "start_updates" not in run.counters:
-        raise UsageError(f"{path}: this --checkpoint run was started before its first updates were kept, so "
-                         "--lr-anneal cannot count its --total-updates from its start (resume it without --lr-anneal)")
     extra = resumed.get("extra") or {}
     run.ghosts = {int(s): ghost_from_tensors(g) for s, g in extra.get("ghosts", {}).items()}
     for j, history in enumerate(extra.get("wins", [])[:n]):
