@@ -692,11 +692,21 @@ SHIP_MAX_BYTES = 10_000_000
 SHIP_COLUMNS = ("decision", "variant", "candidate", "checkpoint", "return", "progress", "abs_steer", "shipped")
 
 
-def record_decision(path: str, rows: list[dict]) -> None:
-    """Add one shipping decision's `rows` to the record at `path` (SHIP_COLUMNS), numbered one after the record's
-    last (``decision``; rows written before the column existed are decision 1), so that no earlier decision is lost:
-    the shipped file's content changes, and the record is all that says what it held when."""
-    kept = read_table(path, SHIP_COLUMNS, defaults={"decision": "1"})
+def read_record(path: str) -> list[dict]:
+    """The shipping record at `path` (none yet: []): its rows as SHIP_COLUMNS, those written before the ``decision``
+    column existed as decision 1. A record with another column is refused, naming it, before anything is measured."""
+    rows = read_table(path, SHIP_COLUMNS, defaults={"decision": "1"})
+    foreign = sorted({key for row in rows for key in row} - set(SHIP_COLUMNS))
+    if foreign:
+        raise ValueError(f"{path}: not a shipping record (columns {', '.join(foreign)} are not of "
+                         f"{', '.join(SHIP_COLUMNS)}); move it aside")  # fmt: skip
+    return rows
+
+
+def record_decision(path: str, kept: list[dict], rows: list[dict]) -> None:
+    """Write the record at `path`: its `kept` rows (read_record), then one shipping decision's `rows`, numbered one
+    after the last (``decision``), so that no earlier decision is lost: the shipped file's content changes, and
+    the record is all that says what it held when."""
     decision = 1 + max((int(r["decision"]) for r in kept), default=0)
     write_table(path, kept + [{**row, "decision": decision} for row in rows], SHIP_COLUMNS)
 
@@ -732,13 +742,14 @@ def ship(variant: str, runs_dir: str, shipped: str, results_dir: str = RESULTS,
     marking the agent `shipped` holds afterwards. Returns a markdown table of the rows."""
     from utils.checkpoint import export_policy, read_checkpoint
 
+    record = os.path.join(results_dir, f"ship_{variant}.csv")
+    kept = read_record(record)  # (refused before anything is driven)
     rows = ship_rows(variant, runs_dir, shipped, seeds)
     check_finite(rows, ("return",), f"ship_{variant}")
     current = next((r for r in rows if r["candidate"] == "shipped"), None)
     best = max((r for r in rows if r["candidate"] != "shipped"), key=lambda r: r["return"])
     winner = best if current is None or best["return"] > current["return"] else current
     os.makedirs(results_dir, exist_ok=True)
-    record = os.path.join(results_dir, f"ship_{variant}.csv")
     if winner is best:
         script = read_checkpoint(best["checkpoint"])[0]
         os.makedirs(os.path.dirname(os.path.abspath(shipped)), exist_ok=True)
@@ -747,11 +758,16 @@ def ship(variant: str, runs_dir: str, shipped: str, results_dir: str = RESULTS,
             os.remove(shipped + ".new")
             if current is not None:  # the record says what stays shipped
                 current["shipped"] = True
-            record_decision(record, rows)
+            record_decision(record, kept, rows)
             raise ValueError(f"{best['checkpoint']} exports to {size / 1e6:.1f} MB, over the {SHIP_MAX_BYTES / 1e6:g}"
                              f" MB a shipped agent may take; {shipped} is unchanged (ship_{variant}.csv)")
     winner["shipped"] = True
-    record_decision(record, rows)  # the record before the file it names
+    try:
+        record_decision(record, kept, rows)  # the record before the file it names
+    except BaseException:
+        if winner is best:
+            os.remove(shipped + ".new")
+        raise
     if winner is best:
         os.replace(shipped + ".new", shipped)
     lines = [f"{variant}: {POLICY_NAMES[SHIP_POLICY]} on tracks {track_block(*SHIP_TRACKS)}", "",

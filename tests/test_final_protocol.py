@@ -589,6 +589,19 @@ def test_the_shipped_agent_is_replaced_only_by_a_better_seed_on_the_screening_tr
         final_protocol.ship("lstm", str(tmp_path / "short"), str(shipped), results)
 
 
+def test_a_record_that_is_not_a_shipping_record_is_refused_before_anything_is_driven(tmp_path, monkeypatch):
+    trials = str(tmp_path / "trials")
+    for seed in final_protocol.PROTOCOL_SEEDS:
+        fake_trial(trials, seed=seed)
+    shipped = tmp_path / "lstm_cpu.pt"
+    shipped.write_bytes(b"the agent shipped before")
+    (tmp_path / "ship_lstm.csv").write_text("variant,candidate,return,note\nlstm,shipped,1.0,x\n")
+    monkeypatch.setattr(evaluate, "evaluate_checkpoint", refuse_to_drive)
+    with pytest.raises(ValueError, match=r"ship_lstm.csv: not a shipping record \(columns note are not of decision,"):
+        final_protocol.ship("lstm", trials, str(shipped), str(tmp_path))
+    assert shipped.read_bytes() == b"the agent shipped before"
+
+
 def test_ship_seeds_choose_among_the_final_policies_left_and_never_read_a_lost_seeds_directory(tmp_path, monkeypatch):
     """--ship-seeds (a machine lost the other runs' directories): only those seeds' final policies are candidates,
     by the same rule; without it the lost seed's missing run is refused, naming it, before anything is driven."""
