@@ -247,6 +247,11 @@ class Args:
     (DreamerV3: a softmax over 255 bins spaced symexp(-20 .. 20), learned by cross-entropy against the target's
     two-hot encoding and read as its mean, so a rare -100 is a class of its own, not a wider sigma; output layers
     start at zero; the critic also regresses on the slow critic's value, weight 1)"""
+    terminal_weight: float = 1.0
+    """weight of the world model's reward and continue terms on terminal frames (an elimination, a finished lap;
+    ours; 1: the paper's loss). A terminal frame is about one decision in 300-600, and an elimination is hard to
+    tell from the frames before it, so at 1 neither head learns it (docs/deviations.md); above 1 both spread more of
+    its -100 and of its ending over the frames near the road's edge: a cautious model"""
     straight_through_clip: bool = False
     """imagination gives the world model a + (clip(a, -1, 1) - a) with the second part detached: the clipped action
     forward, the identity's gradient backward, so a sample outside [-1, 1] still passes reward and value gradient
@@ -1028,8 +1033,9 @@ class Agent:
             sg_prior_mean, sg_prior_std = gaussian_params(self.targets["transition"](h.detach()), LATENT_MIN_STD)
         kl_dyn = gaussian_kl(sg_post_mean, sg_post_std, prior_mean, prior_std)  # paper eq. L_dyn: trains the prior
         kl_rep = gaussian_kl(post["post_mean"], post["post_std"], sg_prior_mean, sg_prior_std)  # paper eq. L_rep
+        weight = 1.0 + (args.terminal_weight - 1.0) * terminated  # --terminal-weight on terminal frames (1: exact)
         loss = (
-            image_nll + reward_nll + cont_nll
+            image_nll + weight * reward_nll + weight * cont_nll
             + args.kl_dyn_scale * kl_free_bits(kl_dyn, args.free_bits)
             + args.kl_rep_scale * kl_free_bits(kl_rep, args.free_bits)
         ).mean()  # fmt: skip
