@@ -250,7 +250,7 @@ class Args:
     terminal_weight: float = 1.0
     """weight of the world model's reward and continue terms on terminal frames (an elimination, a finished lap;
     ours; 1: the paper's loss). A terminal frame is about one decision in 300-600, and an elimination is hard to
-    tell from the frames before it, so at 1 neither head learns it (docs/deviations.md); above 1 both spread more of
+    tell from the frames before it, so at 1 neither head learns it (docs/lab/screens.md); above 1 both spread more of
     its -100 and of its ending over the frames near the road's edge: a cautious model"""
     straight_through_clip: bool = False
     """imagination gives the world model a + (clip(a, -1, 1) - a) with the second part detached: the clipped action
