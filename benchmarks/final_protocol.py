@@ -86,7 +86,9 @@ PEER_POLICY_COLUMNS = ("final_return", "final_progress", "final_mean_abs_steer")
 # kept beside learning_final.csv (the driving from the row's own drives, not driven again; the training logs' last
 # readings.SCREEN_WINDOW updates; the model on real episodes; its view of the pedal)
 WHY_CSV = "learning_final_readings.csv"
-WHY_COLUMNS = tuple(c for c in readings.COLUMNS if c != "tag")
+# (without terminal_continue, which readings.py read after this table was made: the report's final policies that
+# could give it are no longer all on disk, and a table with a column only some runs fill would mislead)
+WHY_COLUMNS = tuple(c for c in readings.COLUMNS if c not in ("tag", "terminal_continue"))
 OLD_PROTOCOL_HOME = os.path.join("benchmarks", "results", "history", "8000_updates")  # the replaced protocol's files
 PROTOCOL_ADVICE = (
     f"move the old protocol's files (learning_final.csv, learning_final.md) to {OLD_PROTOCOL_HOME}/ first"
@@ -179,9 +181,10 @@ def protocol_readings(row: dict, driven: dict, runs_dir: str) -> list[dict]:
     latest = os.path.join(run, "checkpoints", "latest.pt")
     updates = int(row["updates"])
     measured = readings.measure(latest, run, updates, *REPORT_TRACKS, driven=driven)
-    return [{"variant": row["variant"], "seed": int(row["seed"]), "updates": updates, "policy": policy,
+    rows = [{"variant": row["variant"], "seed": int(row["seed"]), "updates": updates, "policy": policy,
              **measured[policy], "checkpoint": os.path.relpath(latest, runs_dir)}
             for policy in PROTOCOL_POLICIES]  # fmt: skip
+    return [{column: r[column] for column in WHY_COLUMNS} for r in rows]
 
 
 def write_protocol_row(row: dict, path: str = os.path.join(RESULTS, "learning_final.csv")) -> None:

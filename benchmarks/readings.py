@@ -10,7 +10,7 @@ final protocol's: its report tracks 10300..10329):
   of races ended by an elimination (``drive_races``, utils/collector.py);
 * the model on those real episodes (sampled policy; ``calibration.calibrate_checkpoint``): the imagined H-step task
   return against the real one from the same states, and on the frames where a car was eliminated the reward head's
-  mean (the real reward there is the -100 penalty);
+  mean (the real reward there is the -100 penalty) and the continue head's probability (the real value there is 0);
 * the model's view of the pedal (``pedal_response.py``): after 40 decisions of the mean action on the block's first
   3 tracks, the pedal held at -1, 0, 0.3 and 1 for H decisions; the range over the pedals of the mean imagined
   return and of the mean real one (a model that sees the pedal imagines a range near the real one);
@@ -34,7 +34,7 @@ TRAINING = {  # column: the progress.csv tag averaged over the last SCREEN_WINDO
     "actor_sigma": "car_0/losses/actor_std", "entropy": "car_0/losses/entropy", "alpha": "car_0/losses/alpha",
     "imagined_return": "car_0/losses/imagined_return",
 }  # fmt: skip
-MODEL = ("imagined_task_return", "real_task_return", "eliminations", "terminal_reward_predicted")
+MODEL = ("imagined_task_return", "real_task_return", "eliminations", "terminal_reward_predicted", "terminal_continue")
 PEDAL = ("pedal_range_imagined", "pedal_range_real")
 SCREEN_WINDOW = 500  # the TRAINING readings: means over the updates (u - SCREEN_WINDOW, u]
 PEDAL_AFTER, PEDAL_TRACKS = 40, 3  # pedal_response.py's start (decisions) and tracks (the block's first)
@@ -103,11 +103,16 @@ def pedal(path: str, first_track: int) -> dict[str, float]:
     return {"pedal_range_imagined": round(imagined, 2), "pedal_range_real": round(real, 2)}
 
 
+def model(path: str, first_track: int, tracks: int) -> dict[str, float]:
+    """The MODEL readings (calibration.calibrate_checkpoint: a sampled drive of the tracks, seeded by the first)."""
+    calibrated = calibrate_checkpoint(path, first_track, tracks)
+    return {key: calibrated[key] for key in MODEL}
+
+
 def measure(path: str, run_dir: str, updates: int, first_track: int, tracks: int, driven: dict | None = None) -> dict:
     """Every reading of the policy at `path` (kept by `run_dir` at `updates` updates): {policy: row fields}; the
     driving from `driven` if given (driving)."""
-    model = calibrate_checkpoint(path, first_track, tracks)
-    model = {**{key: model[key] for key in MODEL}, **pedal(path, first_track)}
+    model_readings = {**model(path, first_track, tracks), **pedal(path, first_track)}
     trained = training(run_dir, updates)
     driven = driving(path, first_track, tracks, driven)
-    return {policy: {**values, **trained, **model} for policy, values in driven.items()}
+    return {policy: {**values, **trained, **model_readings} for policy, values in driven.items()}

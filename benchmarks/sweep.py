@@ -21,8 +21,9 @@ ran out) on the screening tracks
 (10200..10219 by default, never used to report a result), sampled and with its mean action, and writes
 ``benchmarks/results/screening/sweep_<name>.csv`` and ``.md`` with the readings that say *why* a policy drives as it
 does (``readings.measure``; ``readings.COLUMNS`` lists them: driving, the actor's sigma and entropy, the imagined
-against the real return, the reward head on elimination frames, the pedal's range); each measurement is kept in
-``<storage>/<name>/readings.json`` and made once.
+against the real return, the reward and continue heads on elimination frames, the pedal's range); each measurement
+is kept in ``<storage>/<name>/readings.json`` and made once (a reading added to readings.py later is measured and
+added to the kept ones when the report next runs).
 """
 
 from __future__ import annotations
@@ -252,12 +253,17 @@ def report(sweep: Sweep) -> str:
             waiting.append(f"{name} (no policy kept at {updates} updates: {e})")
             continue
         key = f"{os.path.relpath(path, sweep.storage)}@{sweep.first_track}+{sweep.tracks}"
-        if key not in cache or readings.PEDAL[0] not in cache[key][readings.POLICIES[0]]:
-            if key not in cache:
-                cache[key] = readings.measure(path, run, updates, sweep.first_track, sweep.tracks)
-            else:  # readings kept before the PEDAL columns: add them
-                extra = readings.pedal(path, sweep.first_track)
-                cache[key] = {policy: {**values, **extra} for policy, values in cache[key].items()}
+        if key not in cache:
+            cache[key] = readings.measure(path, run, updates, sweep.first_track, sweep.tracks)
+            common.write_json(cache_path, cache)
+        kept = cache[key][readings.POLICIES[0]]
+        extra = {}  # readings kept before a column was read (the PEDAL ones, terminal_continue): measured now
+        if any(column not in kept for column in readings.PEDAL):
+            extra.update(readings.pedal(path, sweep.first_track))
+        if any(column not in kept for column in readings.MODEL):  # (the same seeded drive as the kept readings)
+            extra.update(readings.model(path, sweep.first_track, sweep.tracks))
+        if extra:
+            cache[key] = {policy: {**values, **extra} for policy, values in cache[key].items()}
             common.write_json(cache_path, cache)
         for policy in readings.POLICIES:
             rows.append({"tag": config["tag"], "variant": config["variant"], "seed": config["seed"],

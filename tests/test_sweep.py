@@ -156,6 +156,34 @@ def test_the_report_measures_each_finished_trial_once_with_both_policies(finishe
     assert len(calls) == len(GRID)  # once per trial, for both policies
 
 
+def test_a_model_reading_added_later_is_measured_on_the_same_drive_as_the_kept_ones(finished, monkeypatch):
+    """Readings kept before terminal_continue was read get it (and only the MODEL readings are measured again): the
+    seeded sampled drive is the one they were measured on, so every other MODEL reading comes back the same."""
+    sweeps.report(finished)
+    cache_path = os.path.join(finished.storage, finished.name, "readings.json")
+    with open(cache_path) as f:
+        kept = json.load(f)
+    old = json.loads(json.dumps(kept))
+    for values in (v for per_policy in old.values() for v in per_policy.values()):
+        del values["terminal_continue"]  # as kept before the column
+    with open(cache_path, "w") as f:
+        json.dump(old, f)
+    monkeypatch.setattr(readings, "measure", lambda *a: pytest.fail("measured again"))
+    monkeypatch.setattr(readings, "pedal", lambda *a: pytest.fail("the pedal read again"))
+    calls = []
+    model = readings.model
+    monkeypatch.setattr(readings, "model", lambda *a: calls.append(a) or model(*a))
+    sweeps.report(finished)
+    assert len(calls) == len(GRID) and all(a[1:] == (finished.first_track, finished.tracks) for a in calls)
+    with open(cache_path) as f:
+        assert json.load(f) == kept  # the same numbers, terminal_continue among them, in both policies' rows
+    with open(os.path.join(finished.results, "sweep_tiny.csv")) as f:
+        rows = list(csv.DictReader(f))
+    for row in rows:  # a probability on the frames where the car left the road, or NaN where it never did
+        value = float(row["terminal_continue"])
+        assert math.isnan(value) if row["eliminations"] == "0" else 0.0 <= value <= 1.0
+
+
 def test_training_readings_average_the_last_window_of_updates(tmp_path):
     """Rows logged at 400, 600 and 1000 updates: the window (500, 1000] holds the last two."""
     rows = [
