@@ -19,9 +19,8 @@ Read top to bottom:
 What is around the method is shared by both scripts: the collector that drives the cars and records their
 episodes (utils/collector.py: `Races`, frame preprocessing, what a race reads), and the run plumbing (arguments'
 checks, memory, run directory and resume, logging, atomic checkpoints and replay saves, the command line:
-utils/run.py, utils/checkpoint.py). They read this module by name: utils/run.py its Args, PRESETS, VARIANT,
-LOG_SIGMA_RANGE, Replay, Agent, env_kwargs, dead_zone_at and main; utils/checkpoint.py its VARIANT, load_checkpoint,
-Args, Agent and Agent.acting_state_dict; the collector an Agent's act, initial_state and action_dim.
+utils/run.py, utils/checkpoint.py). They, race.py, evaluate.py and benchmarks/ use this module's names (Args,
+Agent, Replay, main, the section-2 helpers, the checkpoint readers of section 8...): grep before renaming one.
 
 Everything that depends on the recurrent cell is inside `RecurrentCell` (its state is a tuple of
 tensors; the model state fed to every head is z||h). The LSTM script (dreamer_lstm.py) is this file
@@ -137,8 +136,8 @@ class Args:
     """stop after the first race at which every agent has made this many updates (0: no limit)"""
     pause_at_updates: int = 0
     """stop, with checkpoints, after the first race at which every agent has made this many updates, as a pause, not
-    the run's end: --total-updates stays the budget, and a --resume lifts the pause unless it is given again
-    (benchmarks/experiment.py resumes its trials in such chunks; 0: never)"""
+    the run's end: --total-updates stays the budget, and a --resume lifts the pause unless it is given again (0:
+    never)"""
     time_limit_hours: float = 0.0
     """stop, with checkpoints, at the start or at the end of the first race past this many hours of this process (0: no
     limit)"""
@@ -159,9 +158,8 @@ class Args:
     """races per evaluation (ours)"""
     eval_policy: Literal["deterministic", "mean-action", "stochastic"] = "mean-action"
     """evaluation's policy: deterministic = posterior mean z and mean action; mean-action = sampled z, mean action;
-    stochastic = sampled z and action (the policy that was optimised). The mean action by default, as a rule over
-    earlier runs chose it (docs/learning.md#the-evaluation-policy: a choice, not a finding that it drives better);
-    early in training the mean-action car can stall where the sampled one drives"""
+    stochastic = sampled z and action (the policy that was optimised). Why the mean action:
+    docs/learning.md#the-evaluation-policy"""
     eval_checkpoints: bool = False
     """also keep checkpoints/eval_<race>.pt at every evaluation (the policy as evaluated, for later analysis)"""
     eval_seed: int = 10_000
@@ -233,8 +231,7 @@ class Args:
     """Adam learning rate of log alpha (--entropy-target)"""
     action_penalty: float | None = None
     """weight of log pi's extreme-action term -log(1 - tanh(a)^2) in the lambda-return, apart from alpha, which then
-    weighs the Gaussian part alone (and --entropy-target its entropy). None: alpha weighs both (the paper). The term
-    keeps actions off +-1: at a fixed weight it keeps the mean action smooth while a lower alpha narrows sigma"""
+    weighs the Gaussian part alone (and --entropy-target its entropy). None: alpha weighs both (the paper)"""
     return_norm: bool = False
     """DreamerV3's return normalisation: scale the task part of the lambda-return by 1 / max(1, S), S an EMA of
     its 95th - 5th percentile range, in the actor's objective only (the critic learns the unscaled return); the
@@ -243,20 +240,14 @@ class Args:
     """sigma of the reward and critic Gaussians: 0 learns it (softplus + 0.1, the paper); a positive value fixes it
     (1: the paper authors' code, a squared error, so that a rare -100 moves the mean instead of widening sigma)"""
     heads: Literal["gaussian", "twohot"] = "gaussian"
-    """the reward and critic heads' distribution: gaussian (the paper; --head-sigma) or twohot
-    (DreamerV3: a softmax over 255 bins spaced symexp(-20 .. 20), learned by cross-entropy against the target's
-    two-hot encoding and read as its mean, so a rare -100 is a class of its own, not a wider sigma; output layers
-    start at zero; the critic also regresses on the slow critic's value, weight 1)"""
+    """the reward and critic heads' distribution: gaussian (the paper; --head-sigma) or twohot (DreamerV3's symlog
+    two-hot: TwoHot below; the critic also regresses on the slow critic's value)"""
     terminal_weight: float = 1.0
     """weight of the world model's reward and continue terms on terminal frames (an elimination, a finished lap;
-    ours; 1: the paper's loss). A terminal frame is about one decision in 300-600, and an elimination is hard to
-    tell from the frames before it, so at 1 neither head learns it (docs/lab/screens.md); above 1 both spread more of
-    its -100 and of its ending over the frames near the road's edge: a cautious model"""
+    ours; 1: the paper's loss): a terminal frame is about one decision in 300-600"""
     straight_through_clip: bool = False
-    """imagination gives the world model a + (clip(a, -1, 1) - a) with the second part detached: the clipped action
-    forward, the identity's gradient backward, so a sample outside [-1, 1] still passes reward and value gradient
-    to the actor (Bengio et al., 2013's straight-through estimator). False: the clip passes none for that action
-    dimension, only the entropy bonus's (the paper authors' form)"""
+    """imagination clips an action outside [-1, 1] with the identity's gradient (Bengio et al., 2013's
+    straight-through estimator: imagine_rollout). False: the clip passes no gradient (the paper authors' form)"""
 
     # --- network sizes (paper appendix; --preset cpu uses smaller ones)
     image_size: Literal[96, 64] = 96
@@ -276,13 +267,9 @@ class Args:
     convolutions, LayerNorm in every MLP and the recurrent input (the paper authors' code)"""
 
 
-# --preset cpu: a configuration that learns on a 2-core CPU in hours (docs/deviations.md); explicit flags override it.
-# Smaller networks, 64 px frames, 2 env steps per decision, 20 random prefill races, 100 updates per race, the
-# dead-zone schedule in 30 races, evaluation every 5, a unit-variance pixel likelihood (log sigma floored at 0: a
-# learned sigma let kl_dyn grow without bound on CPU runs). It keeps the paper's trade at a smaller size: the same
-# imagined steps per update (B * L * H = 7,680), the LSTM with a small batch and a long horizon (B=5, H=48), the GRU
-# the other way (B=16, H=15). Each variant's own part also holds the defaults its screens chose (docs/deviations.md),
-# among them imagination from half the starts: 3,840 imagined steps per update for both.
+# --preset cpu (docs/deviations.md says why each value): smaller networks, 64 px frames, 2 env steps per decision, a
+# unit-variance pixel likelihood, and the paper's trade at a smaller size: the same imagined steps per update for
+# both variants, the LSTM with a small batch and a long horizon, the GRU the other way. Explicit flags override it.
 PRESETS: dict[str, dict] = {
     "paper": {},
     "cpu": {
@@ -690,7 +677,7 @@ class Actor(nn.Module):
 
     The noise lives in action space with sigma softly bounded below by 0.1, so the policy keeps exploring
     even where its mean saturates; a tanh-squashed Gaussian has no such floor (the std of tanh(N(2, 0.05))
-    is 0.004), and an earlier version of these scripts with it steered bang-bang (docs/deviations.md).
+    is 0.004), and its steering goes bang-bang (docs/deviations.md).
     """
 
     def __init__(self, feature_size: int, mlp_size: int, action_dim: int, norm: str):
@@ -880,6 +867,13 @@ def soft_update(target: nn.Module, source: nn.Module, tau: float) -> None:
             t.lerp_(s, tau)
         else:  # BatchNorm's num_batches_tracked
             t.copy_(s)
+
+
+@torch.no_grad()
+def restore_buffers(module: nn.Module, saved: list[torch.Tensor]) -> None:
+    """Put back `module`'s buffers (BatchNorm statistics) as `saved` (their clones, in module.buffers() order)."""
+    for buffer, value in zip(module.buffers(), saved):
+        buffer.copy_(value)
 
 
 @contextlib.contextmanager
@@ -1138,6 +1132,21 @@ class Agent:
             self.return_scale.copy_(torch.where(spread.isfinite(), moved, self.return_scale))
         return task + entropy, task / self.return_scale.clamp(min=1.0) + entropy
 
+    def _batch_tensors(self, batch: dict) -> tuple[torch.Tensor, ...]:
+        """Replay.sample's arrays as tensors on the device, shapes checked: obs (B, L, S, S, 3) uint8, actions
+        (B, L, A), rewards (B, L), is_first (B, L) bool, terminated (B, L)."""
+        dev = self.device
+        obs = torch.as_tensor(batch["obs"], device=dev)
+        actions = torch.as_tensor(batch["action"], device=dev, dtype=torch.float32)
+        rewards = torch.as_tensor(batch["reward"], device=dev, dtype=torch.float32)
+        is_first = torch.as_tensor(batch["is_first"], device=dev, dtype=torch.bool)
+        terminated = torch.as_tensor(batch["terminated"], device=dev, dtype=torch.float32)
+        b, l, size = *is_first.shape, self.args.image_size  # B sequences of L steps
+        assert obs.shape == (b, l, size, size, 3), obs.shape
+        assert actions.shape == (b, l, self.action_dim), actions.shape
+        assert rewards.shape == terminated.shape == (b, l), (rewards.shape, terminated.shape)
+        return obs, actions, rewards, is_first, terminated
+
     def _step(self, optimizer: torch.optim.Optimizer, loss: torch.Tensor, params) -> bool:
         """Backward, clip, step. A non-finite loss or gradient norm skips the step (the parameters and the
         optimiser's state stay as they were); returns whether the step was taken."""
@@ -1159,16 +1168,7 @@ class Agent:
         skipped.)"""
         if self.acting_only:
             raise RuntimeError("an acting-only export has no decoder, critic or optimiser state: it cannot learn")
-        dev = self.device
-        obs = torch.as_tensor(batch["obs"], device=dev)
-        actions = torch.as_tensor(batch["action"], device=dev, dtype=torch.float32)
-        rewards = torch.as_tensor(batch["reward"], device=dev, dtype=torch.float32)
-        is_first = torch.as_tensor(batch["is_first"], device=dev, dtype=torch.bool)
-        terminated = torch.as_tensor(batch["terminated"], device=dev, dtype=torch.float32)
-        b, l, size = *is_first.shape, self.args.image_size  # B sequences of L steps
-        assert obs.shape == (b, l, size, size, 3), obs.shape
-        assert actions.shape == (b, l, self.action_dim), actions.shape
-        assert rewards.shape == terminated.shape == (b, l), (rewards.shape, terminated.shape)
+        obs, actions, rewards, is_first, terminated = self._batch_tensors(batch)
         self._set_training(True)
         statistics = {m: [buf.clone() for buf in m.buffers()] for m in (self.world_model, self.actor)}  # BatchNorm
 
@@ -1190,9 +1190,7 @@ class Agent:
             soft_update(self.targets["critic"], self.critic, self.args.tau)
         for module, ok in ((self.world_model, model_ok), (self.actor, actor_ok)):
             if not ok:  # the batch's forward pass moved the running statistics: put them back
-                with torch.no_grad():
-                    for buffer, saved in zip(module.buffers(), statistics[module]):
-                        buffer.copy_(saved)
+                restore_buffers(module, statistics[module])
         self.num_updates += 1
         faulty = not (model_ok and actor_ok and critic_ok and alpha_ok)
         self.nonfinite_updates += int(faulty)
