@@ -1403,7 +1403,7 @@ def args_from_checkpoint(checkpoint: dict, path: str, **overrides) -> Args:
 
 
 def agent_from_checkpoint(path: str, index: int = 0, device="cpu") -> Agent:
-    """Agent `index` of a checkpoint of this script, built with the sizes it was trained with (race.py)."""
+    """Agent `index` of a checkpoint of this script, built with the sizes it was trained with (race.py, evaluate.py)."""
     return checkpoint_io.agent_from_checkpoint(sys.modules[__name__], path, index, device)
 
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-from typing import Literal
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 import tyro
@@ -43,23 +43,56 @@ class Args:
     """instead of evaluating, write the agent as an acting-only export here (no critic, optimisers or replay)"""
 
 
+class SingleCar(NamedTuple):
+    """A saved agent set up to drive alone (single_car)."""
+
+    script: Any  # the module of the dreamer script that wrote the checkpoint
+    checkpoint: dict  # the loaded checkpoint (or export)
+    args: Any  # its Args, with one car
+    agent: Any  # its agent `index`
+    envs: Any  # a one-car vec env with the env settings it was trained with, at the end of its dead-zone schedule
+
+
+def single_car(path: str, index: int = 0) -> SingleCar:
+    """Agent `index` of the checkpoint (or export) at `path`, set up to drive alone. The caller closes its env."""
+    from utils import make_vec_env
+    from utils.checkpoint import read_checkpoint  # one-line errors naming the file
+
+    script, checkpoint = read_checkpoint(path)
+    args = script.args_from_checkpoint(checkpoint, path, num_agents=1)
+    agent = script.agent_from_checkpoint(path, index)
+    envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
+    return SingleCar(script, checkpoint, args, agent, envs)
+
+
+def sampled_episodes(agent, args, envs, first_track: int, tracks: int) -> list:
+    """The agent's sampled policy (as it fills its replay) on tracks first_track .. first_track + tracks - 1, its
+    random stream from the first track's seed: drive_races' records, one list of cars per race. Closes `envs`."""
+    import torch
+
+    from utils.collector import drive_races
+
+    torch.manual_seed(first_track)
+    records = []
+    try:
+        drive_races([agent], args, envs, "stochastic", range(first_track, first_track + tracks), records)
+    finally:
+        envs.close()
+    return records
+
+
 def evaluate_checkpoint(path: str, first_track: int = 10_000, tracks: int = 10, policies=("stochastic",),
                         index: int = 0) -> dict[str, dict[str, list[float]]]:  # fmt: skip
     """Per policy, every reading of `drive_races` per track: {policy: {reading: [value per track]}}. The tracks are
     first_track .. first_track + tracks - 1."""
     import torch
 
-    from utils.checkpoint import read_checkpoint  # one-line errors naming the file
-    from utils import make_vec_env
     from utils.collector import drive_races
 
     if tracks < 1 or first_track < 0:
         raise ValueError(f"--tracks must be >= 1 and --first-track >= 0 (a track's seed), got {tracks} and "
                          f"{first_track}")  # fmt: skip
-    script, checkpoint = read_checkpoint(path)
-    args = script.args_from_checkpoint(checkpoint, path, num_agents=1)
-    agent = script.agent_from_checkpoint(path, index)
-    envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
+    _, _, args, agent, envs = single_car(path, index)
     out, tracks_of = {}, list(range(first_track, first_track + tracks))
     try:
         for policy in policies:

@@ -15,7 +15,7 @@ Each Dreamer racer decides at the rate it was trained at: a new action every
 steps), with ``--policy`` (default: the mean action from a sampled latent; ``--train`` always samples; torch is
 seeded with ``--seed``). The table per racer
 (also as CSV and JSON in ``--out``): wins, win rate with a Wilson 95% interval, mean finish time of finished races,
-mean progress, eliminations, collision steps; plus an mp4 of the first race (``--video``).
+mean progress, eliminations, collision steps; plus an mp4 of the first race (``--no-video``: none).
 
 ``--train``: the multi-agent phase of the paper. Every Dreamer racer keeps training, decentralized (Algorithm 1):
 its own replay buffer (the one saved beside its checkpoint unless ``--fresh-replay``), filled with its own car's
@@ -350,7 +350,7 @@ def evaluate(args, racers) -> list[dict]:
     return rows
 
 
-def train(args: Args, racers: list, device) -> str:
+def train(args: Args, racers: list) -> str:
     """The multi-agent phase: race, store each car's own transitions, update each agent (Algorithm 1); after every
     race each learning racer's checkpoint and replay are saved side by side. Returns the run directory."""
     from utils.logger import configure_logger, make_run_name
@@ -458,7 +458,7 @@ def main(argv=None):
     except saved.CheckpointError as e:
         sys.exit(f"race.py: {e}")
     if args.train:
-        return train(args, racers, device)
+        return train(args, racers)
     return evaluate(args, racers)
 
 

@@ -85,23 +85,14 @@ def calibrate_checkpoint(path: str, first_track: int = TRACKS["fresh"][0], track
     compare its means instead)."""
     import torch
 
-    from utils.checkpoint import read_checkpoint
-    from utils import make_vec_env
-    from utils.collector import drive_races
+    import evaluate  # (the repository's evaluate.py)
 
-    script, checkpoint = read_checkpoint(path)
-    agent = script.agent_from_checkpoint(path, 0)
+    script, checkpoint, args, agent, envs = evaluate.single_car(path)
     if agent.acting_only:
-        raise ValueError(f"{path}: an acting-only export has no critic or reward head; give a training checkpoint")
-    args = script.args_from_checkpoint(checkpoint, path, num_agents=1)
-    horizon = horizon or args.imagination_horizon
-    envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
-    torch.manual_seed(first_track)
-    records = []
-    try:  # the sampled policy, as trained, recorded as training stores a car's episode
-        drive_races([agent], args, envs, "stochastic", range(first_track, first_track + tracks), records)
-    finally:
         envs.close()
+        raise ValueError(f"{path}: an acting-only export has no critic or reward head; give a training checkpoint")
+    horizon = horizon or args.imagination_horizon
+    records = evaluate.sampled_episodes(agent, args, envs, first_track, tracks)  # as training stores them
     episodes = [cars[0].arrays() for cars in records]
     reasons = [cars[0].final_info.get("eliminated") for cars in records]  # None: a finished lap or the time limit
     sums = dict.fromkeys(("value", "realised_return", "bootstrap_weight", "imagined", "real"), 0.0)

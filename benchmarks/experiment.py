@@ -427,7 +427,7 @@ def trial_kinds(spec: dict, stage: str) -> list[str]:
 
 def trial_name(trial) -> str:
     config = trial.config["trial"]
-    return f"{config['stage']}_{config['variant']}_seed{config['seed']}"
+    return trial_label(config["stage"], config["variant"], config["seed"])
 
 
 def run_stage(spec: Spec, stage: str):
@@ -464,13 +464,24 @@ def fit_trials(trainable, resources: dict, path: str, configs: list[dict], name,
     return results
 
 
-def runtime_env(spec: Spec) -> dict:
-    """Where Ray's workers find this code: on this machine the repository itself; on a cluster a copy of it
-    (Ray's working_dir upload, without runs/ and .git/), with the same import paths."""
+def runtime_env(address: str | None) -> dict:
+    """Where Ray's workers find this code: on this machine (`address` None) the repository itself; on a cluster a
+    copy of it (Ray's working_dir upload, without runs/ and .git/), with the same import paths."""
     here = os.path.join(ROOT, "benchmarks")
-    if spec.address is None:
+    if address is None:
         return {"env_vars": {"PYTHONPATH": os.pathsep.join([ROOT, here, os.environ.get("PYTHONPATH", "")])}}
     return {"working_dir": ROOT, "excludes": ["runs/", ".git/", "races/"], "env_vars": {"PYTHONPATH": ".:benchmarks"}}
+
+
+def start_ray(address: str | None, num_cpus: int | None) -> None:
+    """Ray on this machine (`address` None, `num_cpus` cores) or the cluster at `address`, its workers at nice 0:
+    at Ray's nice 15 they yield the cores to anything else running here (measured: ~6.5 s instead of ~1.2 s per
+    update beside one ordinary process), and the trials are the experiment."""
+    import ray
+
+    os.environ.setdefault("RAY_worker_niceness", "0")
+    ray.init(address=address, num_cpus=num_cpus, runtime_env=runtime_env(address), include_dashboard=False,
+             log_to_driver=False)  # fmt: skip
 
 
 # What fixes the trials of an experiment: a rerun must ask for the same (Tune restores the trials it saved).
@@ -624,7 +635,7 @@ def race_progress(spec: dict, seed: int) -> str:
     """How far the race trial of seed pair (seed, seed) has got: head-to-head races trained (by the newest pair of
     racer checkpoints both saved after the same race) and the tournaments held. Read only."""
     directory = trial_dir(spec, "race", "lstm_gru", seed)
-    name = f"race_lstm_gru_seed{seed}"
+    name = trial_label("race", "lstm_gru", seed)
     if not os.path.isdir(directory):
         return f"{name} (not started)"
     held = sorted(int(path.rsplit("_", 1)[1]) for path in glob.glob(os.path.join(directory, "tournament_*[0-9]"))
@@ -709,13 +720,7 @@ def main(spec: Spec) -> None:
                              f"--eval-policy {policy}; its tables take the same: give --eval-policy {policy}")
         spec = as_run(spec, saved)  # the tables are of the experiment as it was run, whatever the flags say
     if not spec.aggregate_only:
-        import ray
-
-        # Ray starts its workers at nice 15, where they yield the cores to anything else running here (measured:
-        # ~6.5 s instead of ~1.2 s per update beside one ordinary process); the trials are the experiment.
-        os.environ.setdefault("RAY_worker_niceness", "0")
-        ray.init(address=spec.address, num_cpus=spec.num_cpus, runtime_env=runtime_env(spec), include_dashboard=False,
-                 log_to_driver=False)  # fmt: skip
+        start_ray(spec.address, spec.num_cpus)
         for stage in ("single", "ghost", "race"):
             if stage in spec.stages:
                 run_stage(spec, stage)

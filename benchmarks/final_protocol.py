@@ -7,7 +7,7 @@ protocol (``learning.py --final`` until commit 32c3b4c), whose ``learning_final.
   ``benchmarks/experiment.py --stages single --single-cpu-hours 3.1``: trained until it has spent 3.1 CPU-hours of
   process CPU time over all its sittings (PROTOCOL_CPU_HOURS, the peers' budget), whatever its updates; found under
   ``<storage>/trials/single_<variant>_seed<S>/`` (``--runs-dir <storage>/trials``).
-* A run's row of ``learning_final.csv`` (protocol_row, PROTOCOL_COLUMNS): its final policy, latest.pt once the
+* A run's row of ``learning_final.csv`` (protocol_measure, PROTOCOL_COLUMNS): its final policy, latest.pt once the
   budget is spent (refused before, unless the non-finite guard stopped the run: numerical_stop), driven sampled
   (``final_*``) and with its mean action (``mean_action_*``, with the share of tracks whose lap it finished and its
   mean speed) on the 30 report tracks 10300..10329 (REPORT_TRACKS), which serve no choice; beside them its updates,
@@ -129,20 +129,15 @@ def protocol_cpu_hours(run: str, checkpoint: dict) -> float:
     return hours
 
 
-def protocol_row(variant: str, seed: int, runs_dir: str) -> dict:
-    """The final protocol's row of one run (PROTOCOL_COLUMNS): its latest.pt, refused unless the run has spent its CPU
-    budget or the non-finite guard stopped it (protocol_cpu_hours), driven on the REPORT_TRACKS sampled (``final_*``)
-    and with its mean action (``mean_action_*``), each a mean over the tracks of evaluate.py's readings;
+def protocol_measure(variant: str, seed: int, runs_dir: str) -> tuple[dict, dict]:
+    """The final protocol's row of one run (PROTOCOL_COLUMNS), and the drives it was measured on (evaluate_checkpoint's
+    per-track readings per policy, which protocol_readings reuses). The row: its latest.pt, refused unless the run has
+    spent its CPU budget or the non-finite guard stopped it (protocol_cpu_hours), driven on the REPORT_TRACKS sampled
+    (``final_*``) and with its mean action (``mean_action_*``), each a mean over the tracks of evaluate.py's readings;
     ``mean_action_laps_finished`` is the share of tracks whose lap the mean action finished within the time limit and
     ``mean_speed`` the mean action's mean speed. Beside them agent 0's updates, the env steps
     (``counters["global_step"]``), the CPU-hours of latest.pt, the wall hours of the sittings (training_hours), and the
     best and last-three-average returns of the run's own evaluations (eval_summary)."""
-    return protocol_measure(variant, seed, runs_dir)[0]
-
-
-def protocol_measure(variant: str, seed: int, runs_dir: str) -> tuple[dict, dict]:
-    """The run's row (protocol_row) and the drives it was measured on (evaluate_checkpoint's per-track readings per
-    policy), which protocol_readings reuses."""
     if seed not in PROTOCOL_SEEDS:
         raise ValueError(f"the final protocol's seeds are {', '.join(map(str, PROTOCOL_SEEDS))}, got {seed}")
     run = protocol_run(variant, seed, runs_dir)

@@ -21,13 +21,10 @@ from runs import progress_rows
 
 
 # --- The references --------------------------------------------------------------------------
-def baselines(
-    eval_seed: int = 10_000, episodes: int = 10, results_dir: str = RESULTS, filename: str = "baselines.json"
-) -> dict:
-    """Random actions and the pursuit driver on the tracks ``eval_seed ..`` (by default the 10 held-out tracks of
-    the evaluations), with the env settings of training. Computed once, then read from ``results_dir/filename``,
-    which names its tracks (a file of other tracks is refused; one written before it named them is read as it
-    is)."""
+def baselines(eval_seed: int, episodes: int, results_dir: str = RESULTS, filename: str = "references.json") -> dict:
+    """Random actions and the pursuit driver on the tracks ``eval_seed .. eval_seed + episodes - 1``, with the env
+    settings of training. Computed once, then read from ``results_dir/filename``, which names its tracks (a file of
+    other tracks is refused; one written before it named them is read as it is)."""
     path, tracks = os.path.join(results_dir, filename), track_block(eval_seed, episodes)
     if os.path.exists(path):
         with open(path) as f:

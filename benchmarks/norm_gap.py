@@ -128,22 +128,10 @@ def gaps(agent, train: dict, evaluated: dict) -> dict[str, np.ndarray]:
 
 def norm_gap(path: str, first_track: int = TRACKS["screening"][0], tracks: int = 4) -> dict:
     """The readings of the agent saved at `path` (module docstring), with the settings they were read under."""
-    import torch
+    import evaluate  # (the repository's evaluate.py)
 
-    from utils import make_vec_env
-    from utils.checkpoint import read_checkpoint
-    from utils.collector import drive_races
-
-    script, checkpoint = read_checkpoint(path)
-    agent = script.agent_from_checkpoint(path, 0)
-    args = script.args_from_checkpoint(checkpoint, path, num_agents=1)
-    envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
-    torch.manual_seed(first_track)
-    records = []
-    try:  # the sampled policy, as it fills its replay
-        drive_races([agent], args, envs, "stochastic", range(first_track, first_track + tracks), records)
-    finally:
-        envs.close()
+    script, _, args, agent, envs = evaluate.single_car(path)
+    records = evaluate.sampled_episodes(agent, args, envs, first_track, tracks)
     episodes = [cars[0].arrays()[:2] for cars in records]
     per_window = {key: [] for key in READINGS}
     for batch in windows(episodes, args.seq_len, args.batch_size, np.random.default_rng(first_track)):
@@ -152,7 +140,7 @@ def norm_gap(path: str, first_track: int = TRACKS["screening"][0], tracks: int =
             per_window[key].append(values)
         per_window["h_gap_recurrence"].append(gaps(agent, passes["recurrence"], passes["eval"])["h_gap"])
     means = {key: round(float(np.mean(np.concatenate(v))), 4) for key, v in per_window.items()}
-    return {"checkpoint": path, "variant": checkpoint["variant"], "norm": args.norm, "batch_size": args.batch_size,
+    return {"checkpoint": path, "variant": script.VARIANT, "norm": args.norm, "batch_size": args.batch_size,
             "seq_len": args.seq_len, "tracks": track_block(first_track, tracks),
             "windows": len(np.concatenate(per_window["h_gap"])), **means}  # fmt: skip
 

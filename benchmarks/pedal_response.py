@@ -39,7 +39,6 @@ h is the cell's output; its cell state c is carried forward too and is not probe
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 import sys
 
@@ -49,7 +48,7 @@ import tyro
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 from calibration import posterior  # noqa: E402  (one race through the world model)
-from common import TRACKS  # noqa: E402
+from common import TRACKS, write_json  # noqa: E402
 
 SCREENING = TRACKS["screening"][0]
 PROBE_RIDGES = (1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0)  # the probe's ridge penalty per sample (lambda / N)
@@ -319,13 +318,8 @@ def pedal_response(path: str, first_track: int = SCREENING, tracks: int = 3, ped
     carries the probe's summary (speed_probe)."""
     import torch
 
-    from utils.checkpoint import read_checkpoint
-    from utils import make_vec_env
+    import evaluate  # (the repository's evaluate.py)
 
-    script, checkpoint = read_checkpoint(path)
-    agent = script.agent_from_checkpoint(path, 0)
-    if agent.acting_only:
-        raise ValueError(f"{path}: an acting-only export has no reward or continue head; give a training checkpoint")
     if any(not -1.0 <= p <= 1.0 for p in pedals):
         raise ValueError(f"--pedals must lie in [-1, 1], got {list(pedals)}")
     if any(a < 0 for a in after):
@@ -335,9 +329,11 @@ def pedal_response(path: str, first_track: int = SCREENING, tracks: int = 3, ped
     if probe_tracks < 0 or probe_tracks in (1, 2):
         raise ValueError(f"--probe-tracks must be 0 (no probe) or >= 3 (2 races to fit, 1 to score), got "
                          f"{probe_tracks}")
-    args = script.args_from_checkpoint(checkpoint, path, num_agents=1)
+    script, _, args, agent, envs = evaluate.single_car(path)
+    if agent.acting_only:
+        envs.close()
+        raise ValueError(f"{path}: an acting-only export has no reward or continue head; give a training checkpoint")
     horizon, gamma = horizon or args.imagination_horizon, args.gamma
-    envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
     rows = []
     try:
         probe, summary = (None, {})
@@ -449,8 +445,7 @@ def main(argv=None) -> list[dict]:
                           args.horizon, args.probe_tracks)  # fmt: skip
     print(table(rows, args.checkpoint), end="")
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(rows, f, indent=1)
+        write_json(args.json, rows)
     return rows
 
 

@@ -119,7 +119,7 @@ def env_kwargs() -> dict:
     return kwargs
 
 
-def make_env(seed: int | None = None) -> gymnasium.Env:
+def make_env() -> gymnasium.Env:
     """dlc/SingleCarRacing-v0 with the zoo's wrappers: frame skip, resize, grayscale (the same for both algorithms)."""
     import envs
 

@@ -10,8 +10,9 @@
 * ``paired_claim``, ``two_group_claim``: a claim "the difference is positive" measured by both (estimate,
   t interval, exact p each way) and judged; ``describe``: its test in one line;
 * ``outcome`` and ``verdict``: what a difference says of the claim that it is positive, from the exact test and the
-  t interval (a word of ``OUTCOMES``, and a sentence); ``judge``: the same, or "too few runs" when a side has fewer
-  than ``MIN_RUNS``; ``SMALL_SAMPLE_NOTE``: why a claim over very few units can at best be "weak";
+  t interval (supported, contradicted, weak or not supported; and a sentence); ``judge``: the same, or "too few
+  runs" when a side has fewer than ``MIN_RUNS``; ``SMALL_SAMPLE_NOTE``: why a claim over very few units can at best
+  be "weak";
 * ``pairs_needed``: the seed pairs a paired t test needs to detect a true mean difference.
 
 Every claim is judged by an exact test (sign-flip or permutation) and a t interval: over the few runs an RL
@@ -181,7 +182,6 @@ def permutation_test(x, y, alternative: str = "greater") -> float:
     return _p(firsts / n - (total - firsts) / m, float(x.mean() - y.mean()), alternative)
 
 
-OUTCOMES = ("supported", "contradicted", "weak", "not supported", "too few runs")
 
 
 def outcome(ci: tuple[float, float], estimate: float, p: float, p_opposite: float) -> str:

@@ -129,9 +129,13 @@ def trial_configs(sweep: Sweep) -> list[dict]:
     ]  # fmt: skip
 
 
-def trial_name(trial) -> str:
-    config = trial.config["trial"]
+def trial_label(config: dict) -> str:
+    """A trial's name (its flag set's tag, variant and seed) in Tune, messages and tables."""
     return f"{config['tag']}_{config['variant']}_seed{config['seed']}"
+
+
+def trial_name(trial) -> str:
+    return trial_label(trial.config["trial"])
 
 
 def check(sweep: Sweep) -> None:
@@ -209,7 +213,7 @@ def status_text(sweep: Sweep) -> str:
     """One line per trial: 'done (...)' once finished (a shell may count the ': done' lines), else progress_text."""
     lines = [f"sweep {sweep.name} ({os.path.join(sweep.storage, sweep.name)}), {budget_text(sweep)} per trial:"]
     for config, run, done, hours, finished, stopped in trial_status(sweep):
-        name = f"{config['tag']}_{config['variant']}_seed{config['seed']}"
+        name = trial_label(config)
         state = progress_text(sweep, run, done, hours) + (", stopped by the non-finite guard" if stopped else "")
         lines.append(f"  {name}: {'done (' + state + ')' if finished else state}")
     return "\n".join(lines)
@@ -217,13 +221,8 @@ def status_text(sweep: Sweep) -> str:
 
 def run_sweep(sweep: Sweep):
     """One Tune experiment per sweep; an existing one is restored (finished trials are skipped)."""
-    import ray
-
     save_fields(sweep)
-    os.environ.setdefault("RAY_worker_niceness", "0")  # (as experiment.py: Ray's nice 15 would starve the trials)
-    runtime = experiment.runtime_env(experiment.Spec(address=sweep.address))
-    ray.init(address=sweep.address, num_cpus=sweep.num_cpus, runtime_env=runtime, include_dashboard=False,
-             log_to_driver=False)  # fmt: skip
+    experiment.start_ray(sweep.address, sweep.num_cpus)
     path = os.path.join(os.path.abspath(sweep.storage), sweep.name, "tune", f"sweep_{sweep.name}")
     resources = {"cpu": sweep.torch_threads}
     return experiment.fit_trials(experiment.dreamer_trial, resources, path, trial_configs(sweep), trial_name,
@@ -241,7 +240,7 @@ def report(sweep: Sweep) -> str:
             cache = json.load(f)
     rows, waiting = [], []
     for config, run, done, hours, finished, stopped in trial_status(sweep):
-        name = f"{config['tag']}_{config['variant']}_seed{config['seed']}"
+        name = trial_label(config)
         if not finished:
             waiting.append(f"{name} ({progress_text(sweep, run, done, hours)})")
             continue

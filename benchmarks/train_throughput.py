@@ -121,10 +121,10 @@ def time_update(script, overrides: dict, repeats: int, warmup: int) -> dict:
     batch = replay.sample(args.batch_size, args.seq_len)
     total = median_time(lambda: agent.update(batch), repeats, warmup)
 
-    def world_model_step():
-        tensors = [torch.as_tensor(batch[k]) for k in ("obs", "action", "reward", "is_first")]
-        terminated = torch.as_tensor(batch["terminated"]).float()
-        loss, _, _ = agent.world_model_loss(*tensors, terminated)
+    def world_model_step():  # the update's world-model part, as Agent.update runs it (--amp included)
+        agent._set_training(True)
+        with agent.autocast():
+            loss, _, _ = agent.world_model_loss(*agent._batch_tensors(batch))
         agent._step(agent.model_optimizer, loss, agent.world_model.parameters())
 
     world_model = median_time(world_model_step, repeats)

@@ -102,7 +102,7 @@ def test_a_runs_row_is_its_latest_policy_on_the_report_tracks_both_ways(tmp_path
     fake_trial(trials)
     monkeypatch.setattr(evaluate, "evaluate_checkpoint", known_readings)
     monkeypatch.setattr(readings, "calibrate_checkpoint", refuse_to_drive)  # (the row alone measures no model)
-    row = final_protocol.protocol_row("lstm", 21, trials)
+    row = final_protocol.protocol_measure("lstm", 21, trials)[0]
     assert list(row) == list(final_protocol.PROTOCOL_COLUMNS)
     assert row == pytest.approx(EXPECTED, abs=1e-4)
 
@@ -186,7 +186,7 @@ def test_a_run_short_of_its_cpu_budget_is_refused_naming_it_and_how_far_it_got(t
     monkeypatch.setattr(evaluate, "evaluate_checkpoint", refuse_to_drive)
     message = f"{run} has spent 2.50 of its 3.1 CPU-hours (5200 updates): not a final policy yet"
     with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
-        final_protocol.protocol_row("gru", 23, trials)
+        final_protocol.protocol_measure("gru", 23, trials)
     with pytest.raises(SystemExit) as exit_info:
         learning.cli(["--protocol-row", "--variant", "gru", "--seed", "23", "--runs-dir", trials,
                       "--results-dir", str(results)])  # fmt: skip
@@ -194,11 +194,11 @@ def test_a_run_short_of_its_cpu_budget_is_refused_naming_it_and_how_far_it_got(t
     assert not (results / "learning_final.csv").exists()
     fake_trial(trials, "gru", 22, cpu_seconds=2.5 * 3600, updates=5200, nonfinite_in_a_row=19)  # not yet stopped
     with pytest.raises(ValueError, match="has spent 2.50 of its 3.1 CPU-hours"):
-        final_protocol.protocol_row("gru", 22, trials)
+        final_protocol.protocol_measure("gru", 22, trials)
     for variant, seed, text in [("gru", 24, f"no run with checkpoints/latest.pt under {trials}/single_gru_seed24"),
                                 ("gru", 11, "the final protocol's seeds are 21, 22, 23, 24, 25, got 11")]:  # fmt: skip
         with pytest.raises(ValueError, match=re.escape(text)):
-            final_protocol.protocol_row(variant, seed, trials)
+            final_protocol.protocol_measure(variant, seed, trials)
 
 
 def test_a_run_the_non_finite_guard_stopped_counts_with_its_last_policy_and_the_report_says_so(tmp_path, monkeypatch):
@@ -206,7 +206,7 @@ def test_a_run_the_non_finite_guard_stopped_counts_with_its_last_policy_and_the_
     results.mkdir()
     fake_trial(trials, "gru", 23, cpu_seconds=2.5 * 3600, updates=5200, nonfinite_in_a_row=20)  # the guard's stop
     monkeypatch.setattr(evaluate, "evaluate_checkpoint", known_readings)
-    row = final_protocol.protocol_row("gru", 23, trials)
+    row = final_protocol.protocol_measure("gru", 23, trials)[0]
     assert row["cpu_hours"] == 2.5 and row["updates"] == 5200 and row["mean_action_return"] == pytest.approx(780.0)
     final_protocol.write_protocol_row(row, str(results / "learning_final.csv"))
     peer = {**{c: "1" for c in final_protocol.PEER_COLUMNS}, "variant": "ppo", "cpu_hours": "2.9"}

@@ -104,11 +104,11 @@ def test_the_references_are_measured_once_for_their_tracks_and_refuse_others(tmp
     base = learning_report.baselines(10_000, 1, results_dir=str(tmp_path))
     assert base["pursuit@70"]["eval_progress"] > 0.95 and base["pursuit@70"]["eval_return"] > 800
     assert base["random"]["eval_progress"] < 0.2 and base["random"]["eval_return"] < 0
-    with open(tmp_path / "baselines.json", "w") as f:  # read back, not recomputed
+    with open(tmp_path / "references.json", "w") as f:  # read back, not recomputed
         json.dump({"random": {"eval_return": -1.0, "eval_progress": 0.01},
                    "pursuit@70": {"eval_return": 2.0, "eval_progress": 1.0}, "tracks": "10000..10000"}, f)  # fmt: skip
     assert learning_report.baselines(10_000, 1, results_dir=str(tmp_path))["random"]["eval_return"] == -1.0
-    with pytest.raises(ValueError, match=r"baselines.json holds the references on tracks 10000..10000, not "
+    with pytest.raises(ValueError, match=r"references.json holds the references on tracks 10000..10000, not "
                                          r"10000..10009: give another results_dir"):  # fmt: skip
         learning_report.baselines(10_000, 10, results_dir=str(tmp_path))
 

@@ -82,7 +82,7 @@ def tiny(monkeypatch, config, race_steps=None):
         monkeypatch.setitem(config, key, value)
     if race_steps:
         make_env = ppo_peer.make_env
-        cut = lambda seed=None: gymnasium.wrappers.TimeLimit(make_env(), race_steps)  # noqa: E731
+        cut = lambda: gymnasium.wrappers.TimeLimit(make_env(), race_steps)  # noqa: E731
         monkeypatch.setattr(ppo_peer, "make_env", cut)
 
 
@@ -208,7 +208,7 @@ def test_a_later_sitting_races_other_tracks_than_the_first(tmp_path, monkeypatch
             seeds.append(seed)
             return self.env.reset(seed=seed, options=options)
 
-    monkeypatch.setattr(ppo_peer, "make_env", lambda seed=None: RecordSeeds(make_env()))
+    monkeypatch.setattr(ppo_peer, "make_env", lambda: RecordSeeds(make_env()))
     sittings = []
     for budget in (64, 128, 192):  # a rollout (64 PPO steps) per sitting
         seeds.clear()

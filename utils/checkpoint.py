@@ -223,7 +223,7 @@ def read_checkpoint(path: str, device="cpu", training: bool = False) -> tuple:
 
 
 def agent_from_checkpoint(method, path: str, index: int = 0, device="cpu"):
-    """Build agent `index` of a checkpoint of `method` with the sizes it was trained with (used by race.py)."""
+    """Build agent `index` of a checkpoint of `method` with the sizes it was trained with (race.py, evaluate.py)."""
     checkpoint = load_checkpoint(path, method.VARIANT, map_location=device)
     if not 0 <= index < len(checkpoint["agents"]):
         raise CheckpointError(f"{path}: has {len(checkpoint['agents'])} agent(s), asked for agent {index}")

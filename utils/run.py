@@ -2,7 +2,7 @@
 
 The scripts hold the method (networks, losses, replay, the agent's update and Algorithm 1's loop); this module holds
 what every run needs around it. A *method* is a dreamer script's module; what is used of it: ``VARIANT``, ``Args``,
-``PRESETS``, ``Agent``, ``Replay``, ``LOG_SIGMA_RANGE``, ``env_kwargs`` and ``dead_zone_at``.
+``PRESETS``, ``Agent``, ``Replay``, ``LOG_SIGMA_RANGE``, ``env_kwargs``, ``dead_zone_at`` and ``main`` (``cli``).
 
 * ``setup_run`` checks everything, then builds the ``Run`` (a new one, or a saved one exactly as it stopped): seeds,
   device, envs, agents, replays, logger (TensorBoard, progress.csv), ``config.json``;
