@@ -13,6 +13,11 @@ actions, for reference).
 
     python benchmarks/train_throughput.py                      # CPU size only (quick)
     python benchmarks/train_throughput.py --configs paper-100 paper-all cpu
+    python benchmarks/train_throughput.py --amp-ratio --threads 1  # --amp on against off: CPU time per update
+
+``--amp-ratio`` times what a run's CPU budget buys: the process CPU time of one update with ``--amp on`` and with
+``--amp off``, two agents of the same configuration updating in turn in one process (so that load on the machine
+weighs on both alike), and their ratio.
 """
 
 from __future__ import annotations
@@ -67,6 +72,8 @@ class Args:
     """bfloat16 autocast of the update (the scripts' --amp; auto: on with CUDA only)"""
     env_steps: int = 300
     """env steps for the acting throughput (0: skip)"""
+    amp_ratio: bool = False
+    """instead: process CPU seconds per update with --amp on and off, interleaved in this process, per configuration"""
 
 
 def median_time(fn, repeats: int, warmup: int = 1) -> float:
@@ -140,6 +147,25 @@ def time_update(script, overrides: dict, repeats: int, warmup: int) -> dict:
     }
 
 
+def amp_cpu_seconds(script, overrides: dict, updates: int, warmup: int) -> dict[str, float]:
+    """Median process CPU seconds of one update with --amp on and with --amp off: two agents of the same
+    configuration, each on its own replay of random frames, updating in turn (`warmup` untimed updates each
+    first)."""
+    learners = {}
+    for amp in ("on", "off"):
+        args = script.Args(**{**overrides, "amp": amp})
+        learners[amp] = (script.Agent(args), filled_replay(script, args), args)
+    times = {amp: [] for amp in learners}
+    for timed in [False] * warmup + [True] * updates:
+        for amp, (agent, replay, args) in learners.items():
+            batch = replay.sample(args.batch_size, args.seq_len)
+            started = time.process_time()
+            agent.update(batch)
+            if timed:
+                times[amp].append(time.process_time() - started)
+    return {amp: float(np.median(t)) for amp, t in times.items()}
+
+
 def env_throughput(script, overrides: dict, steps: int) -> tuple[float, float]:
     """Env steps/s of one two-car race: both agents acting, and random actions."""
     from utils import make_vec_env
@@ -174,6 +200,13 @@ def main(args: Args) -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, script {args.script}")
+    if args.amp_ratio:
+        print(f"bfloat16 in this CPU's instructions (oneDNN): {torch.ops.mkldnn._is_mkldnn_bf16_supported()}")
+        for name in args.configs:
+            seconds = amp_cpu_seconds(script, config_of(script, name), args.updates, args.warmup)
+            print(f"{name:10s} CPU seconds per update: --amp on {seconds['on']:.3f}, off {seconds['off']:.3f}; "
+                  f"off / on = {seconds['off'] / seconds['on']:.2f}", flush=True)  # fmt: skip
+        return
     reference, reference_flops = bare_encoder_reference(args.reference_repeats)
     print(f"bare encoder reference (750 frames 96x96, fwd+bwd): {reference:.2f} s")
     for name in args.configs:
