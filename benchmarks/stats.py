@@ -182,8 +182,6 @@ def permutation_test(x, y, alternative: str = "greater") -> float:
     return _p(firsts / n - (total - firsts) / m, float(x.mean() - y.mean()), alternative)
 
 
-
-
 def outcome(ci: tuple[float, float], estimate: float, p: float, p_opposite: float) -> str:
     """The claim "the difference is positive", judged by its exact test (`p`: the one-sided p-value that it is
     greater than 0, `p_opposite`: that it is less), its `estimate` and its t 95% interval `ci`:

@@ -22,8 +22,9 @@ ran out) on the screening tracks
 ``benchmarks/results/screening/sweep_<name>.csv`` and ``.md`` with the readings that say *why* a policy drives as it
 does (``readings.measure``; ``readings.COLUMNS`` lists them: driving, the actor's sigma and entropy, the imagined
 against the real return, the reward and continue heads on elimination frames, the pedal's range); each measurement
-is kept in ``<storage>/<name>/readings.json`` and made once (a reading added to readings.py later is measured and
-added to the kept ones when the report next runs).
+is kept in ``<storage>/<name>/readings.json`` and made once (a MODEL or PEDAL reading added to readings.py later is
+measured and added to the kept ones when the report next runs; a MODEL one on the same seeded drive, checked by
+the kept readings coming back: model_again).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import os
 import re
 import sys
@@ -129,13 +131,13 @@ def trial_configs(sweep: Sweep) -> list[dict]:
     ]  # fmt: skip
 
 
-def trial_label(config: dict) -> str:
+def label_of(config: dict) -> str:
     """A trial's name (its flag set's tag, variant and seed) in Tune, messages and tables."""
     return f"{config['tag']}_{config['variant']}_seed{config['seed']}"
 
 
 def trial_name(trial) -> str:
-    return trial_label(trial.config["trial"])
+    return label_of(trial.config["trial"])
 
 
 def check(sweep: Sweep) -> None:
@@ -213,7 +215,7 @@ def status_text(sweep: Sweep) -> str:
     """One line per trial: 'done (...)' once finished (a shell may count the ': done' lines), else progress_text."""
     lines = [f"sweep {sweep.name} ({os.path.join(sweep.storage, sweep.name)}), {budget_text(sweep)} per trial:"]
     for config, run, done, hours, finished, stopped in trial_status(sweep):
-        name = trial_label(config)
+        name = label_of(config)
         state = progress_text(sweep, run, done, hours) + (", stopped by the non-finite guard" if stopped else "")
         lines.append(f"  {name}: {'done (' + state + ')' if finished else state}")
     return "\n".join(lines)
@@ -240,7 +242,7 @@ def report(sweep: Sweep) -> str:
             cache = json.load(f)
     rows, waiting = [], []
     for config, run, done, hours, finished, stopped in trial_status(sweep):
-        name = trial_label(config)
+        name = label_of(config)
         if not finished:
             waiting.append(f"{name} ({progress_text(sweep, run, done, hours)})")
             continue
@@ -259,8 +261,8 @@ def report(sweep: Sweep) -> str:
         extra = {}  # readings kept before a column was read (the PEDAL ones, terminal_continue): measured now
         if any(column not in kept for column in readings.PEDAL):
             extra.update(readings.pedal(path, sweep.first_track))
-        if any(column not in kept for column in readings.MODEL):  # (the same seeded drive as the kept readings)
-            extra.update(readings.model(path, sweep.first_track, sweep.tracks))
+        if any(column not in kept for column in readings.MODEL):
+            extra.update(model_again(name, kept, readings.model(path, sweep.first_track, sweep.tracks)))
         if extra:
             cache[key] = {policy: {**values, **extra} for policy, values in cache[key].items()}
             common.write_json(cache_path, cache)
@@ -274,6 +276,23 @@ def report(sweep: Sweep) -> str:
     text = report_table(sweep, rows, waiting)
     common.write_text(base + ".md", text)
     return text
+
+
+def model_again(name: str, kept: dict, measured: dict) -> dict:
+    """`measured`, the MODEL readings of a trial measured again to add a column read since, if the readings `kept`
+    for it come back (its seeded sampled drive is the same: the same eliminations, the others within 1%); else a
+    ValueError naming what differs, as a column from another drive than its row's would mislead."""
+    differ = []
+    for column in (c for c in readings.MODEL if c in kept):
+        old, new = float(kept[column]), float(measured[column])
+        same = (math.isnan(old) and math.isnan(new)) or abs(new - old) <= 0.01 * abs(old) + 1e-9
+        if not same or (column == "eliminations" and new != old):
+            differ.append(f"{column} kept {old:g}, now {new:g}")
+    if differ:
+        raise ValueError(f"{name}: its kept readings do not come back on the same tracks ({'; '.join(differ)}): "
+                         "the drive differs (another torch, thread count or collector?); remove its entry from "
+                         "readings.json to measure it anew")  # fmt: skip
+    return measured
 
 
 def report_table(sweep: Sweep, rows: list[dict], waiting: list[str]) -> str:
@@ -315,7 +334,10 @@ def main(sweep: Sweep) -> None:
         return
     check(sweep)
     if sweep.report:
-        print(report(sweep))
+        try:
+            print(report(sweep))
+        except ValueError as error:  # kept readings that do not come back (model_again)
+            raise SystemExit(f"sweep.py: --report of sweep {sweep.name!r}: {error}") from None
         return
     run_sweep(sweep)
     print(status_text(sweep))

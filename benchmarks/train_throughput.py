@@ -16,8 +16,9 @@ actions, for reference).
     python benchmarks/train_throughput.py --amp-ratio --threads 1  # --amp on against off: CPU time per update
 
 ``--amp-ratio`` times what a run's CPU budget buys: the process CPU time of one update with ``--amp on`` and with
-``--amp off``, two agents of the same configuration updating in turn in one process (so that load on the machine
-weighs on both alike), and their ratio.
+``--amp off``, two agents of the same configuration from the same weights updating in turn on the same batches in
+one process (so that load on the machine weighs on both alike), their ratio, and their losses at the last update
+(the same random draws for both: they differ by bfloat16's rounding alone).
 """
 
 from __future__ import annotations
@@ -147,23 +148,24 @@ def time_update(script, overrides: dict, repeats: int, warmup: int) -> dict:
     }
 
 
-def amp_cpu_seconds(script, overrides: dict, updates: int, warmup: int) -> dict[str, float]:
-    """Median process CPU seconds of one update with --amp on and with --amp off: two agents of the same
-    configuration, each on its own replay of random frames, updating in turn (`warmup` untimed updates each
-    first)."""
-    learners = {}
-    for amp in ("on", "off"):
-        args = script.Args(**{**overrides, "amp": amp})
-        learners[amp] = (script.Agent(args), filled_replay(script, args), args)
-    times = {amp: [] for amp in learners}
-    for timed in [False] * warmup + [True] * updates:
-        for amp, (agent, replay, args) in learners.items():
-            batch = replay.sample(args.batch_size, args.seq_len)
+def amp_cpu_seconds(script, overrides: dict, updates: int, warmup: int) -> tuple[dict, dict]:
+    """Median process CPU seconds of one update with --amp on and with --amp off, and each one's losses at its last
+    update: two agents of the same configuration, from the same weights, on the same batches and random draws,
+    updating in turn (`warmup` untimed updates each first)."""
+    agents = {amp: script.Agent(script.Args(**{**overrides, "amp": amp})) for amp in ("on", "off")}
+    agents["off"].load_state_dict(agents["on"].state_dict())
+    args = agents["on"].args
+    replay = filled_replay(script, args)
+    times, losses = {amp: [] for amp in agents}, {}
+    for step, timed in enumerate([False] * warmup + [True] * updates):
+        batch = replay.sample(args.batch_size, args.seq_len)
+        for amp, agent in agents.items():
+            torch.manual_seed(step)  # the same latent and action noise for both
             started = time.process_time()
-            agent.update(batch)
+            losses[amp] = agent.update(batch)
             if timed:
                 times[amp].append(time.process_time() - started)
-    return {amp: float(np.median(t)) for amp, t in times.items()}
+    return {amp: float(np.median(t)) for amp, t in times.items()}, losses
 
 
 def env_throughput(script, overrides: dict, steps: int) -> tuple[float, float]:
@@ -203,9 +205,13 @@ def main(args: Args) -> None:
     if args.amp_ratio:
         print(f"bfloat16 in this CPU's instructions (oneDNN): {torch.ops.mkldnn._is_mkldnn_bf16_supported()}")
         for name in args.configs:
-            seconds = amp_cpu_seconds(script, config_of(script, name), args.updates, args.warmup)
+            config = {**config_of(script, name), "compile": args.compile}
+            seconds, losses = amp_cpu_seconds(script, config, args.updates, args.warmup)
             print(f"{name:10s} CPU seconds per update: --amp on {seconds['on']:.3f}, off {seconds['off']:.3f}; "
                   f"off / on = {seconds['off'] / seconds['on']:.2f}", flush=True)  # fmt: skip
+            for key in ("model_loss", "kl_dyn", "actor", "critic"):  # from the same weights and batches
+                print(f"  {key} at update {args.warmup + args.updates}: on {losses['on'][key]:.4f}, "
+                      f"off {losses['off'][key]:.4f}")  # fmt: skip
         return
     reference, reference_flops = bare_encoder_reference(args.reference_repeats)
     print(f"bare encoder reference (750 frames 96x96, fwd+bwd): {reference:.2f} s")

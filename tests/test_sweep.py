@@ -96,8 +96,9 @@ def test_a_cpu_budget_ends_each_trial_and_the_report_reads_its_last_policy(finis
     assert f": done ({hours:.3f} of 1e-06 CPU-hours, {done} updates)" in sweeps.status_text(budget)
     unfinished = sweeps.status_text(dataclasses.replace(budget, cpu_hours=0.0))  # (the same trial: short of 50)
     assert unfinished.endswith(f": {done} of 50 updates, {hours:.3f} CPU-hours") and ": done" not in unfinished
+    every = dict.fromkeys((*readings.MODEL, *readings.PEDAL), float("nan"))  # (nothing left to add later)
     monkeypatch.setattr(readings, "measure", lambda path, run_dir, updates, *a: {
-        p: {"updates_measured": updates} for p in readings.POLICIES})  # fmt: skip
+        p: {"updates_measured": updates, **every} for p in readings.POLICIES})  # fmt: skip
     monkeypatch.setattr(readings, "COLUMNS", (*readings.COLUMNS, "updates_measured"))
     monkeypatch.setattr(sweeps, "report_table", lambda *a: "")
     sweeps.report(budget)
@@ -156,32 +157,53 @@ def test_the_report_measures_each_finished_trial_once_with_both_policies(finishe
     assert len(calls) == len(GRID)  # once per trial, for both policies
 
 
-def test_a_model_reading_added_later_is_measured_on_the_same_drive_as_the_kept_ones(finished, monkeypatch):
-    """Readings kept before terminal_continue was read get it (and only the MODEL readings are measured again): the
-    seeded sampled drive is the one they were measured on, so every other MODEL reading comes back the same."""
-    sweeps.report(finished)
+def test_a_model_reading_added_later_is_measured_on_the_same_drive_as_the_kept_ones(finished, monkeypatch, tmp_path):
+    """Readings kept before terminal_continue was read get it: only the MODEL readings are measured again, once, by
+    the same seeded drive (calibrate_checkpoint with the same checkpoint and tracks), and the kept ones must come
+    back; where they do not (here: an elimination count kept otherwise), the report refuses, naming it."""
+    drives = []
+    calibrate = readings.calibrate_checkpoint
+    monkeypatch.setattr(readings, "calibrate_checkpoint", lambda *a: drives.append(a) or calibrate(*a))
     cache_path = os.path.join(finished.storage, finished.name, "readings.json")
-    with open(cache_path) as f:
-        kept = json.load(f)
-    old = json.loads(json.dumps(kept))
-    for values in (v for per_policy in old.values() for v in per_policy.values()):
-        del values["terminal_continue"]  # as kept before the column
-    with open(cache_path, "w") as f:
-        json.dump(old, f)
-    monkeypatch.setattr(readings, "measure", lambda *a: pytest.fail("measured again"))
-    monkeypatch.setattr(readings, "pedal", lambda *a: pytest.fail("the pedal read again"))
-    calls = []
-    model = readings.model
-    monkeypatch.setattr(readings, "model", lambda *a: calls.append(a) or model(*a))
-    sweeps.report(finished)
-    assert len(calls) == len(GRID) and all(a[1:] == (finished.first_track, finished.tracks) for a in calls)
-    with open(cache_path) as f:
-        assert json.load(f) == kept  # the same numbers, terminal_continue among them, in both policies' rows
-    with open(os.path.join(finished.results, "sweep_tiny.csv")) as f:
-        rows = list(csv.DictReader(f))
-    for row in rows:  # a probability on the frames where the car left the road, or NaN where it never did
-        value = float(row["terminal_continue"])
-        assert math.isnan(value) if row["eliminations"] == "0" else 0.0 <= value <= 1.0
+    os.replace(cache_path, tmp_path / "kept.json")  # measured anew here, with the drives recorded
+    try:
+        sweeps.report(finished)
+        with open(cache_path) as f:
+            kept = json.load(f)
+        measured, drives[:] = list(drives), []
+        old = json.loads(json.dumps(kept))
+        for values in (v for per_policy in old.values() for v in per_policy.values()):
+            del values["terminal_continue"]  # as kept before the column
+        with open(cache_path, "w") as f:
+            json.dump(old, f)
+        monkeypatch.setattr(readings, "measure", lambda *a: pytest.fail("measured again"))
+        monkeypatch.setattr(readings, "pedal", lambda *a: pytest.fail("the pedal read again"))
+        sweeps.report(finished)
+        assert drives == measured and len(drives) == len(GRID)  # the same drives, once per trial
+        sweeps.report(finished)
+        assert len(drives) == len(GRID)  # added once, kept since
+        with open(cache_path) as f:
+            again = json.load(f)
+        for key, per_policy in kept.items():
+            for policy, values in per_policy.items():
+                assert again[key][policy].keys() == values.keys()
+                assert all(math.isclose(again[key][policy][c], v) or (math.isnan(v) and math.isnan(
+                    again[key][policy][c])) if isinstance(v, float) else again[key][policy][c] == v
+                    for c, v in values.items())  # fmt: skip
+        with open(os.path.join(finished.results, "sweep_tiny.csv")) as f:
+            rows = list(csv.DictReader(f))
+        for row in rows:  # a probability on the frames where the car left the road, or NaN where it never did
+            value = float(row["terminal_continue"])
+            assert math.isnan(value) if row["eliminations"] == "0" else 0.0 <= value <= 1.0
+        first = next(iter(old))
+        for values in old[first].values():
+            values["eliminations"] = 99  # kept from another drive
+        with open(cache_path, "w") as f:
+            json.dump(old, f)
+        with pytest.raises(SystemExit, match=r"do not come back on the same tracks \(eliminations kept 99, now "):
+            sweeps.main(dataclasses.replace(finished, report=True))
+    finally:
+        os.replace(tmp_path / "kept.json", cache_path)
 
 
 def test_training_readings_average_the_last_window_of_updates(tmp_path):
