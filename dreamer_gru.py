@@ -324,6 +324,12 @@ def next_dead_zone(args: Args, races_done: int) -> float:
     return dead_zone_at(races_done + (args.num_races > 1), args)
 
 
+def set_next_dead_zone(run) -> None:
+    """Give the racing env the dead zone of the race that starts next (next_dead_zone; other envs have none)."""
+    if run.args.env_id == "multi_car_racing":
+        run.envs.env_method("set_dead_zone", next_dead_zone(run.args, run.counters["episode"]))
+
+
 def race_seed(seed: int, episode: int) -> int:
     """Track seed of training race `episode` (one race at a time): fixed by the run's seed and the episode number,
     so a resumed run drives the very tracks the uninterrupted run would have."""
@@ -334,7 +340,7 @@ def race_seed(seed: int, episode: int) -> int:
 # 3. Networks (paper appendix)
 # =====================================================================================
 LATENT_MIN_STD = 0.1  # sigma of posterior and prior: softplus(.) + this minimum
-LOG_SIGMA_RANGE = (-5.0, 2.0)  # the decoder's log sigma: the lowest floor --decoder-min-log-sigma may set, the cap
+LOG_SIGMA_RANGE = (-5.0, 2.0)  # the decoder's log sigma: the smallest --decoder-min-log-sigma allowed, its cap
 HEAD_MIN_STD = 0.1  # sigma of the reward and critic Gaussians
 TWOHOT_BINS, TWOHOT_SPAN = 255, 20.0  # --heads twohot: DreamerV3's bins, symexp(-20 .. 20) (+-4.9e8, 0 in the middle)
 ACTOR_STD_BOUNDS = (0.1, 1.0)  # the paper authors' soft bounds of the actor's sigma (0.1 .. 1.34: soft_bounded)
@@ -978,24 +984,6 @@ class Agent:
             for module in (self.world_model, self.actor, self.critic):
                 module.train(training)
 
-    def _update_model_targets(self) -> None:
-        wm, tau = self.world_model, self.args.tau
-        soft_update(self.targets["encoder"], wm.encoder, tau)
-        soft_update(self.targets["representation"], wm.representation, tau)
-        soft_update(self.targets["transition"], wm.transition, tau)
-
-    def set_learning_rates(self) -> None:
-        """Every optimiser's learning rate: its flag's value (--model-lr, --actor-lr, --critic-lr, --entropy-lr). Set
-        after a state is loaded, whose optimisers hold the rates they were saved with, so that a resumed run's or a
-        --checkpoint run's flags are the rates it learns at."""
-        pairs = [(self.model_optimizer, self.args.model_lr), (self.actor_optimizer, self.args.actor_lr),
-                 (self.critic_optimizer, self.args.critic_lr)]  # fmt: skip
-        if self.log_alpha is not None:
-            pairs.append((self.alpha_optimizer, self.args.entropy_lr))
-        for optimizer, lr in pairs:
-            for group in optimizer.param_groups:
-                group["lr"] = lr
-
     # --- world model (paper 3.8) ------------------------------------------------------------
     def world_model_loss(self, obs, actions, rewards, is_first, terminated):
         """L = mean over batch and time of L_pred + beta_dyn L_dyn + beta_rep L_rep; also returns the posterior.
@@ -1037,6 +1025,13 @@ class Agent:
             "continue": cont_nll.mean(), "kl_dyn": kl_dyn.mean(), "kl_rep": kl_rep.mean(),
         }  # fmt: skip
         return loss, metrics, post
+
+    def _update_model_targets(self) -> None:
+        """After a world-model step: the KL terms' target encoder, posterior and prior move tau toward the live ones."""
+        wm, tau = self.world_model, self.args.tau
+        soft_update(self.targets["encoder"], wm.encoder, tau)
+        soft_update(self.targets["representation"], wm.representation, tau)
+        soft_update(self.targets["transition"], wm.transition, tau)
 
     # --- behaviour (paper 3.9) ---------------------------------------------------------------
     def alpha(self) -> float | torch.Tensor:
@@ -1269,6 +1264,18 @@ class Agent:
         world_model = {k: v for k, v in self.world_model.state_dict().items() if k.startswith(ACTING_PARTS)}
         return {"world_model": world_model, "actor": self.actor.state_dict(), "num_updates": self.num_updates}
 
+    def set_learning_rates(self) -> None:
+        """Every optimiser's learning rate: its flag's value (--model-lr, --actor-lr, --critic-lr, --entropy-lr). Set
+        after a state is loaded, whose optimisers hold the rates they were saved with, so that a resumed run's or a
+        --checkpoint run's flags are the rates it learns at."""
+        pairs = [(self.model_optimizer, self.args.model_lr), (self.actor_optimizer, self.args.actor_lr),
+                 (self.critic_optimizer, self.args.critic_lr)]  # fmt: skip
+        if self.log_alpha is not None:
+            pairs.append((self.alpha_optimizer, self.args.entropy_lr))
+        for optimizer, lr in pairs:
+            for group in optimizer.param_groups:
+                group["lr"] = lr
+
     def load_state_dict(self, state: dict) -> None:
         if "critic" not in state:  # an acting-only export: it drives, it cannot learn
             missing, unexpected = self.world_model.load_state_dict(state["world_model"], strict=False)
@@ -1350,8 +1357,8 @@ def main(args: Args, overrides=()) -> str:
     # One race at a time starts on its own track (start_race); K races side by side auto-reset on the tracks of
     # each race's seeded stream, with the dead zone set ahead for the race that starts next (below).
     obs, track_seed = start_race(run) if k_races == 1 else (run.envs.reset(), None)
-    if args.env_id == "multi_car_racing" and k_races > 1:
-        run.envs.env_method("set_dead_zone", next_dead_zone(args, run.counters["episode"]))
+    if k_races > 1:
+        set_next_dead_zone(run)
     races = Races(run.agents, args, run.envs, obs)  # agent i drives car i of every race
     run.pbar = tqdm(total=args.total_episodes, initial=run.counters["episode"], desc=f"{VARIANT} {args.stage}")
     while not run.finished():
@@ -1368,8 +1375,7 @@ def main(args: Args, overrides=()) -> str:
             if args.stage == "ghost":
                 record_ghost(run, race.cars[0].final_info or {}, track_seed)
             log_race(run, race.cars, track_seed, env_sps)
-            if args.env_id == "multi_car_racing":
-                run.envs.env_method("set_dead_zone", next_dead_zone(args, run.counters["episode"]))
+            set_next_dead_zone(run)
             # --- train: after every race that ended, each agent updates on its own replay (once the prefill races
             # are done; a ghost stage first races each of its ghost tracks once: Run.learning_starts)
             if run.learns_now():
