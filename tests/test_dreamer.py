@@ -1246,6 +1246,13 @@ def test_dead_zone_of_the_next_race_is_set_before_its_reset(script):
         assert script.next_dead_zone(args, 2) == script.dead_zone_at(2 + ahead, args) == -1.0 + 0.5 * (2 + ahead) / 4
     # the schedule is a warm-up for learning from scratch: agents that start trained race at its end from race 0
     assert script.dead_zone_at(0, tiny_args(script, checkpoint="best.pt", dead_zone_start=-1.0)) == -0.5
+    # what main gives the env after each race (set_next_dead_zone): the racing env only, at the races ended so far
+    calls = []
+    envs = types.SimpleNamespace(env_method=lambda *a: calls.append(a))
+    for env_id in ("multi_car_racing", "highway-intersection"):
+        args = tiny_args(script, env_id=env_id, dead_zone_start=-1.0, dead_zone_end=-0.5, dead_zone_episodes=4)
+        script.set_next_dead_zone(types.SimpleNamespace(args=args, envs=envs, counters={"episode": 2}))
+    assert calls == [("set_dead_zone", -0.75)]
 
 
 def test_a_ghost_is_the_agents_first_run_on_its_track_until_a_run_beats_it(script):
