@@ -611,7 +611,7 @@ def plot_protocol(data: dict, path: str) -> None:
     left.invert_yaxis()
     left.set_xlabel(f"final return, tracks {track_block(*REPORT_TRACKS)} (dots: seeds; mean, t 95% CI)")
     left.grid(alpha=0.3, axis="x")
-    left.legend(fontsize="small", loc="lower left")
+    left.legend(fontsize="small", loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=2, frameon=False)  # above
     for k, (peer, points) in enumerate(data["snapshots"].items()):
         right.plot(*zip(*points), marker="o", color=f"C{k}", label=f"{peer} snapshots (deterministic)")
     for k, (label, (env_steps, mean)) in enumerate(data["steps"].items(), start=len(PROTOCOL_PEERS)):
@@ -620,7 +620,7 @@ def plot_protocol(data: dict, path: str) -> None:
     right.set_xlabel(f"env steps (log; finals at {PROTOCOL_CPU_HOURS:g} CPU-hours, snapshots along the peers' runs)")
     right.set_ylabel("mean return over seeds")
     right.grid(alpha=0.3)
-    right.legend(fontsize="x-small")
+    right.legend(fontsize="x-small", loc="best")  # (where it hides the fewest points)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
