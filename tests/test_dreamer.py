@@ -1237,6 +1237,17 @@ def test_amp_auto_only_with_bfloat16_in_hardware(script, monkeypatch):
     assert script.bf16_autocast("on", cpu) is True and script.bf16_autocast("off", cuda) is False
 
 
+def test_the_amp_ratio_benchmark_starts_both_settings_alike(script, monkeypatch):
+    """train_throughput --amp-ratio compares --amp on and off from the same weights, batches and random draws, so
+    that their losses differ by bfloat16's rounding alone: with autocast off for both, they are equal."""
+    import train_throughput
+
+    monkeypatch.setattr(script, "bf16_autocast", lambda amp, device: False)  # both settings in float32
+    seconds, losses = train_throughput.amp_cpu_seconds(script, {**TINY, "seq_len": 4}, updates=2, warmup=1)
+    assert set(seconds) == {"on", "off"} and losses["on"] == losses["off"]
+    assert losses["on"]["actor"] != 0.0 and math.isfinite(losses["on"]["model_loss"])
+
+
 def test_dead_zone_of_the_next_race_is_set_before_its_reset(script):
     """The env applies a dead zone at its next reset; a race races at the schedule's value for the races ended when
     it starts. One race at a time resets after the race's turn: the races ended so far. K > 1 races have already
