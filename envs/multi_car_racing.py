@@ -512,7 +512,7 @@ class MultiCarRacing(ParallelEnv):
         self.observation_spaces = {a: obs_space for a in self.possible_agents}
         self.action_spaces = {a: act_space for a in self.possible_agents}
 
-        self.world = Box2D.b2World((0, 0), contactListener=_RaceContactListener(self))
+        self.world = self._new_world()
         self.np_random, _ = seeding.np_random(None)
         self.cars: list[Car | None] = []
         self._hull_tags = [_HullTag(i) for i in range(len(self.possible_agents))]  # see _create_car
@@ -574,6 +574,7 @@ class MultiCarRacing(ParallelEnv):
                     f"reset with seed={ghost.track_seed} (got {seed})"
                 )
         self._destroy()
+        self.world = self._new_world()
         self._dead_zone = self._pending_dead_zone
         self.track_seed = None if seed is None else int(seed)
 
@@ -804,6 +805,13 @@ class MultiCarRacing(ParallelEnv):
         filt = fixture.filterData
         filt.categoryBits, filt.maskBits = category, mask
         fixture.filterData = filt
+
+    def _new_world(self) -> Box2D.b2World:
+        """An empty Box2D world for the next race. Each race gets its own (gymnasium's CarRacing keeps one for every
+        reset), so that a race depends on its seed and actions alone: a reused world orders new contacts by the
+        proxy ids of bodies destroyed in earlier races, and the order in which Box2D solves two hulls' contacts
+        changes their collision's outcome in the last bits, then beyond."""
+        return Box2D.b2World((0, 0), contactListener=_RaceContactListener(self))
 
     def _destroy_car(self, i: int):
         if self.cars[i] is not None:
