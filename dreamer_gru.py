@@ -61,8 +61,8 @@ class Args:
     # --- experiment
     preset: Literal["paper", "cpu"] = "paper"
     """paper: the paper's sizes and schedule; cpu: a configuration that learns on a 2-core CPU in hours: smaller
-    networks and the method options its screens chose (PRESETS below; explicit flags override the preset's values;
-    docs/deviations.md lists what it changes)"""
+    networks and the method options its screens chose (its values: PRESETS in this file, docs/deviations.md; the
+    defaults this help shows are the paper's; explicit flags override the preset's values)"""
     exp_name: str = os.path.basename(__file__)[: -len(".py")]
     """the name of this experiment (part of the run name)"""
     seed: int = 1

@@ -21,6 +21,7 @@ import os
 from typing import Any, Literal, NamedTuple
 
 import numpy as np
+import torch
 import tyro
 
 
@@ -29,7 +30,8 @@ class Args:
     checkpoint: tyro.conf.Positional[str]
     """a training checkpoint (latest.pt, best.pt, race.py's racer_<i>.pt) or an acting-only export"""
     first_track: int = 10_000
-    """seed of the first track (10000..10009: the runs' own evaluation tracks; 10200..: screening; 10300..: report)"""
+    """seed of the first track (10000..10009: the runs' own evaluation tracks; 10100..10119: the 8,000-update
+    protocol's report; 10200..: screening; 10300..10329: the final protocol's report)"""
     tracks: int = 10
     """number of tracks, one race each"""
     policies: tuple[Literal["stochastic", "mean-action", "deterministic"], ...] = ("stochastic", "mean-action")
@@ -41,6 +43,8 @@ class Args:
     """also write every track's readings to this file"""
     export: str | None = None
     """instead of evaluating, write the agent as an acting-only export here (no critic, optimisers or replay)"""
+    torch_threads: int = 0
+    """torch CPU threads (0: torch's default; 1 when other runs share the cores)"""
 
 
 class SingleCar(NamedTuple):
@@ -123,6 +127,10 @@ def main(args: Args) -> None:
     from utils.checkpoint import read_checkpoint
     from utils.checkpoint import export_policy
 
+    if args.torch_threads < 0:
+        raise ValueError(f"--torch-threads must be >= 0 (0: torch's default), got {args.torch_threads}")
+    if args.torch_threads > 0:
+        torch.set_num_threads(args.torch_threads)
     if args.export:
         script, _ = read_checkpoint(args.checkpoint)
         size = export_policy(script, args.checkpoint, args.export, args.agent)

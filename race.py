@@ -273,6 +273,8 @@ def parse_args(argv=None) -> Args:
         value = getattr(args, name)
         if value is not None and value < minimum:
             usage_error(f"--{name.replace('_', '-')} must be >= {minimum}, got {value}")
+    if args.train and args.out is not None:
+        usage_error("--out is where a race's results go; --train writes its run directory under --runs-dir")
     for flag, path in (("--out", args.out), ("--runs-dir", args.runs_dir)):
         if path is not None and os.path.exists(path) and not os.path.isdir(path):
             usage_error(f"{flag} {path!r} exists and is not a directory")
@@ -363,6 +365,7 @@ def train(args: Args, racers: list) -> str:
         raise SystemExit(f"race.py: --train needs learning racers of one image size, got {sorted(sizes)}")
     env = make_env(args, racers)
     run_dir = os.path.join(args.runs_dir, make_run_name("multi_car_racing", args.exp_name, args.seed))
+    print("run directory:", run_dir)  # (for tensorboard --logdir while it trains)
     checkpoint_dir = os.path.join(run_dir, "checkpoints")
     config = {"variant": "+".join(racers[i].variant for i in learners), "stage": "race", "seed": args.seed}
     hyperparameters = {**dataclasses.asdict(args), "racers": [r.name for r in racers]}

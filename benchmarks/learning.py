@@ -10,7 +10,7 @@ The runs are the single-stage trials of ``benchmarks/experiment.py`` (``dreamer_
 single-car race, one torch thread, evaluated every 5 races on the 10 held-out tracks 10000..10009, each evaluated
 policy kept as ``checkpoints/eval_<race>.pt``), under ``<storage>/trials/``: ``--runs-dir`` points every mode at
 them. Each command runs one mode (``--protocol-row``, ``--protocol-report``, ``--protocol-ship``, ``--diagnose``,
-``--calibrate``) and writes, under ``benchmarks/results/`` (the protocol's files: ``--results-dir``):
+``--calibrate``) and writes, under ``--results-dir`` (default ``benchmarks/results/``, the reported files):
 
 * with ``--protocol-row``: the final protocol's row of ``learning_final.csv``, the run's readings (why it drives as
   it does, benchmarks/readings.py) in ``learning_final_readings.csv``, and ``learning_final.md``;
@@ -108,7 +108,7 @@ class Args:
     --storage runs/final)"""
     diagnose: bool = False
     """mode: the run's diagnostics per 500 updates (returns, sigma, entropy, kl_dyn, reward NLL, imagined
-    return, evaluations): printed and written to benchmarks/results/<experiment>_seed<S>_diagnostics.md; the run
+    return, evaluations): printed and written to <experiment>_seed<S>_diagnostics.md in --results-dir; the run
     is learning_<variant>, else an experiment trial <variant>_single (e.g. --runs-dir runs/final/trials --seed 21)"""
     protocol_row: bool = False
     """mode: measure the final protocol's run of --variant and --seed (21..25: the single-stage trial of
@@ -132,11 +132,11 @@ class Args:
     """--protocol-ship: the seeds whose final policies are the candidates (default every seed; fewer only where a
     run's directory is gone, e.g. a machine lost: the seeds left still drive by the same rule)"""
     results_dir: str = RESULTS
-    """--protocol-row, --protocol-report, --protocol-ship: where learning_final.csv and .md (and the readings, the
-    peers' CSVs, ship_<variant>.csv) are"""
+    """where every mode's tables are: learning_final.csv and .md (and the readings, the peers' CSVs,
+    ship_<variant>.csv), the diagnostics, calibration.csv (default: the reported ones in benchmarks/results)"""
     calibrate: Annotated[str | None, tyro.conf.arg(metavar="CHECKPOINT")] = None
     """mode: measure whether this agent's critic and imagination are optimistic on real episodes (its sampled
-    policy on --tracks tracks from --first-track); a row of benchmarks/results/calibration.csv"""
+    policy on --tracks tracks from --first-track); a row of calibration.csv in --results-dir"""
     horizon: int | None = None
     """--calibrate: imagination horizon (default: the agent's own)"""
     first_track: int = common.TRACKS["fresh"][0]
@@ -146,7 +146,6 @@ class Args:
 
 
 MODES = ("protocol_row", "protocol_report", "protocol_ship", "diagnose", "calibrate")  # Args' mode fields
-PROTOCOL_MODES = ("protocol_row", "protocol_report", "protocol_ship")  # the modes of --results-dir
 
 
 def check(args: Args) -> None:
@@ -158,9 +157,6 @@ def check(args: Args) -> None:
         raise ValueError(f"{' and '.join(modes)} are separate modes: give one")
     if args.horizon is not None and args.calibrate is None:
         raise ValueError("--horizon is the imagination horizon of --calibrate; give --calibrate CHECKPOINT")
-    if args.results_dir != RESULTS and not any(getattr(args, name) for name in PROTOCOL_MODES):
-        raise ValueError("--results-dir is the place of learning_final.csv for --protocol-row, --protocol-report "
-                         "and --protocol-ship; give one of them")  # fmt: skip
     if args.ship_seeds != protocol.PROTOCOL_SEEDS and not args.protocol_ship:
         raise ValueError("--ship-seeds are the candidates of --protocol-ship; give --protocol-ship")
     wrong = [seed for seed in args.ship_seeds if seed not in protocol.PROTOCOL_SEEDS]
@@ -180,7 +176,8 @@ def run_mode(args: Args) -> None:
     name = experiment_name(args.variant)
     if args.calibrate is not None:
         row = calibrate_checkpoint(args.calibrate, args.first_track, args.tracks, args.horizon)
-        write_calibration_row(row)
+        os.makedirs(args.results_dir, exist_ok=True)
+        write_calibration_row(row, os.path.join(args.results_dir, "calibration.csv"))
         print(json.dumps(row, indent=1))
     elif args.diagnose:
         run = find_run(name, args.seed, args.runs_dir)
@@ -194,7 +191,8 @@ def run_mode(args: Args) -> None:
         if run is None:
             raise ValueError(f"no run of learning_{args.variant} or {name} seed {args.seed} in {args.runs_dir}")
         table = diagnostics_table(diagnostics(run))
-        common.write_text(os.path.join(RESULTS, f"{name}_seed{args.seed}_diagnostics.md"),
+        os.makedirs(args.results_dir, exist_ok=True)
+        common.write_text(os.path.join(args.results_dir, f"{name}_seed{args.seed}_diagnostics.md"),
                           f"{os.path.basename(run)}\n\n{table}")
         print(table)
     elif args.protocol_ship:

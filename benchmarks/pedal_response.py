@@ -440,9 +440,16 @@ def table(rows: list[dict], path: str) -> str:
 
 
 def main(argv=None) -> list[dict]:
+    """The command line. A bad file or value ends with one line naming it, no traceback; so does a car out before
+    --after on some track (an early policy often is: --after 0 starts at the grid)."""
     args = tyro.cli(Args, args=argv)
-    rows = pedal_response(args.checkpoint, args.first_track, args.tracks, args.pedals, args.after, args.samples,
-                          args.horizon, args.probe_tracks)  # fmt: skip
+    try:
+        rows = pedal_response(args.checkpoint, args.first_track, args.tracks, args.pedals, args.after, args.samples,
+                              args.horizon, args.probe_tracks)  # fmt: skip
+    except CarOut as e:
+        raise SystemExit(f"pedal_response.py: error: {e} (a smaller --after, e.g. 0, starts before it)") from None
+    except ValueError as e:  # (a CheckpointError too)
+        raise SystemExit(f"pedal_response.py: error: {' '.join(str(e).split())}") from None
     print(table(rows, args.checkpoint), end="")
     if args.json:
         write_json(args.json, rows)

@@ -1293,3 +1293,36 @@ def test_a_checkpoint_that_brings_two_hot_heads_is_checked_again(script, tmp_pat
     with pytest.raises(ckpt.UsageError, match="^--head-sigma .*--heads twohot"):
         script.main(script.Args(checkpoint=path, head_sigma=1.0, runs_dir=str(tmp_path / "run"), **E2E))
     assert not (tmp_path / "run").exists()
+
+
+def test_a_run_from_a_checkpoint_takes_its_preset_unless_the_command_line_chooses(script, tmp_path):
+    """`--stage ghost --checkpoint <a --preset cpu run's best.pt>` goes on at the CPU preset (two env steps per
+    decision, its batch and horizon), not at the paper's settings the default --preset would give; --preset, or a
+    preset flag given again, still chooses."""
+    args = script.preset_args("cpu", **TINY)
+    path = str(tmp_path / "cpu.pt")
+    ckpt.save_checkpoint(path, script.VARIANT, args, [script.Agent(args)], {"episode": 0, "global_step": 0})
+    cpu, paper = script.PRESETS["cpu"], script.Args()
+    assert cpu["action_repeat"] != paper.action_repeat and cpu["batch_size"] != paper.batch_size  # a test that can fail
+    taken, explicit = run_tools.parse_args(script, ["--stage", "ghost", "--checkpoint", path])
+    assert taken.preset == "cpu" and "preset" not in explicit
+    assert (taken.action_repeat, taken.batch_size) == (cpu["action_repeat"], cpu["batch_size"])
+    chosen, _ = run_tools.parse_args(script, ["--checkpoint", path, "--preset", "paper"])
+    assert (chosen.preset, chosen.action_repeat, chosen.batch_size) == ("paper", paper.action_repeat, paper.batch_size)
+    flag, _ = run_tools.parse_args(script, ["--checkpoint", path, "--action-repeat", "3"])
+    assert (flag.preset, flag.action_repeat, flag.batch_size) == ("cpu", 3, cpu["batch_size"])
+    fresh, _ = run_tools.parse_args(script, ["--stage", "single"])  # without a checkpoint, the default preset
+    assert fresh.preset == "paper" and fresh.action_repeat == paper.action_repeat
+
+
+def test_a_run_says_why_it_stopped_also_when_resumed_at_its_end(tmp_path, capsys):
+    """A run that has reached --total-episodes, resumed without more races, says so instead of exiting silently
+    with a full progress bar; so does every run at its end."""
+    import dreamer_lstm
+
+    args = dreamer_lstm.Args(stage="single", runs_dir=str(tmp_path), **{**E2E, "total_episodes": 1, "eval_every": 1})
+    run_dir = dreamer_lstm.main(args)
+    assert f"{run_dir}: stopped after race 1: --total-episodes 1 races run" in capsys.readouterr().out
+    assert dreamer_lstm.main(dataclasses.replace(args, resume=run_dir)) == run_dir
+    assert f"{run_dir}: stopped after race 1: --total-episodes 1 races run (a --resume with more races continues it)" \
+        in capsys.readouterr().out

@@ -49,6 +49,21 @@ def test_an_export_drives_exactly_like_its_checkpoint_and_the_json_has_every_tra
 def test_a_missing_file_or_no_tracks_is_one_line(tiny_run):
     with pytest.raises(SystemExit, match=r"^evaluate.py: error: no/such.pt: no such checkpoint file$"):
         evaluate.cli(["no/such.pt"])
+    with pytest.raises(SystemExit, match=r"^evaluate.py: error: .*: a directory, not a checkpoint file \(a run's are "
+                                         r"checkpoints/best\.pt"):  # fmt: skip
+        evaluate.cli([tiny_run])  # the run directory (what --resume takes)
+    with pytest.raises(SystemExit, match=r"^evaluate.py: error: --torch-threads must be >= 0 \(0: torch's default\), "
+                                         r"got -1$"):  # fmt: skip
+        evaluate.cli([os.path.join(tiny_run, "checkpoints", "latest.pt"), "--torch-threads", "-1"])
+
+
+def test_torch_threads_sets_torchs_threads(tiny_run, monkeypatch, tmp_path):
+    threads = []
+    monkeypatch.setattr(torch, "set_num_threads", threads.append)
+    latest = os.path.join(tiny_run, "checkpoints", "latest.pt")
+    evaluate.cli([latest, "--export", str(tmp_path / "policy.pt")])
+    evaluate.cli([latest, "--export", str(tmp_path / "policy.pt"), "--torch-threads", "1"])
+    assert threads == [1]
     for flags, got in ((["--tracks", "0"], "0 and 10000"), (["--first-track", "-3"], "10 and -3")):
         with pytest.raises(SystemExit, match=rf"^evaluate.py: error: --tracks must be >= 1 and --first-track >= 0 "
                                              rf"\(a track's seed\), got {got}$"):  # fmt: skip

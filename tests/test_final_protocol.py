@@ -443,8 +443,6 @@ def test_reaching_the_dreamers_mean_is_judged_at_the_bars_precision_and_out_of_t
 @pytest.mark.parametrize("argv, message", [
     (["--diagnose", "--protocol-row"], "--protocol-row and --diagnose are separate modes: give one"),
     (["--protocol-report", "--calibrate", "x.pt"], "--protocol-report and --calibrate are separate modes"),
-    (["--results-dir", "elsewhere"], "--results-dir is the place of learning_final.csv for --protocol-row, "
-                                     "--protocol-report and --protocol-ship; give one of them"),
     (["--protocol-ship", "--protocol-row"], "--protocol-row and --protocol-ship are separate modes"),
     (["--ship-seeds", "24"], "--ship-seeds are the candidates of --protocol-ship; give --protocol-ship"),
     (["--protocol-ship", "--ship-seeds", "24", "11"], "--ship-seeds must be distinct seeds of the final protocol "

@@ -78,7 +78,7 @@ def test_diagnostics_average_each_bucket_of_updates(tmp_path):
     assert table[2].startswith("| 0-499 | 4 | -25.00 |") and table[4].endswith("|  |  |  |")
 
 
-def test_diagnose_reads_a_final_protocol_trial_when_no_learning_run_has_the_seed(tmp_path, monkeypatch):
+def test_diagnose_reads_a_final_protocol_trial_when_no_learning_run_has_the_seed(tmp_path):
     tags = dict(learning_report.DIAGNOSTICS)
     run = tmp_path / "trials" / "single_gru_seed21" / "multi_car_racing__gru_single__21__1700000000"
     run.mkdir(parents=True)
@@ -86,9 +86,9 @@ def test_diagnose_reads_a_final_protocol_trial_when_no_learning_run_has_the_seed
         writer = csv.DictWriter(f, fieldnames=["charts/episode", "car_0/perf/updates", tags["actor sigma"]])
         writer.writeheader()
         writer.writerow({"charts/episode": 1, "car_0/perf/updates": 100, tags["actor sigma"]: 0.3})
-    monkeypatch.setattr(learning, "RESULTS", str(tmp_path))
-    learning.run_mode(learning.Args(diagnose=True, variant="gru", seed=21, runs_dir=str(tmp_path / "trials")))
-    written = (tmp_path / "gru_single_seed21_diagnostics.md").read_text()
+    learning.run_mode(learning.Args(diagnose=True, variant="gru", seed=21, runs_dir=str(tmp_path / "trials"),
+                                    results_dir=str(tmp_path / "mine")))  # fmt: skip
+    written = (tmp_path / "mine" / "gru_single_seed21_diagnostics.md").read_text()
     assert written.startswith(run.name) and "| 0-499 | 0 |  |  | 0.30 |" in written  # no race logged a return
 
 
@@ -173,7 +173,6 @@ def test_a_runs_hours_and_evaluations_count_every_sitting_to_its_last_scalar(tmp
          "themselves are benchmarks/experiment.py's single stage)"),
     (["--variant", "gru", "--seed", "11"], "give a mode: --protocol-row,"),  # the training mode is gone
     (["--horizon", "5"], "--horizon is the imagination horizon of --calibrate; give --calibrate CHECKPOINT"),
-    (["--results-dir", "elsewhere"], "--results-dir is the place of learning_final.csv for --protocol-row"),
     (["--calibrate", "x.pt", "--tracks", "0"], "--tracks and --horizon must be >= 1, got 0 and None"),
 ])  # fmt: skip
 def test_the_command_line_refuses_bad_input_in_one_line_before_any_work(argv, message, tmp_path):

@@ -136,6 +136,14 @@ def test_bad_input_is_refused_naming_what_was_wrong(trained, tmp_path):
     ckpt.export_policy(script, latest, str(tmp_path / "policy.pt"))
     with pytest.raises(ValueError, match=r"policy\.pt: an acting-only export has no reward or continue head"):
         pedal_response.pedal_response(str(tmp_path / "policy.pt"))
+    # the command line says it in one line, no traceback: a bad value, and a car out before --after (the tiny
+    # agent's races end within 100 decisions)
+    for argv, message in [([latest, "--horizon", "0"], "--horizon must be >= 1, got 0"),
+                          ([latest, "--after", "150", "--tracks", "1", "--probe-tracks", "0"],
+                           "track 10200: the car was out after")]:  # fmt: skip
+        with pytest.raises(SystemExit, match=r"^pedal_response\.py: error: ") as exit_info:
+            pedal_response.main(argv)
+        assert message in str(exit_info.value) and "\n" not in str(exit_info.value)
 
 
 def test_the_table_gives_each_starts_range_over_the_pedals():

@@ -69,6 +69,7 @@ def test_bad_arguments(capsys):
     for argv, message in [
         (["--opponent", "pursuit"], "need at least two racers"),  # one racer
         (["--opponent", "pursuit:fast", "--opponent", "pursuit"], "--opponent must be pursuit or pursuit:SPEED"),
+        (["x.pt", "--train", "--out", "here"], "--out is where a race's results go; --train writes its run"),
     ]:
         with pytest.raises(SystemExit) as exit_info:
             race.main(argv)

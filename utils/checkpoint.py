@@ -137,6 +137,9 @@ def load_checkpoint(path: str, variant: str, map_location="cpu", training: bool 
     """Load a checkpoint (or an acting-only export) of the script that writes `variant` with weights_only=True; a
     missing, truncated or foreign file (or one of another variant, or an export when `training`) raises
     CheckpointError, whose one-line message names the file."""
+    if os.path.isdir(path):  # (--resume takes a run directory; the readers of a saved agent want its file)
+        raise CheckpointError(f"{path}: a directory, not a checkpoint file (a run's are checkpoints/best.pt, the best "
+                              "evaluated policy, and checkpoints/latest.pt)")
     if not os.path.isfile(path):
         raise CheckpointError(f"{path}: no such checkpoint file")
     try:

@@ -153,21 +153,30 @@ def usage_error(program: str, message: str) -> None:
 
 
 def parse_args(method, argv: list[str] | None = None):
-    """Args of a command line, with its --preset applied under the flags it sets, and the fields it sets."""
+    """Args of a command line, with its --preset applied under the flags it sets, and the fields it sets. A new run
+    from --checkpoint without --preset takes the preset the checkpoint was trained at (its action repeat, batch,
+    horizon...: an agent goes on at the settings it learned at)."""
     import tyro
 
     argv = sys.argv[1:] if argv is None else list(argv)
     args = tyro.cli(method.Args, args=argv)
     explicit = explicit_fields(method.Args, argv)
-    if not args.resume:
-        args = dataclasses.replace(args, **{k: v for k, v in method.PRESETS[args.preset].items() if k not in explicit})
+    if args.resume:
+        return args, explicit
+    if args.checkpoint and "preset" not in explicit and os.path.isfile(args.checkpoint):  # (else validate_args says)
+        start = load_checkpoint(args.checkpoint, method.VARIANT)
+        trained_at = args_from_checkpoint(method.Args, start, args.checkpoint).preset
+        if trained_at != args.preset:
+            print(f"--preset {trained_at}: the preset {args.checkpoint} was trained at (--preset chooses another)")
+            args = dataclasses.replace(args, preset=trained_at)
+    args = dataclasses.replace(args, **{k: v for k, v in method.PRESETS[args.preset].items() if k not in explicit})
     return args, explicit
 
 
 def cli(method, argv: list[str] | None = None) -> str:
     """The command line: bad input and a run stopped by numerical faults end with a one-line error, no traceback."""
-    args, explicit = parse_args(method, argv)
     try:
+        args, explicit = parse_args(method, argv)
         return method.main(args, explicit)
     except (UsageError, NumericalFault) as e:
         message = " ".join(str(e).split())
@@ -279,15 +288,23 @@ class Run:
     def finished(self) -> bool:
         """The run's end: --total-episodes races, --total-updates updates, the time or CPU budget (as found at the
         set-up or at the end of the last race: a race is never cut short, so a resume continues exactly), a fault."""
+        return self.stop_reason() is not None
+
+    def stop_reason(self) -> str | None:
+        """Why the run stops now (None: it goes on), in words a user can act on."""
         args = self.args
         updates = min(agent.num_updates for agent in self.agents)
-        return (
-            self.counters["episode"] >= args.total_episodes
-            or (args.total_updates > 0 and updates >= args.total_updates)
-            or (args.pause_at_updates > 0 and updates >= args.pause_at_updates)
-            or self.out_of_time
-            or self.fault is not None
-        )
+        if self.fault is not None:
+            return self.fault
+        if self.counters["episode"] >= args.total_episodes:
+            return f"--total-episodes {args.total_episodes} races run (a --resume with more races continues it)"
+        if args.total_updates > 0 and updates >= args.total_updates:
+            return f"--total-updates {args.total_updates} updates made (a --resume with more continues it)"
+        if args.pause_at_updates > 0 and updates >= args.pause_at_updates:
+            return f"paused at --pause-at-updates {args.pause_at_updates} (a --resume continues it)"
+        if self.out_of_time:
+            return "--time-limit-hours or --cpu-hours-limit spent (a --resume with more continues it)"
+        return None
 
     def check_budget(self) -> None:
         """Set out_of_time: whether --time-limit-hours (this process) or --cpu-hours-limit (the run, over all its
@@ -489,7 +506,9 @@ def save_latest(run: Run) -> str:
 
 
 def finish_run(run: Run) -> str:
-    """Save the replays and latest.pt, close everything; raise NumericalFault if that is why the run ended."""
+    """Save the replays and latest.pt, close everything, say why the run stopped; raise NumericalFault if that is
+    why."""
+    reason = run.stop_reason()
     run.manifests = [save_replay(replay, run.replay_dir(j)) for j, replay in enumerate(run.replays)]
     latest = save_latest(run)
     if run.pbar is not None:
@@ -498,6 +517,7 @@ def finish_run(run: Run) -> str:
     if run.eval_envs is not None:
         run.eval_envs.close()
     run.logger.close()
+    print(f"{run.run_dir}: stopped after race {run.counters['episode']}: {reason}")
     if run.fault is not None:
         raise NumericalFault(f"{run.fault}; stopped after race {run.counters['episode']} with the checkpoint {latest}")
     return run.run_dir
