@@ -21,7 +21,6 @@ import os
 from typing import Any, Literal, NamedTuple
 
 import numpy as np
-import torch
 import tyro
 
 
@@ -130,6 +129,8 @@ def main(args: Args) -> None:
     if args.torch_threads < 0:
         raise ValueError(f"--torch-threads must be >= 0 (0: torch's default), got {args.torch_threads}")
     if args.torch_threads > 0:
+        import torch
+
         torch.set_num_threads(args.torch_threads)
     if args.export:
         script, _ = read_checkpoint(args.checkpoint)

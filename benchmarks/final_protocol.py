@@ -482,26 +482,33 @@ def protocol_comparisons(rows: list[dict], peers: dict[str, list[dict]]) -> str:
     """Markdown: the LSTM minus the GRU with each policy, and each variant with each policy minus each peer (its
     deterministic policy), over independent runs: the difference of the means, Welch's t 95% interval, the exact
     permutation test's one-sided p that the first is higher and that it is lower, and the verdict
-    (comparison_verdict: the exact test and the t interval, never a bootstrap, judge so few runs). A comparison a
-    side of which has no row is left out."""
+    (comparison_verdict: the exact test and the t interval, never a bootstrap, judge so few runs), marked
+    provisional while a side lacks some of its seeds (provisional_note). A comparison a side of which has no row is
+    left out."""
     from stats import two_group_claim
 
-    returns = {(variant, p): column([r for r in rows if r["variant"] == variant], keys[0])
+    mine = {variant: [r for r in rows if r["variant"] == variant] for variant in VARIANTS}
+    short = {variant: bool(missing_seeds(mine[variant], PROTOCOL_SEEDS)) for variant in VARIANTS}
+    short |= {peer: bool(missing_seeds(theirs, PROTOCOL_PEER_SEEDS[peer])) for peer, theirs in peers.items()}
+    returns = {(variant, p): column(mine[variant], keys[0])
                for variant in VARIANTS for p, keys in PROTOCOL_POLICY_COLUMNS.items()}  # fmt: skip
-    sides = [(f"{POLICY_NAMES[p]}: LSTM - GRU", returns["lstm", p], returns["gru", p]) for p in PROTOCOL_POLICY_COLUMNS]
+    sides = [(f"{POLICY_NAMES[p]}: LSTM - GRU", returns["lstm", p], returns["gru", p], short["lstm"] or short["gru"])
+             for p in PROTOCOL_POLICY_COLUMNS]  # fmt: skip
     sides += [
-        (f"{POLICY_NAMES[p]}: {variant} - {PEER_NAMES[peer]}", returns[variant, p], column(theirs, "final_return"))
+        (f"{POLICY_NAMES[p]}: {variant} - {PEER_NAMES[peer]}", returns[variant, p], column(theirs, "final_return"),
+         short[variant] or short[peer])
         for variant in VARIANTS for p in PROTOCOL_POLICY_COLUMNS for peer, theirs in peers.items()
     ]  # fmt: skip
     lines = ["| comparison | runs | difference of means | Welch t 95% | permutation p: higher / lower | verdict |",
              "|---|---|---|---|---|---|"]  # fmt: skip
-    for name, x, y in sides:
+    for name, x, y, provisional in sides:
         if x.size and y.size:
             claim = two_group_claim(x, y)
             low, high = claim["ci"]
             interval = "none (a side has one run)" if np.isnan(low) else f"[{low:+.1f}, {high:+.1f}]"
+            verdict = comparison_verdict(claim) + (" (provisional: seeds missing)" if provisional else "")
             lines.append(f"| {name} | {claim['sizes']} | {claim['estimate']:+.1f} | {interval} "
-                         f"| {claim['p']:.3f} / {claim['p_opposite']:.3f} | {comparison_verdict(claim)} |")
+                         f"| {claim['p']:.3f} / {claim['p_opposite']:.3f} | {verdict} |")
     return "\n".join(lines) + "\n"
 
 

@@ -266,7 +266,7 @@ def test_the_mixed_norm_is_batchnorm_in_the_convolutions_and_layernorm_elsewhere
         assert kinds(module) == {nn.LayerNorm}
 
 
-def test_a_cpu_hour_budget_counts_every_sitting_and_ends_the_run(script, tmp_path):
+def test_a_cpu_hour_budget_counts_every_sitting_and_ends_the_run(script, tmp_path, capsys):
     """progress.csv logs the run's CPU time after every race and the checkpoint keeps it; a resumed run adds its own
     to it, so a budget the earlier sittings used up ends the run before another race."""
     run = dict(TINY, stage="single", max_steps=30, train_steps_per_episode=1, prefill_episodes=1,
@@ -280,6 +280,7 @@ def test_a_cpu_hour_budget_counts_every_sitting_and_ends_the_run(script, tmp_pat
                 {"total_episodes", "cpu_hours_limit"})  # fmt: skip
     after = script.load_checkpoint(f"{run_dir}/checkpoints/latest.pt")
     assert after["counters"]["episode"] == 2 and after["extra"]["cpu_seconds"] > first
+    assert f"{run_dir}: stopped after race 2: --cpu-hours-limit {first / 3600:g} spent" in capsys.readouterr().out
     script.main(script.Args(resume=run_dir, total_episodes=3, cpu_hours_limit=0.0),
                 {"total_episodes", "cpu_hours_limit"})  # fmt: skip
     assert script.load_checkpoint(f"{run_dir}/checkpoints/latest.pt")["counters"]["episode"] == 3

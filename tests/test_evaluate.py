@@ -55,6 +55,10 @@ def test_a_missing_file_or_no_tracks_is_one_line(tiny_run):
     with pytest.raises(SystemExit, match=r"^evaluate.py: error: --torch-threads must be >= 0 \(0: torch's default\), "
                                          r"got -1$"):  # fmt: skip
         evaluate.cli([os.path.join(tiny_run, "checkpoints", "latest.pt"), "--torch-threads", "-1"])
+    for flags, got in ((["--tracks", "0"], "0 and 10000"), (["--first-track", "-3"], "10 and -3")):
+        with pytest.raises(SystemExit, match=rf"^evaluate.py: error: --tracks must be >= 1 and --first-track >= 0 "
+                                             rf"\(a track's seed\), got {got}$"):  # fmt: skip
+            evaluate.cli([os.path.join(tiny_run, "checkpoints", "latest.pt"), *flags])
 
 
 def test_torch_threads_sets_torchs_threads(tiny_run, monkeypatch, tmp_path):
@@ -64,7 +68,3 @@ def test_torch_threads_sets_torchs_threads(tiny_run, monkeypatch, tmp_path):
     evaluate.cli([latest, "--export", str(tmp_path / "policy.pt")])
     evaluate.cli([latest, "--export", str(tmp_path / "policy.pt"), "--torch-threads", "1"])
     assert threads == [1]
-    for flags, got in ((["--tracks", "0"], "0 and 10000"), (["--first-track", "-3"], "10 and -3")):
-        with pytest.raises(SystemExit, match=rf"^evaluate.py: error: --tracks must be >= 1 and --first-track >= 0 "
-                                             rf"\(a track's seed\), got {got}$"):  # fmt: skip
-            evaluate.cli([os.path.join(tiny_run, "checkpoints", "latest.pt"), *flags])

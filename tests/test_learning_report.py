@@ -92,6 +92,20 @@ def test_diagnose_reads_a_final_protocol_trial_when_no_learning_run_has_the_seed
     assert written.startswith(run.name) and "| 0-499 | 0 |  |  | 0.30 |" in written  # no race logged a return
 
 
+def test_calibrate_writes_its_row_into_the_results_dir(tmp_path, monkeypatch):
+    """--calibrate's row goes to calibration.csv in --results-dir (a user's), not into the reported one."""
+    import calibration
+
+    row = {column: 1.0 for column in calibration.CALIBRATION_COLUMNS} | {"checkpoint": "x.pt", "tracks": "10100..10104"}
+    monkeypatch.setattr(learning, "calibrate_checkpoint", lambda *args: dict(row))
+    reported = os.path.join(learning.RESULTS, "calibration.csv")
+    before = os.path.getmtime(reported) if os.path.exists(reported) else None
+    learning.run_mode(learning.Args(calibrate="x.pt", results_dir=str(tmp_path / "mine")))
+    with open(tmp_path / "mine" / "calibration.csv", newline="") as f:
+        assert [r["checkpoint"] for r in csv.DictReader(f)] == ["x.pt"]
+    assert (os.path.getmtime(reported) if os.path.exists(reported) else None) == before
+
+
 def test_diagnose_refuses_to_guess_among_several_trials_of_the_seed(tmp_path):
     for tag in ("a", "b"):  # a sweep's flag sets: one trial each, the same variant and seed
         (tmp_path / tag / "trials" / "single_lstm_seed11" / "multi_car_racing__lstm_single__11__1700000000").mkdir(

@@ -154,8 +154,8 @@ def usage_error(program: str, message: str) -> None:
 
 def parse_args(method, argv: list[str] | None = None):
     """Args of a command line, with its --preset applied under the flags it sets, and the fields it sets. A new run
-    from --checkpoint without --preset takes the preset the checkpoint was trained at (its action repeat, batch,
-    horizon...: an agent goes on at the settings it learned at)."""
+    from --checkpoint without --preset takes the preset the checkpoint was trained at, at this code's values of it
+    (its action repeat, batch, horizon...; other flags the checkpoint's run set are not carried over)."""
     import tyro
 
     argv = sys.argv[1:] if argv is None else list(argv)
@@ -164,8 +164,11 @@ def parse_args(method, argv: list[str] | None = None):
     if args.resume:
         return args, explicit
     if args.checkpoint and "preset" not in explicit and os.path.isfile(args.checkpoint):  # (else validate_args says)
-        start = load_checkpoint(args.checkpoint, method.VARIANT)
-        trained_at = args_from_checkpoint(method.Args, start, args.checkpoint).preset
+        try:
+            start = load_checkpoint(args.checkpoint, method.VARIANT, training=True)
+        except CheckpointError:  # (an export, a foreign file: the run's set-up says what is wrong with it)
+            start = None
+        trained_at = args.preset if start is None else args_from_checkpoint(method.Args, start, args.checkpoint).preset
         if trained_at != args.preset:
             print(f"--preset {trained_at}: the preset {args.checkpoint} was trained at (--preset chooses another)")
             args = dataclasses.replace(args, preset=trained_at)
@@ -270,7 +273,7 @@ class Run:
     cpu_started: float = dataclasses.field(default_factory=time.process_time)
     cpu_before: float = 0.0  # CPU seconds of the run's earlier invocations (a resumed run)
     fault: str | None = None  # set when an agent had --max-nonfinite-updates faulty updates in a row
-    out_of_time: bool = False  # the time or CPU budget was spent when last checked (set-up, the end of a race)
+    out_of_time: str | None = None  # the budget spent when last checked (set-up, the end of a race), or None
     update_seconds: list = dataclasses.field(default_factory=list)  # the first two updates' times (CPU report)
     pbar: object = None
 
@@ -303,16 +306,18 @@ class Run:
         if args.pause_at_updates > 0 and updates >= args.pause_at_updates:
             return f"paused at --pause-at-updates {args.pause_at_updates} (a --resume continues it)"
         if self.out_of_time:
-            return "--time-limit-hours or --cpu-hours-limit spent (a --resume with more continues it)"
+            return self.out_of_time
         return None
 
     def check_budget(self) -> None:
-        """Set out_of_time: whether --time-limit-hours (this process) or --cpu-hours-limit (the run, over all its
-        invocations) is spent."""
+        """Set out_of_time: which of --cpu-hours-limit (the run, over all its invocations) and --time-limit-hours
+        (this process) is spent, said as stop_reason says it, or None."""
         args = self.args
-        wall = args.time_limit_hours > 0 and time.time() - self.started > 3600 * args.time_limit_hours
-        cpu = args.cpu_hours_limit > 0 and self.cpu_seconds() > 3600 * args.cpu_hours_limit
-        self.out_of_time = wall or cpu
+        self.out_of_time = None
+        if args.time_limit_hours > 0 and time.time() - self.started > 3600 * args.time_limit_hours:
+            self.out_of_time = f"--time-limit-hours {args.time_limit_hours:g} of this process spent (--resume goes on)"
+        if args.cpu_hours_limit > 0 and self.cpu_seconds() > 3600 * args.cpu_hours_limit:
+            self.out_of_time = f"--cpu-hours-limit {args.cpu_hours_limit:g} spent (a --resume with more continues it)"
 
     def acts_randomly(self) -> bool:
         """Random actions in the prefill races of a new single or race stage (also when resumed during them)."""
