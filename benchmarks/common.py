@@ -1,7 +1,8 @@
 """What the benchmarks share: the blocks of tracks, with what each may decide, how a results CSV is read
 (``read_table``) and written (``write_table``: whole, atomically; ``replace_rows``: some of its rows, locked), a
-JSON file written atomically (``write_json``) and the updates a checkpoint has made (``checkpoint_updates``) (as
-Stable-Baselines3's ``common/``: small pieces the scripts of ``benchmarks/`` import).
+JSON file written atomically (``write_json``), the updates a checkpoint has made (``checkpoint_updates``) and the
+torch threads of a measurement (``set_torch_threads``) (as Stable-Baselines3's ``common/``: small pieces the scripts
+of ``benchmarks/`` import).
 
 A track is an env seed; a block is ``(first, count)``, tracks ``first .. first + count - 1``. A result is reported on
 a block that chose nothing: the block a choice was made on measures that choice with a bias in its favour.
@@ -38,6 +39,17 @@ def checkpoint_updates(checkpoint: dict) -> int:
     """The updates a dreamer checkpoint (a loaded dict) has made: its first agent's (every agent of a run updates
     alike)."""
     return int(checkpoint["agents"][0]["num_updates"])
+
+
+def set_torch_threads(threads: int) -> None:
+    """Give torch `threads` CPU threads (0: leave torch's default, every core); ValueError below 0. One thread keeps
+    a measurement beside training runs from taking their cores (the reported runs each had one)."""
+    if threads < 0:
+        raise ValueError(f"--torch-threads must be >= 0 (0: torch's default), got {threads}")
+    if threads > 0:
+        import torch
+
+        torch.set_num_threads(threads)
 
 
 def replace_file(path: str, write: Callable[[TextIO], None], newline: str | None = None) -> None:

@@ -16,7 +16,7 @@ them. Each command runs one mode (``--protocol-row``, ``--protocol-report``, ``-
   it does, benchmarks/readings.py) in ``learning_final_readings.csv``, and ``learning_final.md``;
   ``--protocol-report`` rewrites ``learning_final.md`` alone;
 * with ``--protocol-ship``: ``ship_<variant>.csv``, the protocol's final policies and the shipped agent on the
-  screening tracks, and ``pretrained/<variant>_cpu.pt`` replaced by the best of them;
+  screening tracks, and ``pretrained/<variant>_cpu.pt`` (or ``--shipped``) replaced by the best of them;
 * with ``--diagnose``: ``<experiment>_seed<S>_diagnostics.md``, the run's training logs per 500 updates;
 * with ``--calibrate``: a row of ``calibration.csv``, the agent's value and imagined return of real states against
   what the real episodes returned from them.
@@ -131,6 +131,9 @@ class Args:
     ship_seeds: tuple[int, ...] = protocol.PROTOCOL_SEEDS
     """--protocol-ship: the seeds whose final policies are the candidates (default every seed; fewer only where a
     run's directory is gone, e.g. a machine lost: the seeds left still drive by the same rule)"""
+    shipped: str | None = None
+    """--protocol-ship: the agent file the best seed must beat and, if it does, is exported over (default
+    pretrained/<variant>_cpu.pt, which git tracks: give another path to make the choice without changing it)"""
     results_dir: str = RESULTS
     """where every mode's tables are: learning_final.csv and .md (and the readings, the peers' CSVs,
     ship_<variant>.csv), the diagnostics, calibration.csv (default: the reported ones in benchmarks/results)"""
@@ -143,6 +146,8 @@ class Args:
     """--calibrate: seed of the first track"""
     tracks: int = 5
     """--calibrate: number of tracks"""
+    torch_threads: int = 0
+    """torch CPU threads (0: torch's default; 1 when other runs share the cores)"""
 
 
 MODES = ("protocol_row", "protocol_report", "protocol_ship", "diagnose", "calibrate")  # Args' mode fields
@@ -159,6 +164,8 @@ def check(args: Args) -> None:
         raise ValueError("--horizon is the imagination horizon of --calibrate; give --calibrate CHECKPOINT")
     if args.ship_seeds != protocol.PROTOCOL_SEEDS and not args.protocol_ship:
         raise ValueError("--ship-seeds are the candidates of --protocol-ship; give --protocol-ship")
+    if args.shipped is not None and not args.protocol_ship:
+        raise ValueError("--shipped is the agent file of --protocol-ship; give --protocol-ship")
     wrong = [seed for seed in args.ship_seeds if seed not in protocol.PROTOCOL_SEEDS]
     if wrong or not args.ship_seeds or len(set(args.ship_seeds)) < len(args.ship_seeds):
         raise ValueError(f"--ship-seeds must be distinct seeds of the final protocol "
@@ -196,7 +203,7 @@ def run_mode(args: Args) -> None:
                           f"{os.path.basename(run)}\n\n{table}")
         print(table)
     elif args.protocol_ship:
-        shipped = os.path.join(ROOT, "pretrained", f"{args.variant}_cpu.pt")
+        shipped = args.shipped or os.path.join(ROOT, "pretrained", f"{args.variant}_cpu.pt")
         print(protocol.ship(args.variant, args.runs_dir, shipped, args.results_dir, args.ship_seeds))
     elif args.protocol_row or args.protocol_report:
         if args.protocol_row:
@@ -217,6 +224,7 @@ def cli(argv: list[str] | None = None) -> None:
     args = tyro.cli(Args, args=argv, description=__doc__)
     try:
         check(args)
+        common.set_torch_threads(args.torch_threads)
         run_mode(args)
     except ValueError as e:  # (utils.checkpoint.CheckpointError is a ValueError)
         raise SystemExit(f"learning.py: error: {' '.join(str(e).split())}") from None

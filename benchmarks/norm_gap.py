@@ -40,7 +40,7 @@ import tyro
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
-from common import TRACKS, track_block  # noqa: E402
+from common import TRACKS, set_torch_threads, track_block  # noqa: E402
 
 READINGS = ("h_gap", "h_gap_recurrence", "z_gap", "steer_gap", "pedal_gap", "steer", "pedal")
 
@@ -55,6 +55,8 @@ class Args:
     """number of tracks driven (enough for at least one batch of B windows of L decisions)"""
     json: str | None = None
     """also write the readings to this file"""
+    torch_threads: int = 0
+    """torch CPU threads (0: torch's default; 1 when other runs share the cores)"""
 
 
 def windows(episodes: list[tuple[np.ndarray, np.ndarray]], length: int, batch: int,
@@ -150,6 +152,7 @@ def main(argv: list[str] | None = None) -> dict:
     try:
         if args.tracks < 1:
             raise ValueError(f"--tracks must be >= 1, got {args.tracks}")
+        set_torch_threads(args.torch_threads)
         row = norm_gap(args.checkpoint, args.first_track, args.tracks)
     except ValueError as e:  # (utils.checkpoint.CheckpointError is a ValueError)
         raise SystemExit(f"norm_gap.py: error: {' '.join(str(e).split())}") from None

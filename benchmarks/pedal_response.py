@@ -48,7 +48,7 @@ import tyro
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 from calibration import posterior  # noqa: E402  (one race through the world model)
-from common import TRACKS, write_json  # noqa: E402
+from common import TRACKS, set_torch_threads, write_json  # noqa: E402
 
 SCREENING = TRACKS["screening"][0]
 PROBE_RIDGES = (1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0)  # the probe's ridge penalty per sample (lambda / N)
@@ -81,6 +81,8 @@ class Args:
     scored on the rest (0: no probe, the returns only; else at least 3)"""
     json: str | None = None
     """also write every track's values to this file"""
+    torch_threads: int = 0
+    """torch CPU threads (0: torch's default; 1 when other runs share the cores)"""
 
 
 def hold_pedal(action: np.ndarray, state: tuple, pedal: float) -> tuple[np.ndarray, tuple]:
@@ -444,6 +446,7 @@ def main(argv=None) -> list[dict]:
     --after on some track (an early policy often is: --after 0 starts at the grid)."""
     args = tyro.cli(Args, args=argv)
     try:
+        set_torch_threads(args.torch_threads)
         rows = pedal_response(args.checkpoint, args.first_track, args.tracks, args.pedals, args.after, args.samples,
                               args.horizon, args.probe_tracks)  # fmt: skip
     except CarOut as e:

@@ -144,3 +144,29 @@ def test_a_report_is_written_whole_and_replaces_the_last(tmp_path):
     with pytest.raises(TypeError):  # not text: the report stays as it was, no temporary file left
         common.write_text(path, b"bytes")
     assert open(path).read() == "# new\n\n| a |\n" and os.listdir(tmp_path) == ["learning_final.md"]
+
+
+@pytest.mark.parametrize("tool, work", [("norm_gap", "norm_gap"), ("pedal_response", "pedal_response"),
+                                        ("learning", "run_mode")])  # fmt: skip
+def test_the_measuring_tools_take_their_torch_threads_before_the_work_and_refuse_a_negative_count(tool, work,
+                                                                                                  monkeypatch):
+    """--torch-threads N sets torch's threads before the tool measures anything (0, the default, leaves torch's own);
+    a negative count ends in the tool's one-line error before any work."""
+    import importlib
+
+    import torch
+
+    module = importlib.import_module(tool)
+    calls = []
+    monkeypatch.setattr(torch, "set_num_threads", lambda n: calls.append(("threads", n)))
+    monkeypatch.setattr(module, work, lambda *a, **k: calls.append(("work",)) or ({} if tool == "norm_gap" else []))
+    monkeypatch.setattr(module, "table", lambda *a, **k: "", raising=False)
+    main = module.cli if tool == "learning" else module.main
+    argv = ["--protocol-report"] if tool == "learning" else ["a.pt"]
+    main([*argv, "--torch-threads", "1"])
+    main(argv)
+    assert calls == [("threads", 1), ("work",), ("work",)]
+    with pytest.raises(SystemExit, match=rf"^{tool}.py: error: --torch-threads must be >= 0 \(0: torch's default\), "
+                                         r"got -1$"):  # fmt: skip
+        main([*argv, "--torch-threads", "-1"])
+    assert calls == [("threads", 1), ("work",), ("work",)]

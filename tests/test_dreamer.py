@@ -1295,17 +1295,20 @@ def test_a_checkpoint_that_brings_two_hot_heads_is_checked_again(script, tmp_pat
     assert not (tmp_path / "run").exists()
 
 
-def test_a_run_from_a_checkpoint_takes_its_preset_unless_the_command_line_chooses(script, tmp_path):
+def test_a_run_from_a_checkpoint_takes_its_preset_unless_the_command_line_chooses(script, tmp_path, monkeypatch):
     """`--stage ghost --checkpoint <a --preset cpu run's best.pt>` goes on at the CPU preset (two env steps per
     decision, its batch and horizon), not at the paper's settings the default --preset would give; --preset, or a
-    preset flag given again, still chooses."""
+    preset flag given again, still chooses. The look at its preset maps the file: its weights are read once, by the
+    run's set-up."""
     args = script.preset_args("cpu", **TINY)
     path = str(tmp_path / "cpu.pt")
     ckpt.save_checkpoint(path, script.VARIANT, args, [script.Agent(args)], {"episode": 0, "global_step": 0})
     cpu, paper = script.PRESETS["cpu"], script.Args()
     assert cpu["action_repeat"] != paper.action_repeat and cpu["batch_size"] != paper.batch_size  # a test that can fail
+    loads, torch_load = [], torch.load
+    monkeypatch.setattr(torch, "load", lambda *a, **k: loads.append(k.get("mmap", False)) or torch_load(*a, **k))
     taken, explicit = run_tools.parse_args(script, ["--stage", "ghost", "--checkpoint", path])
-    assert taken.preset == "cpu" and "preset" not in explicit
+    assert taken.preset == "cpu" and "preset" not in explicit and loads == [True]
     assert (taken.action_repeat, taken.batch_size) == (cpu["action_repeat"], cpu["batch_size"])
     chosen, _ = run_tools.parse_args(script, ["--checkpoint", path, "--preset", "paper"])
     assert (chosen.preset, chosen.action_repeat, chosen.batch_size) == ("paper", paper.action_repeat, paper.batch_size)

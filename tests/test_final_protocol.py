@@ -465,6 +465,7 @@ def test_reaching_the_dreamers_mean_is_judged_at_the_bars_precision_and_out_of_t
     (["--protocol-ship", "--ship-seeds", "24", "11"], "--ship-seeds must be distinct seeds of the final protocol "
                                                       "(21, 22, 23, 24, 25), got [24, 11]"),
     (["--protocol-ship", "--ship-seeds", "24", "24"], "got [24, 24]"),
+    (["--shipped", "x.pt"], "--shipped is the agent file of --protocol-ship; give --protocol-ship"),
 ])  # fmt: skip
 def test_the_command_line_refuses_a_protocol_mode_with_what_does_not_belong(argv, message, tmp_path):
     with pytest.raises(SystemExit) as exit_info:
@@ -653,8 +654,12 @@ def test_ship_seeds_choose_among_the_final_policies_left_and_never_read_a_lost_s
     results.mkdir()  # a record written before decisions were numbered: its rows are decision 1, kept
     (results / "ship_gru.csv").write_text("variant,candidate,checkpoint,return,progress,abs_steer,shipped\n"
                                           "gru,shipped,old.pt,400.0,0.4,0.3,True\n")  # fmt: skip
-    learning.cli([*common_args, "--ship-seeds", "24", "25"])
+    elsewhere = tmp_path / "mine" / "gru_cpu.pt"  # --shipped: the choice made without touching pretrained/
+    learning.cli([*common_args, "--ship-seeds", "24", "25", "--shipped", str(elsewhere), "--results-dir",
+                  str(tmp_path / "mine")])  # fmt: skip
     seed25 = os.path.join(runs[25], "checkpoints", "latest.pt")
+    assert elsewhere.read_bytes() == seed25.encode() and shipped.read_bytes() == b"the agent shipped before"
+    learning.cli([*common_args, "--ship-seeds", "24", "25"])
     assert shipped.read_bytes() == seed25.encode()  # seed 25's 610 beats seed 24's 520 and the shipped 500
     with open(results / "ship_gru.csv") as f:
         assert [(r["decision"], r["candidate"], float(r["return"]), r["shipped"]) for r in csv.DictReader(f)] == [

@@ -133,17 +133,18 @@ def save_checkpoint(path: str, variant: str, args, agents: list, counters: dict,
     atomic_torch_save(checkpoint, path)
 
 
-def load_checkpoint(path: str, variant: str, map_location="cpu", training: bool = False) -> dict:
+def load_checkpoint(path: str, variant: str, map_location="cpu", training: bool = False, mmap: bool = False) -> dict:
     """Load a checkpoint (or an acting-only export) of the script that writes `variant` with weights_only=True; a
     missing, truncated or foreign file (or one of another variant, or an export when `training`) raises
-    CheckpointError, whose one-line message names the file."""
+    CheckpointError, whose one-line message names the file. `mmap`: map the file's tensors instead of reading them
+    (for a look at its settings: a paper-size checkpoint's weights are not copied)."""
     if os.path.isdir(path):  # (--resume takes a run directory; the readers of a saved agent want its file)
         raise CheckpointError(f"{path}: a directory, not a checkpoint file (a run's are checkpoints/best.pt, the best "
                               "evaluated policy, and checkpoints/latest.pt)")
     if not os.path.isfile(path):
         raise CheckpointError(f"{path}: no such checkpoint file")
     try:
-        checkpoint = torch.load(path, map_location=map_location, weights_only=True)
+        checkpoint = torch.load(path, map_location=map_location, weights_only=True, mmap=mmap)
     except Exception as e:  # truncated zip, not a torch file, a pickle weights_only refuses, ...
         reason = first_line(e)
         raise CheckpointError(f"{path}: not a readable checkpoint (truncated or not a torch file): {reason}") from None

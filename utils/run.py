@@ -165,7 +165,7 @@ def parse_args(method, argv: list[str] | None = None):
         return args, explicit
     if args.checkpoint and "preset" not in explicit and os.path.isfile(args.checkpoint):  # (else validate_args says)
         try:
-            start = load_checkpoint(args.checkpoint, method.VARIANT, training=True)
+            start = load_checkpoint(args.checkpoint, method.VARIANT, training=True, mmap=True)  # (only its args)
         except CheckpointError:  # (an export, a foreign file: the run's set-up says what is wrong with it)
             start = None
         trained_at = args.preset if start is None else args_from_checkpoint(method.Args, start, args.checkpoint).preset
