@@ -3,26 +3,28 @@
 # peer_chain; pkill -f curve_rerun; pkill -f ppo_peer.py)
 # A machine is not always handed to the next sitting, and a peer run takes more than one sitting (3.1 CPU-hours on
 # one thread), so the state a run resumes from is kept in the repository until the run is done: for every peer run
-# under /work/peers/runs whose curve is not done yet, its model.zip, vecnormalize.pkl, record.json and snapshots
+# under $peers/runs whose curve is not done yet, its model.zip, vecnormalize.pkl, record.json and snapshots
 # (model_<N>.zip, vecnormalize_<N>.pkl; no TensorBoard logs) go to docs/lab/run_state/<runs subdir>/<run>/, with
 # the done-markers and the peer CSVs the clone wrote. restore.sh puts them back on a new machine. A run's state is
 # removed from the repository once its row and curve are committed.
 set -e
-main=/work/main
+main=${MAIN:-/work/main}
+peers=${PEERS:-/work/peers}
+logs=${LOGS:-/work/logs}
 state=$main/docs/lab/run_state
 rm -rf $state && mkdir -p $state
-cd /work/peers/runs
+cd $peers/runs
 for run in */*__*; do
   [ -f $run/record.json ] || continue
   base=$(basename $run); variant=${base%__*}; seed=${base##*__}
   algo=$variant; [ "$variant" = recurrent_ppo ] && algo=recurrent-ppo
-  [ -f /work/logs/curve_done_${algo}_${seed} ] && continue
+  [ -f $logs/curve_done_${algo}_${seed} ] && continue
   mkdir -p $state/$run
   cp $run/record.json $run/model.zip $run/vecnormalize.pkl $state/$run/
   cp $run/model_*.zip $run/vecnormalize_*.pkl $state/$run/ 2>/dev/null || true
 done
 mkdir -p $state/logs
-cp /work/logs/curve_done_* $state/logs/ 2>/dev/null || true
-cp /work/peers/benchmarks/results/*peer*.csv $state/logs/ 2>/dev/null || true
-[ -f /work/logs/rerun/ppo_peer_curve.csv ] && cp /work/logs/rerun/ppo_peer_curve.csv $state/logs/rerun_ppo_peer_curve.csv
+cp $logs/curve_done_* $state/logs/ 2>/dev/null || true
+cp $peers/benchmarks/results/*peer*.csv $state/logs/ 2>/dev/null || true
+[ -f $logs/rerun/ppo_peer_curve.csv ] && cp $logs/rerun/ppo_peer_curve.csv $state/logs/rerun_ppo_peer_curve.csv
 du -sh $state
