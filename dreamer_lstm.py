@@ -10,7 +10,8 @@ Read top to bottom:
 2. Environment ..... the racing env's options, dead-zone schedule, track seeds
 3. Networks ........ encoder, recurrent core (LSTM with learned initial h and c), posterior/prior,
                      decoder, reward, continue, actor, critic (paper appendix)
-4. Losses .......... Gaussian likelihoods and KL, free bits, lambda-returns (paper 3.8-3.9)
+4. Losses .......... their terms: Gaussian likelihoods and KL, free bits, lambda-returns (paper 3.8-3.9;
+                     the Agent of section 6 adds them up)
 5. Replay .......... per-agent ring buffer of uint8 frames, uniform sequence sampling
 6. Agent ........... world-model update, imagination, actor and critic updates, acting
 7. Training loop ... Algorithm 1 in `main`: decentralized agents act, store, train; stages single / ghost / race
@@ -423,7 +424,7 @@ class Decoder(nn.Module):
 
     At 96 px s = 8 (8 -> 10 -> 22 -> 96, the appendix's 64-channel decoder for d = 32); at 64 px s = 4
     (4 -> 6 -> 14 -> 64). The output is the mean of a Gaussian over pixels with one learned log sigma
-    (clamped below at --decoder-min-log-sigma).
+    (clamped to [--decoder-min-log-sigma, LOG_SIGMA_RANGE's 2]).
     """
 
     def __init__(self, feature_size: int, depth: int, image_size: int, norm: str, min_log_sigma: float):
@@ -771,12 +772,12 @@ def lambda_returns(rewards, continues, values, log_pi, gamma: float, lam: float,
     part and the entropy part, which --return-norm scales apart.
     """
     assert rewards.shape == continues.shape == values.shape == log_pi.shape, (rewards.shape, values.shape, log_pi.shape)
-    next_return = values[-1]
+    ret = values[-1]  # R_H
     returns = []
-    for t in reversed(range(rewards.shape[0])):
-        bootstrap = (1 - lam) * values[t] + lam * next_return
-        next_return = rewards[t] - alpha * log_pi[t] + gamma * continues[t] * bootstrap
-        returns.append(next_return)
+    for t in reversed(range(rewards.shape[0])):  # ret is R_{t+1} here, R_t after the step
+        bootstrap = (1 - lam) * values[t] + lam * ret
+        ret = rewards[t] - alpha * log_pi[t] + gamma * continues[t] * bootstrap
+        returns.append(ret)
     return torch.stack(returns[::-1])
 
 
@@ -988,6 +989,8 @@ class Agent:
     # --- world model (paper 3.8) ------------------------------------------------------------
     def world_model_loss(self, obs, actions, rewards, is_first, terminated):
         """L = mean over batch and time of L_pred + beta_dyn L_dyn + beta_rep L_rep; also returns the posterior.
+        L_pred's reward and continue terms weigh --terminal-weight on terminal frames; each KL term is at least
+        --free-bits (kl_free_bits).
 
         (The paper sums over time; the mean differs by the constant factor L, as in Dreamer's own code,
         and keeps the gradient-clip threshold of 100 meaningful for any sequence length.)
@@ -1013,7 +1016,8 @@ class Agent:
             target_post = target_representation(target_representation.embed_part(target_embed), h.detach())
             sg_post_mean, sg_post_std = gaussian_params(target_post, LATENT_MIN_STD)
             sg_prior_mean, sg_prior_std = gaussian_params(self.targets["transition"](h.detach()), LATENT_MIN_STD)
-        kl_dyn = gaussian_kl(sg_post_mean, sg_post_std, prior_mean, prior_std)  # paper eq. L_dyn: trains the prior
+        # paper eq. L_dyn: trains the prior and, through the live h, the recurrent core and the earlier posteriors
+        kl_dyn = gaussian_kl(sg_post_mean, sg_post_std, prior_mean, prior_std)
         kl_rep = gaussian_kl(post["post_mean"], post["post_std"], sg_prior_mean, sg_prior_std)  # paper eq. L_rep
         weight = 1.0 + (args.terminal_weight - 1.0) * terminated  # --terminal-weight on terminal frames (1: exact)
         loss = (
@@ -1061,9 +1065,10 @@ class Agent:
         real state distribution), and acting uses the same running statistics as the policy optimised here.
         """
         args, wm = self.args, self.world_model
-        with torch.no_grad():  # the actor's BatchNorm statistics: real posterior states of the batch
-            self.actor.train()
-            self.actor(torch.cat([post["z"], post["h"]], -1).detach())
+        if args.norm == "batch":  # the actor's BatchNorm statistics: real posterior states of the batch
+            with torch.no_grad():  # (--norm layer or mixed: the actor's LayerNorms keep none)
+                self.actor.train()
+                self.actor(torch.cat([post["z"], post["h"]], -1).detach())
         state, h, z, start_cont = self.start_states(post, terminated)
         bootstrap = self.targets["critic"] if args.target_critic else self.critic
         wm.eval()
@@ -1094,7 +1099,8 @@ class Agent:
         if args.return_norm:
             metrics["return_scale"] = self.return_scale.clone()
         # --entropy-target: the entropy alpha weighs, -log pi (-log N(a) when --action-penalty takes the extreme-action
-        # term apart); logged, and the input of update()'s alpha step
+        # term apart), a plain mean over every imagined step (unweighted by the discount); logged, and the input of
+        # update()'s alpha step
         if self.log_alpha is not None:
             metrics["alpha"] = self.log_alpha.detach().exp()
             apart = 0 if args.action_penalty is None else extreme_action_term(samples.detach()).mean()
@@ -1104,7 +1110,8 @@ class Agent:
     def returns_and_objective(self, rewards, continues, values, log_pi, samples):
         """The lambda-returns the critic learns, and the actor's objective (paper 3.9): the lambda-return of the
         imagined rewards with the entropy bonus -alpha log pi_t, which comes with r_{t+1}. The two are the same
-        tensor unless --return-norm scales the objective's task part."""
+        tensor unless --return-norm scales the objective's task part; it also moves that scale (an EMA of the task
+        returns' 5-95% range over every imagined step, those after a predicted termination too)."""
         args, alpha = self.args, self.alpha()
         gamma, lam = args.gamma, args.lambda_
         # --action-penalty beta reweighs log pi's extreme-action part: -alpha log pi + (alpha - beta) term
@@ -1363,7 +1370,10 @@ def main(args: Args, overrides=()) -> str:
     races = Races(run.agents, args, run.envs, obs)  # agent i drives car i of every race
     run.pbar = tqdm(total=args.total_episodes, initial=run.counters["episode"], desc=f"{VARIANT} {args.stage}")
     while not run.finished():
-        # --- act: every agent drives its own car in every race until a race ends (random actions in the prefill)
+        # --- act: every agent drives its own car in every race until a race ends (random actions in the prefill).
+        # Races.drive (utils/collector.py) holds each decision --action-repeat env steps and sums their rewards; a
+        # prefill action is uniform in [-1, 1]; a car's episode starts with its first frame (action and reward 0), and
+        # a frame is terminal on an elimination or a finished lap, never at the time limit (truncation).
         started = time.time()
         ended, steps = races.drive(["random" if run.acts_randomly() else "stochastic"] * n)
         run.counters["global_step"] += k_races * steps
