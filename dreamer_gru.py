@@ -221,7 +221,8 @@ class Args:
     grad_clip: float = 100.0
     """global gradient-norm clip of every optimiser"""
     target_critic: bool = True
-    """bootstrap the lambda-returns with a slow target critic (soft-updated with tau) instead of the critic itself"""
+    """bootstrap the lambda-returns with the slow critic (a copy soft-updated with tau after every critic step; also
+    --heads twohot's regression target) instead of the critic itself"""
 
     # --- options beyond the paper: off by default (the paper's form); docs/deviations.md lists each with its screen
     entropy_target: float | None = None
@@ -1188,7 +1189,7 @@ class Agent:
         if self.log_alpha is not None:  # SAC: alpha rises while the entropy is below its target, falls above it
             shortfall = self.args.entropy_target * self.action_dim - behaviour_metrics["alpha_entropy"]
             alpha_ok = self._step(self.alpha_optimizer, -self.log_alpha * shortfall, [self.log_alpha])
-        if self.args.target_critic and critic_ok:
+        if critic_ok:  # the slow critic: the bootstrap (--target-critic) and two-hot's regression target
             soft_update(self.targets["critic"], self.critic, self.args.tau)
         for module, ok in ((self.world_model, model_ok), (self.actor, actor_ok)):
             if not ok:  # the batch's forward pass moved the running statistics: put them back

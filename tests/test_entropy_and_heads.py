@@ -249,11 +249,24 @@ def test_twohot_agents_start_at_zero_learn_and_regress_the_critic_on_its_slow_co
     torch.testing.assert_close(critic_loss, F.cross_entropy(logits, soft, reduction="sum"))
 
 
-def test_twohot_heads_refuse_the_gaussian_heads_options(script):
+def test_twohot_heads_refuse_the_gaussian_heads_sigma(script):
     run_tools.validate_args(script.Args(heads="twohot"), script.LOG_SIGMA_RANGE)
-    for flags, name in (({"head_sigma": 1.0}, "--head-sigma"), ({"target_critic": False}, "--target-critic")):
-        with pytest.raises(ValueError, match=f"^{name} .*--heads twohot"):
-            run_tools.validate_args(script.Args(heads="twohot", **flags), script.LOG_SIGMA_RANGE)
+    with pytest.raises(ValueError, match="^--head-sigma .*--heads twohot"):
+        run_tools.validate_args(script.Args(heads="twohot", head_sigma=1.0), script.LOG_SIGMA_RANGE)
+
+
+@pytest.mark.parametrize("target_critic", [True, False])
+def test_the_slow_critic_follows_the_critic_whatever_bootstraps(script, target_critic):
+    """After every critic step the slow critic moves tau of the way to the critic (target <- target + tau (critic -
+    target)), also with --no-target-critic, where two-hot heads still regress on it: it never stays at its copy of
+    the initial critic."""
+    agent = script.Agent(tiny_args(script, heads="twohot", target_critic=target_critic))
+    before = [p.detach().clone() for p in agent.targets["critic"].parameters()]
+    agent.update(random_batch())
+    tau = agent.args.tau
+    for slow, old, live in zip(agent.targets["critic"].parameters(), before, agent.critic.parameters()):
+        torch.testing.assert_close(slow, old + tau * (live.detach() - old))
+    assert any(not torch.equal(slow, old) for slow, old in zip(agent.targets["critic"].parameters(), before))
 
 
 def test_the_mixed_norm_is_batchnorm_in_the_convolutions_and_layernorm_elsewhere(script):

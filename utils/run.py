@@ -113,7 +113,6 @@ def validate_args(args, log_sigma_range: tuple[float, float]) -> None:
     require(args.head_sigma >= 0, "head_sigma", "must be >= 0 (0: learned)")
     if args.heads == "twohot":
         require(args.head_sigma == 0, "head_sigma", "is the Gaussian heads' sigma: leave it 0 with --heads twohot")
-        require(args.target_critic, "target_critic", "--heads twohot regresses the critic on its slow copy: keep it on")
     require(args.entropy_lr > 0, "entropy_lr", "must be > 0")
     require(args.terminal_weight > 0, "terminal_weight", "must be > 0")
     if args.action_penalty is not None:
