@@ -21,7 +21,17 @@ for run in */*__*; do
   [ -f $logs/curve_done_${algo}_${seed} ] && continue
   mkdir -p $state/$run
   cp $run/record.json $run/model.zip $run/vecnormalize.pkl $state/$run/
-  cp $run/model_*.zip $run/vecnormalize_*.pkl $state/$run/ 2>/dev/null || true
+  cp $run/vecnormalize_*.pkl $state/$run/ 2>/dev/null || true
+  for snapshot in $run/model_*.zip; do  # without the optimizer's state (2/3 of the file; restore.sh puts one back)
+    [ -f $snapshot ] || continue
+    python - $snapshot $state/$snapshot <<'PY'
+import sys, zipfile
+with zipfile.ZipFile(sys.argv[1]) as src, zipfile.ZipFile(sys.argv[2], "w", zipfile.ZIP_DEFLATED) as out:
+    for name in src.namelist():
+        if name != "policy.optimizer.pth":
+            out.writestr(name, src.read(name))
+PY
+  done
 done
 mkdir -p $state/logs
 cp $logs/curve_done_* $state/logs/ 2>/dev/null || true

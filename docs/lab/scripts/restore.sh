@@ -12,6 +12,17 @@ cp $main/docs/lab/scripts/*.sh $logs/ && chmod +x $logs/*.sh
 [ -d $state ] || exit 0
 for run in $(cd $state && ls -d */*__* 2>/dev/null); do
   mkdir -p $peers/runs/$run && cp $state/$run/* $peers/runs/$run/
+  for snapshot in $peers/runs/$run/model_*.zip; do  # SB3's load wants an optimizer state: the run's current one
+    [ -f $snapshot ] || continue
+    python - $snapshot $peers/runs/$run/model.zip <<'PY'
+import sys, zipfile
+with zipfile.ZipFile(sys.argv[1]) as snapshot:
+    missing = "policy.optimizer.pth" not in snapshot.namelist()
+if missing:
+    with zipfile.ZipFile(sys.argv[2]) as model, zipfile.ZipFile(sys.argv[1], "a", zipfile.ZIP_DEFLATED) as out:
+        out.writestr("policy.optimizer.pth", model.read("policy.optimizer.pth"))
+PY
+  done
 done
 cp $state/logs/curve_done_* $logs/ 2>/dev/null || true
 for f in $state/logs/*peer*.csv; do
