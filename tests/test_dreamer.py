@@ -257,8 +257,11 @@ def test_act_carries_state_and_resets_on_is_first(script):
     a2, _s2 = agent.act(obs, s1, np.array([False, True]), policy="deterministic")
     np.testing.assert_allclose(a2[1], a1[1], atol=1e-6)  # car 1 restarted: same as a fresh start
     assert not np.allclose(a2[0], a1[0])  # car 0 continued with its memory
+    torch.manual_seed(1)
+    mean, _ = agent.act(obs, s1, policy="mean-action")  # from the same state and latent draw as the sample below
+    torch.manual_seed(1)
     a3, _ = agent.act(obs, s1)  # sampled actions differ from the mean
-    assert not np.allclose(a3, a2)
+    assert not np.allclose(a3, mean)
 
 
 def test_sampled_actions_are_the_mean_plus_independent_unit_noise_clipped(script):
@@ -591,9 +594,25 @@ def test_the_kl_terms_train_the_prior_and_the_posterior_apart_and_add_up_to_the_
 
 
 def test_update_returns_the_logged_losses(script):
-    metrics = script.Agent(tiny_args(script)).update(random_batch())
+    """update() returns, as floats under their names, the losses its steps computed: the same agent's world-model
+    loss on the batch and, after the model's step, its behaviour losses, computed here step by step from the same
+    random draws."""
+    import copy
+
+    batch, agent = random_batch(), script.Agent(tiny_args(script))
+    twin = copy.deepcopy(agent)
+    torch.manual_seed(5)
+    metrics = agent.update(batch)
+    torch.manual_seed(5)
+    obs, actions, rewards, is_first, terminated = twin._batch_tensors(batch)
+    twin._set_training(True)
+    model_loss, expected, post = twin.world_model_loss(obs, actions, rewards, is_first, terminated)
+    assert twin._step(twin.model_optimizer, model_loss, twin.world_model.parameters())
+    twin._update_model_targets()
+    expected.update(twin.behaviour_losses(post, terminated)[2])
     for key in ("reconstruction", "reward", "continue", "kl_dyn", "kl_rep", "actor", "critic", "entropy"):
         assert isinstance(metrics[key], float) and math.isfinite(metrics[key])
+        assert metrics[key] == pytest.approx(expected[key].item(), rel=1e-6), key
 
 
 def moving_square_batch(B=4, L=8, S=64):

@@ -232,8 +232,12 @@ def test_twohot_agents_start_at_zero_learn_and_regress_the_critic_on_its_slow_co
         assert torch.equal(agent.world_model.reward.dist(features).mean, torch.zeros(6))
         assert torch.equal(agent.critic.dist(features).mean, torch.zeros(6))
     assert agent.world_model.reward(features).shape == agent.critic(features).shape == (6, 255)
+    heads = (agent.world_model.reward, agent.critic)
+    before = [[p.detach().clone() for p in head.parameters()] for head in heads]
     metrics = one_update(agent)
     assert all(math.isfinite(v) for v in metrics.values()) and agent.nonfinite_updates == 0
+    for head, old in zip(heads, before):  # both heads learn from their first update
+        assert any(not torch.equal(p, q) for p, q in zip(head.parameters(), old))
 
     agent = script.Agent(tiny_args(script, heads="twohot", entropy_coef=0.25, gamma=0.5, imagination_horizon=1))
     nn.init.normal_(agent.critic.net.net[-1].weight)  # a critic that does not predict uniformly: the targets matter

@@ -68,3 +68,17 @@ def test_torch_threads_sets_torchs_threads(tiny_run, monkeypatch, tmp_path):
     evaluate.cli([latest, "--export", str(tmp_path / "policy.pt")])
     evaluate.cli([latest, "--export", str(tmp_path / "policy.pt"), "--torch-threads", "1"])
     assert threads == [1]
+
+
+def test_each_policy_asked_for_drives_and_the_block_starts_at_first_track(tiny_run):
+    """The readings of a policy are its own (the sampled policy steers otherwise than the mean action), and the
+    tracks are first_track .. first_track + tracks - 1: the deterministic policy alone on track 10001 reads what it
+    read there as the second of two tracks from 10000 (and otherwise than on 10000, so a block that ignored
+    first_track would fail)."""
+    path = os.path.join(tiny_run, "checkpoints", "latest.pt")
+    both = evaluate.evaluate_checkpoint(path, 10_000, 2, ("stochastic", "mean-action", "deterministic"))
+    assert both["stochastic"]["abs_steer"] != both["mean-action"]["abs_steer"]
+    second = evaluate.evaluate_checkpoint(path, 10_001, 1, ("deterministic",))["deterministic"]
+    first, later = both["deterministic"]["return"]
+    assert first != later  # (the two tracks read apart: the check below can fail)
+    assert second["return"] == [later] and second["progress"] == [both["deterministic"]["progress"][1]]

@@ -48,8 +48,11 @@ def test_a_run_resumes_in_a_later_sitting_and_writes_its_row(tmp_path, monkeypat
             "--results", str(tmp_path / "ppo_peer.csv")]  # fmt: skip
     first = ppo_peer.main(argv)
     assert (first["env_steps"], first["updates"]) == (2 * 64, 1)  # one rollout of 2 x 32 steps, frame skip 2
+    assert "continuing from" not in capsys.readouterr().out
     second = ppo_peer.main([*argv[:4], "--budget-steps", "128", *argv[6:]])  # the budget grows: it continues
     assert (second["env_steps"], second["updates"]) == (2 * 128, 2)
+    # (a fresh start would reach the same counts: the sitting must have started from the first one's save)
+    assert f"continuing from {tmp_path / 'ppo__3' / 'model.zip'} at 128 env steps" in capsys.readouterr().out
     with open(tmp_path / "ppo_peer.csv") as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == 1 and rows[0]["variant"] == "ppo" and int(rows[0]["env_steps"]) == 256  # replaced, not added
@@ -114,14 +117,16 @@ def test_recurrent_ppo_has_the_zoo_entry():
     norm.close()
 
 
-def test_a_recurrent_run_resumes_writes_its_row_and_its_curve(tmp_path, monkeypatch):
+def test_a_recurrent_run_resumes_writes_its_row_and_its_curve(tmp_path, monkeypatch, capsys):
     tiny(monkeypatch, ppo_peer.ZOO_LSTM, race_steps=40)
     argv = ["--algo", "recurrent-ppo", "--seed", "3", "--cpu-hours", "1", "--tracks", "1", "--runs-dir", str(tmp_path),
             "--results", str(tmp_path / "recurrent_ppo_peer.csv"), "--snapshot-steps", "100", "300"]  # fmt: skip
     first = ppo_peer.main([*argv, "--budget-steps", "64"])
     assert (first["variant"], first["env_steps"], first["updates"]) == ("recurrent_ppo", 2 * 64, 1)
+    capsys.readouterr()
     second = ppo_peer.main([*argv, "--budget-steps", "256"])  # continues: rollouts start at 128, 256, 384 env steps
     assert (second["env_steps"], second["updates"]) == (2 * 256, 4)
+    assert "continuing from " in capsys.readouterr().out  # (a fresh start would reach the same counts)
     with open(tmp_path / "recurrent_ppo_peer.csv") as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == 1 and tuple(rows[0]) == ppo_peer.COLUMNS and rows[0]["variant"] == "recurrent_ppo"

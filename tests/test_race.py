@@ -228,8 +228,8 @@ def test_the_same_train_command_trains_the_same_agents(tiny_checkpoints, tmp_pat
 
 def test_racers_are_saved_as_a_pair_a_kill_while_saving_leaves_the_previous_pair(tmp_path, monkeypatch):
     """save_racers writes every racer's replay and a pending checkpoint before it replaces any saved checkpoint,
-    so a kill (here: an exception in place of the first rename) leaves both racers as they were after the same
-    race; a save that completes leaves no pending file and both racers at the new race."""
+    so a kill (here: while racer 1's checkpoint is written, after racer 0's) leaves both racers as they were after
+    the same race; a save that completes leaves no pending file and both racers at the new race."""
     written = []
 
     def save_replay(replay, directory):
@@ -250,19 +250,30 @@ def test_racers_are_saved_as_a_pair_a_kill_while_saving_leaves_the_previous_pair
     class Replay:
         pass
 
+    rename = os.replace
+
+    def replace(src, dst):
+        rename(src, dst)
+        written.append(("replace", os.path.basename(dst)))
+
+    monkeypatch.setattr(race.os, "replace", replace)
     racer = types.SimpleNamespace(variant="lstm", args=None, agent=None, counters={"race_episodes": 50})
     learning = {0: (racer, Replay()), 1: (racer, Replay())}
     race.save_racers(learning, str(tmp_path), races=1, env_steps=10)
     saved = [torch.load(tmp_path / f"racer_{i}.pt")["counters"]["race_episodes"] for i in (0, 1)]
     assert saved == [51, 51] and not list(tmp_path.glob("*.pending"))
-    # every checkpoint is written (after its replay) before any is pruned
-    assert [kind for kind, _ in written] == ["replay", "checkpoint", "replay", "checkpoint", "prune", "prune"]
+    # every replay and pending checkpoint is written before any checkpoint is replaced, and all are replaced before
+    # any replay is pruned
+    assert [kind for kind, _ in written] == ["replay", "checkpoint", "replay", "checkpoint", "replace", "replace",
+                                             "prune", "prune"]  # fmt: skip
 
-    def killed(src, dst):
-        raise KeyboardInterrupt("killed")
+    def killed_at_racer_1(path, *rest):
+        if "racer_1" in path:
+            raise KeyboardInterrupt("killed")
+        save_checkpoint(path, *rest)
 
-    monkeypatch.setattr(race.os, "replace", killed)
+    monkeypatch.setattr(race.saved, "save_checkpoint", killed_at_racer_1)  # a kill while the pair is being written
     with pytest.raises(KeyboardInterrupt):
         race.save_racers(learning, str(tmp_path), races=2, env_steps=20)
     saved = [torch.load(tmp_path / f"racer_{i}.pt")["counters"]["race_episodes"] for i in (0, 1)]
-    assert saved == [51, 51]  # the previous pair, whole
+    assert saved == [51, 51]  # the previous pair, whole: racer 0's new checkpoint waits as a pending file

@@ -189,6 +189,7 @@ def test_the_bootstrap_intervals_repeat_for_a_seed_and_leave_the_callers_random_
     first = stats.interval_estimates(scores, reps=200, seed=7)
     assert np.random.random_sample() == expected_next  # the caller's stream goes on where it was
     assert stats.interval_estimates(scores, reps=200, seed=7) == first
+    assert stats.interval_estimates(scores, reps=200, seed=8)["a"]["mean_ci"] != first["a"]["mean_ci"]  # it is the seed
     assert first["a"]["mean"] == 438.0 and first["a"]["iqm"] == (300.0 + 250.0 + 640.0) / 3
     low, high = first["a"]["mean_ci"]
     assert 100.0 <= low < 438.0 < high <= 900.0
