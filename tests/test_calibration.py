@@ -3,9 +3,11 @@ calibration of a tiny trained agent on the episode it drives."""
 
 import importlib
 import os
+import types
 
 import numpy as np
 import pytest
+import torch
 
 import calibration
 import learning
@@ -33,10 +35,12 @@ def test_realised_and_horizon_returns_match_their_sums_written_out():
                 assert np.isnan(horizon[t])
 
 
-def test_calibrate_measures_the_real_episode_the_agent_drives(tmp_path):
+def test_calibrate_measures_the_real_episode_the_agent_drives(tmp_path, monkeypatch):
     """With gamma 1 and a horizon as long as the episode, the real task return from the first frame is the race's
-    return, which the evaluation of the same agent with the same sampled actions measures independently; an
-    acting-only export, which has no critic, is refused naming the file."""
+    return, which the evaluation of the same agent with the same sampled actions measures independently; the
+    critic's value is the mean of V(s_0..s_{T-1}) and the realised return the mean of the sums written out (log pi
+    fixed at -1, so each decision's bonus is alpha); the imagination gives a return of its own; an acting-only
+    export, which has no critic, is refused naming the file."""
     script = importlib.import_module("dreamer_gru")
     run_dir = script.main(script.Args(stage="single", runs_dir=str(tmp_path), gamma=1.0, action_repeat=2, **TINY_RUN))
     latest = os.path.join(run_dir, "checkpoints", "latest.pt")
@@ -47,10 +51,27 @@ def test_calibrate_measures_the_real_episode_the_agent_drives(tmp_path):
     assert row["eliminations"] == 0 and row["elimination_reasons"] == "" and np.isnan(row["terminal_reward"])
     assert row["reward_sigma"] >= 0.1  # (the heads' minimum sigma)
     assert all(np.isfinite(row[k]) for k in ("value", "realised_return", "imagined_task_return", "real_task_return"))
+    monkeypatch.setattr(script, "policy_log_prob", lambda action, mean, std: -torch.ones(action.shape[:-1]))
+    # a critic whose value moves from frame to frame (the tiny agent's barely does), so each frame's value counts
+    monkeypatch.setattr(script.Critic, "dist", lambda self, features: types.SimpleNamespace(mean=features.sum(-1)))
     whole = calibration.calibrate_checkpoint(latest, 10_100, 1, horizon=row["starts"])
     reference = learning.policy_summary(latest, 10_100, 1, "stochastic")
     assert whole["horizon_starts"] == 1
     assert whole["real_task_return"] == pytest.approx(reference["eval_return"], abs=0.01)
+    assert whole["imagined_task_return"] != 0
+    import evaluate  # the same drive and posterior draws, summed here by hand
+
+    _, _, _, agent, envs = evaluate.single_car(latest)
+    frames, actions, rewards, terminated = evaluate.sampled_episodes(agent, agent.args, envs, 10_100, 1)[0][0].arrays()
+    post = calibration.posterior(agent, frames, actions)  # (the stream where calibrate_checkpoint's finds it)
+    with torch.no_grad():
+        values = agent.critic.dist(torch.cat([post["z"], post["h"]], -1)[0]).mean.numpy()
+    last, alpha = len(rewards) - 1, float(agent.alpha())
+    assert not terminated[-1]  # truncated: every G_t ends with V(s_T)
+    realised = [rewards[t + 1:].sum() + (last - t) * alpha + values[-1] for t in range(last)]
+    assert np.ptp(values) > 1 and whole["value"] == pytest.approx(values[:-1].mean(), abs=0.006)
+    assert whole["realised_return"] == pytest.approx(np.mean(realised), abs=0.006)
     ckpt.export_policy(script, latest, str(tmp_path / "policy.pt"))
     with pytest.raises(ValueError, match=r"policy\.pt: an acting-only export has no critic"):
         calibration.calibrate_checkpoint(str(tmp_path / "policy.pt"))
+

@@ -262,6 +262,16 @@ def test_act_carries_state_and_resets_on_is_first(script):
     torch.manual_seed(1)
     a3, _ = agent.act(obs, s1)  # sampled actions differ from the mean
     assert not np.allclose(a3, mean)
+    # the mean action of a sampled latent (evaluation's default) is not the deterministic policy's, whose posterior
+    # mean repeats whatever the random stream
+    torch.manual_seed(2)
+    other_mean, _ = agent.act(obs, s1, policy="mean-action")
+    determined = []
+    for seed in (1, 2):
+        torch.manual_seed(seed)
+        determined.append(agent.act(obs, s1, policy="deterministic")[0])
+    np.testing.assert_array_equal(determined[0], determined[1])
+    assert not np.allclose(mean, other_mean) and not np.allclose(mean, determined[0])
 
 
 def test_sampled_actions_are_the_mean_plus_independent_unit_noise_clipped(script):

@@ -39,12 +39,16 @@ def test_the_entropy_alpha_weighs_is_minus_log_pi_plus_the_extreme_action_term_i
 ):
     """--entropy-target with --action-penalty (the CPU preset): alpha weighs the Gaussian part of -log pi only, so
     its step reads -log pi plus the extreme-action term: log pi -1 and both sampled dimensions 0.5 (a one-step
-    imagination fixed by hand) give 1 + 2 * -log(1 - tanh(0.5)^2) = 1.48046."""
+    imagination fixed by hand) give 1 + 2 * -log(1 - tanh(0.5)^2) = 1.48046; without --action-penalty, 1."""
     agent = script.Agent(tiny_args(script, entropy_target=0.0, action_penalty=1.0, imagination_horizon=1))
     features = torch.zeros(2, 1, TINY["latent_size"] + TINY["deter_size"])
     _, _, metrics = one_step_behaviour(script, agent, monkeypatch, features, samples=torch.full((1, 1, 2), 0.5))
     term = 2 * -math.log(1 - math.tanh(0.5) ** 2)
     assert metrics["alpha_entropy"].item() == pytest.approx(1 + term, rel=1e-5)
+    # without --action-penalty (SAC alone) alpha weighs all of -log pi: its step reads -log pi, no term added
+    agent = script.Agent(tiny_args(script, entropy_target=0.0, imagination_horizon=1))
+    _, _, metrics = one_step_behaviour(script, agent, monkeypatch, features, samples=torch.full((1, 1, 2), 0.5))
+    assert metrics["alpha_entropy"].item() == pytest.approx(1.0, rel=1e-6)
 
 
 @pytest.mark.parametrize("per_dimension, direction", [(0.6, -1), (0.8, +1)])
@@ -119,6 +123,7 @@ def test_the_terminal_weight_weighs_the_reward_and_continue_terms_of_terminal_fr
     for weight in (1.0, 3.0):
         torch.manual_seed(0)  # the same networks and posterior samples for both weights
         agent = script.Agent(tiny_args(script, terminal_weight=weight))
+        agent.world_model.cont = ConstantHead(3.0)  # continue logits far from 0: a flipped target reads far apart
         agent._set_training(False)
         with torch.no_grad():
             losses[weight], _, posts[weight] = agent.world_model_loss(

@@ -105,7 +105,7 @@ def test_status_names_every_trial_with_how_far_it_got(finished, tmp_path, capsys
     assert not os.path.exists(tmp_path / "nothing")  # nothing written
 
 
-def test_a_killed_trial_resumed_with_its_counters_and_the_others_untouched(finished):
+def test_a_killed_trial_resumes_its_own_run_with_its_counters_and_replay(finished):
     spec = finished
     plain = dataclasses.asdict(spec)
     for variant in ("lstm", "gru"):  # every dreamer trial was killed once (chaos), retried and resumed
@@ -118,16 +118,23 @@ def test_a_killed_trial_resumed_with_its_counters_and_the_others_untouched(finis
 
 
 def test_the_same_spec_again_does_nothing(finished):
+    """Run again, a finished experiment trains nothing and races no tournament again: every checkpoint and every
+    tournament's results file keeps its time."""
     spec = finished
-    files = sorted(glob.glob(os.path.join(spec.storage, "trials", "**", "*.pt"), recursive=True))
-    before = {path: os.path.getmtime(path) for path in files}
+
+    def written() -> dict:
+        patterns = ("*.pt", "results.json", "results.csv")  # checkpoints; the race trial's tournaments
+        paths = [p for pattern in patterns for p in glob.glob(os.path.join(spec.storage, "trials", "**", pattern),
+                                                               recursive=True)]  # fmt: skip
+        return {path: os.path.getmtime(path) for path in paths}
+
+    before = written()
+    assert any(path.endswith("results.json") for path in before)  # (the tournaments are among them)
     import ray
 
     ray.shutdown()
     experiment.main(dataclasses.replace(spec, chaos_kill_after_updates=0))
-    after = {path: os.path.getmtime(path) for path in glob.glob(os.path.join(spec.storage, "trials", "**", "*.pt"),
-                                                                 recursive=True)}  # fmt: skip
-    assert after == before
+    assert written() == before
 
 
 def test_a_rerun_with_other_trials_or_a_missing_stage_is_refused_before_ray_starts(finished, tmp_path):
@@ -230,7 +237,8 @@ def test_the_summary_matches_hand_computed_numbers():
     summary = experiment_report.summarize({"lstm": [100.0, 200.0, 300.0], "gru": [1.0, 2.0, 3.0, 10.0]},
                                    {"lstm": [0.6, 0.7], "gru": [0.4, 0.3]}, reps=300)  # fmt: skip
     lines = summary.splitlines()
-    assert lines[2].startswith("| lstm | 3 | 200.0 [") and "| 200.0 [" in lines[2]  # IQM of 3 = mean
+    assert lines[2].startswith("| lstm | 3 | 200.0 [")  # IQM of 3 = mean
+    assert lines[2].split("|")[4].strip().startswith("200.0 [")  # the mean's own cell
     assert lines[3].startswith("| gru | 4 | 2.5 [") and "| 4.0 [" in lines[3]  # IQM = mean(2, 3)
     # the IQM's and the mean's intervals lie within the scores (a bootstrap of them), around the point
     for line, lowest, highest in ((lines[2], 100.0, 300.0), (lines[3], 1.0, 10.0)):
