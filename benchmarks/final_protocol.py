@@ -530,10 +530,10 @@ def curve_means(curve: list[dict]) -> dict[int, tuple[float, int]]:
 
 def reached_at(means: dict[int, tuple[float, int]], target: float, seeds: int) -> str:
     """The first snapshot whose mean return (curve_means) reaches `target`, with how many of the peer's `seeds` that
-    mean is over, or "not within" the last one."""
+    mean is over, or "not within" the last one, with how many seeds that one's mean is over."""
     reached = [n for n, (mean, _) in means.items() if round(mean, BAR_DECIMALS) >= round(target, BAR_DECIMALS)]
     if not reached:
-        return f"not within {steps_label(max(means))}"
+        return f"not within {steps_label(max(means))} ({means[max(means)][1]} of {seeds} seeds)"
     return f"{steps_label(reached[0])} ({means[reached[0]][1]} of {seeds} seeds)"
 
 

@@ -448,7 +448,7 @@ def test_a_peer_row_of_an_unfinished_run_is_listed_not_compared_and_a_failed_or_
 def test_reaching_the_dreamers_mean_is_judged_at_the_bars_precision_and_out_of_the_peers_seeds():
     target = np.mean([836.13, 671.81, 862.95, 617.57, 700.84])  # 737.86 as a CSV reads it, 737.8600000000001 here
     assert final_protocol.reached_at({100_000: (737.86, 2)}, target, 2) == "100k (2 of 2 seeds)"
-    assert final_protocol.reached_at({100_000: (737.85, 2)}, target, 2) == "not within 100k"
+    assert final_protocol.reached_at({100_000: (737.85, 2)}, target, 2) == "not within 100k (2 of 2 seeds)"
     rows = [protocol_row("lstm", 21, 600.0)]
     curve = [{"variant": "ppo", "seed": s, "snapshot": 50_000, "env_steps": 50_000, "return": 650.0,
               "progress": 0.5, "mean_abs_steer": 0.1, "tracks": "10300..10329"} for s in ("11", "12")]  # fmt: skip
@@ -508,9 +508,9 @@ def test_the_sample_efficiency_table_gives_the_first_snapshot_whose_mean_reaches
         "| Dreamer | its policy | its final mean return | its mean env steps | SB3 PPO snapshots reach it at "
         "| RecurrentPPO snapshots reach it at |\n"
         "|---|---|---|---|---|---|\n"
-        "| lstm | mean action | 700.0 | 55,000 | 500k (2 of 2 seeds) | not within 250k |\n"
-        "| lstm | sampled | 950.0 | 55,000 | 1M (1 of 2 seeds) | not within 250k |\n"
-        "| gru | mean action | 980.0 | 61,234 | not within 1M | not within 250k |\n"
+        "| lstm | mean action | 700.0 | 55,000 | 500k (2 of 2 seeds) | not within 250k (2 of 2 seeds) |\n"
+        "| lstm | sampled | 950.0 | 55,000 | 1M (1 of 2 seeds) | not within 250k (2 of 2 seeds) |\n"
+        "| gru | mean action | 980.0 | 61,234 | not within 1M (1 of 2 seeds) | not within 250k (2 of 2 seeds) |\n"
         "| gru | sampled | 300.0 | 61,234 | 100k (2 of 2 seeds) | 100k (2 of 2 seeds) |\n"
         "\n"
         "| peer snapshot: mean return (seeds) | 50k | 100k | 250k | 500k | 1M |\n"
