@@ -1,6 +1,7 @@
 #!/bin/bash
 # usage: peer_chain.sh "ppo 11" "ppo 12" ...   trains each peer (skipping one with a report-track row), then its curve
-cd /work/peers
+peers=${PEERS:-/work/peers}; logs=${LOGS:-/work/logs}
+cd $peers || exit 1
 items=("$@")
 for item in "${items[@]}"; do
   read -r algo seed <<< "$item"
@@ -17,8 +18,9 @@ PY
 done
 for item in "${items[@]}"; do
   read -r algo seed <<< "$item"
-  done_file=/work/logs/curve_done_${algo}_${seed}
+  done_file=$logs/curve_done_${algo}_${seed}
   [ -f $done_file ] && continue
   echo "$(date -u) curve $algo $seed"
-  python benchmarks/ppo_peer.py --algo $algo --seed $seed --curve --first-track 10300 --tracks 30 && touch $done_file
+  python benchmarks/ppo_peer.py --algo $algo --seed $seed --curve --first-track 10300 --tracks 30 || exit 1
+  touch $done_file
 done

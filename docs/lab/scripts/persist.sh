@@ -12,6 +12,7 @@ main=${MAIN:-/work/main}
 peers=${PEERS:-/work/peers}
 logs=${LOGS:-/work/logs}
 state=$main/docs/lab/run_state
+[ -d $peers/runs ] || { echo "persist.sh: no $peers/runs: nothing to keep (the state kept before is left)"; exit 1; }
 rm -rf $state && mkdir -p $state
 cd $peers/runs
 for run in */*__*; do
@@ -33,8 +34,10 @@ with zipfile.ZipFile(sys.argv[1]) as src, zipfile.ZipFile(sys.argv[2], "w", zipf
 PY
   done
 done
-mkdir -p $state/logs
-cp $logs/curve_done_* $state/logs/ 2>/dev/null || true
-cp $peers/benchmarks/results/*peer*.csv $state/logs/ 2>/dev/null || true
-[ -f $logs/rerun/ppo_peer_curve.csv ] && cp $logs/rerun/ppo_peer_curve.csv $state/logs/rerun_ppo_peer_curve.csv
+mkdir -p $state/lab_logs
+cp $logs/curve_done_* $state/lab_logs/ 2>/dev/null || true
+cp $peers/benchmarks/results/*peer*.csv $state/lab_logs/ 2>/dev/null || true
+[ -f $logs/rerun/ppo_peer_curve.csv ] && cp $logs/rerun/ppo_peer_curve.csv $state/lab_logs/rerun_ppo_peer_curve.csv
 du -sh $state
+git -C $main status --short --ignored $state | grep '^!!' && { echo "persist.sh: git ignores some of it"; exit 1; }
+exit 0

@@ -1,4 +1,6 @@
 #!/bin/bash
-bash /work/logs/lane_a9.sh &
-bash /work/logs/lane_b9.sh &
+# The two lanes side by side; each step resumes, or skips when done.
+logs=${LOGS:-/work/logs}
+bash $logs/lane_a9.sh &
+bash $logs/lane_b9.sh &
 wait

@@ -6,7 +6,8 @@ main=${MAIN:-/work/main}
 peers=${PEERS:-/work/peers}
 logs=${LOGS:-/work/logs}
 state=$main/docs/lab/run_state
-[ -d $peers ] || { git clone -q $main $peers && git -C $peers checkout -q daef472; }
+[ -d $peers ] && { echo "restore.sh: $peers exists (not a new machine): nothing restored"; exit 1; }
+git clone -q $main $peers && git -C $peers checkout -q daef472
 mkdir -p $logs/rerun/scratch $peers/runs
 cp $main/docs/lab/scripts/*.sh $logs/ && chmod +x $logs/*.sh
 [ -d $state ] || exit 0
@@ -24,8 +25,8 @@ if missing:
 PY
   done
 done
-cp $state/logs/curve_done_* $logs/ 2>/dev/null || true
-for f in $state/logs/*peer*.csv; do
+cp $state/lab_logs/curve_done_* $logs/ 2>/dev/null || true
+for f in $state/lab_logs/*peer*.csv; do
   [ -f "$f" ] || continue
   case $(basename $f) in
     rerun_ppo_peer_curve.csv) cp $f $logs/rerun/ppo_peer_curve.csv ;;
