@@ -547,7 +547,8 @@ def sample_efficiency(rows: list[dict], curves: dict[str, list[dict]], peers: di
     if not means:
         return ""
     lines = [
-        "\nSample efficiency: the peers' snapshots (model_<N>.zip, the weights that took their N-th env step), their "
+        "\nSample efficiency: the peers' snapshots (model_<N>.zip, the weights that took their N-th env step; of a run "
+        "of the same seed and code where the reported run's were lost, as docs/learning.md says), their "
         "deterministic policy on the same report tracks, against the Dreamer's final mean return over its seeds. A "
         "peer reaches it at the first N whose mean return over the seeds that have that snapshot is at least as "
         "high.\n",
@@ -779,7 +780,7 @@ def ship(variant: str, runs_dir: str, shipped: str, results_dir: str = RESULTS,
              "| candidate | return | progress | \\|steer\\| | shipped |", "|---|---|---|---|---|"]  # fmt: skip
     lines += [f"| {r['candidate']} | {r['return']:.1f} | {r['progress']:.2f} | {r['abs_steer']:.2f} | "
               f"{'yes' if r['shipped'] else ''} |" for r in rows]  # fmt: skip
-    if winner is best:  # the pages that describe the shipped agents
+    if winner is best and os.path.basename(os.path.dirname(os.path.abspath(shipped))) == "pretrained":  # the pages
         lines += ["", f"{shipped} is now {best['candidate']}'s final policy: update what README.md and docs/races.md "
                   "say of the shipped agents"]  # fmt: skip
     return "\n".join(lines) + "\n"

@@ -133,7 +133,8 @@ class Args:
     run's directory is gone, e.g. a machine lost: the seeds left still drive by the same rule)"""
     shipped: str | None = None
     """--protocol-ship: the agent file the best seed must beat and, if it does, is exported over (default
-    pretrained/<variant>_cpu.pt, which git tracks: give another path to make the choice without changing it)"""
+    pretrained/<variant>_cpu.pt, which git tracks: give another path, with a --results-dir of its own for the
+    decision's record, to make the choice without changing either; a missing file: the best seed is exported there)"""
     results_dir: str = RESULTS
     """where every mode's tables are: learning_final.csv and .md (and the readings, the peers' CSVs,
     ship_<variant>.csv), the diagnostics, calibration.csv (default: the reported ones in benchmarks/results)"""
@@ -166,6 +167,9 @@ def check(args: Args) -> None:
         raise ValueError("--ship-seeds are the candidates of --protocol-ship; give --protocol-ship")
     if args.shipped is not None and not args.protocol_ship:
         raise ValueError("--shipped is the agent file of --protocol-ship; give --protocol-ship")
+    if args.shipped is not None and os.path.abspath(args.results_dir) == os.path.abspath(RESULTS):
+        raise ValueError("--shipped: give a --results-dir of its own too (the decision would go into the reported "
+                         "ship_<variant>.csv, which records what pretrained/ holds)")
     wrong = [seed for seed in args.ship_seeds if seed not in protocol.PROTOCOL_SEEDS]
     if wrong or not args.ship_seeds or len(set(args.ship_seeds)) < len(args.ship_seeds):
         raise ValueError(f"--ship-seeds must be distinct seeds of the final protocol "

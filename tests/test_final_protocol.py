@@ -466,6 +466,7 @@ def test_reaching_the_dreamers_mean_is_judged_at_the_bars_precision_and_out_of_t
                                                       "(21, 22, 23, 24, 25), got [24, 11]"),
     (["--protocol-ship", "--ship-seeds", "24", "24"], "got [24, 24]"),
     (["--shipped", "x.pt"], "--shipped is the agent file of --protocol-ship; give --protocol-ship"),
+    (["--protocol-ship", "--shipped", "x.pt"], "--shipped: give a --results-dir of its own too"),
 ])  # fmt: skip
 def test_the_command_line_refuses_a_protocol_mode_with_what_does_not_belong(argv, message, tmp_path):
     with pytest.raises(SystemExit) as exit_info:
@@ -659,6 +660,13 @@ def test_ship_seeds_choose_among_the_final_policies_left_and_never_read_a_lost_s
                   str(tmp_path / "mine")])  # fmt: skip
     seed25 = os.path.join(runs[25], "checkpoints", "latest.pt")
     assert elsewhere.read_bytes() == seed25.encode() and shipped.read_bytes() == b"the agent shipped before"
+    better = tmp_path / "mine2" / "gru_cpu.pt"  # a --shipped agent that drives better than every seed: it stays
+    better.parent.mkdir()
+    better.write_bytes(b"mine")
+    returns[str(better)] = 700.0
+    learning.cli([*common_args, "--ship-seeds", "24", "25", "--shipped", str(better), "--results-dir",
+                  str(better.parent)])  # fmt: skip
+    assert better.read_bytes() == b"mine" and str(better) in driven
     learning.cli([*common_args, "--ship-seeds", "24", "25"])
     assert shipped.read_bytes() == seed25.encode()  # seed 25's 610 beats seed 24's 520 and the shipped 500
     with open(results / "ship_gru.csv") as f:
