@@ -7,7 +7,7 @@
 Read top to bottom:
 
 1. Args ............ every hyperparameter (the paper's defaults) and the CPU preset
-2. Environment ..... the racing env's options, dead-zone schedule, track seeds
+2. Environment ..... the dead-zone warm-up (the env's options, track seeds: utils/run.py)
 3. Networks ........ encoder, recurrent core (GRU with a learned initial h), posterior/prior,
                      decoder, reward, continue, actor, critic (paper appendix)
 4. Losses .......... their terms: Gaussian likelihoods and KL, free bits, lambda-returns (paper 3.8-3.9;
@@ -21,7 +21,7 @@ What is around the method is shared by both scripts: the collector that drives t
 episodes (utils/collector.py: `Races`, frame preprocessing, what a race reads), and the run plumbing (arguments'
 checks, memory, run directory and resume, logging, atomic checkpoints and replay saves, the command line:
 utils/run.py, utils/checkpoint.py). They, race.py, evaluate.py and benchmarks/ use this module's names (Args,
-Agent, Replay, main, the section-2 helpers, the checkpoint readers of section 8...): grep before renaming one.
+Agent, Replay, main, dead_zone_at, the checkpoint readers of section 8...): grep before renaming one.
 
 Everything that depends on the recurrent cell is inside `RecurrentCell` (its state is a tuple of
 tensors; the model state fed to every head is z||h). The LSTM script (dreamer_lstm.py) is this file
@@ -49,7 +49,17 @@ from torch import nn
 from utils import checkpoint as checkpoint_io
 from utils.checkpoint import UsageError
 from utils.collector import Races, preprocess_frames
-from utils.run import after_training, finish_run, log_race, log_updates, progress_callback, setup_run
+from utils.run import (
+    after_training,
+    bf16_autocast,
+    finish_run,
+    log_race,
+    log_updates,
+    progress_callback,
+    races_seed,
+    set_next_dead_zone,
+    setup_run,
+)
 
 VARIANT = "gru"  # written into every checkpoint, so race.py knows which script built the agent
 
@@ -297,17 +307,6 @@ def preset_args(preset: str = "paper", **overrides) -> Args:
 # =====================================================================================
 # 2. Environment
 # =====================================================================================
-ENV_FIELDS = ("max_steps", "stall_steps", "brake_speed_threshold", "collision_penalty", "offroad_penalty",
-              "speed_reward_coef")  # the racing env's options, as Args fields of the same names
-
-
-def env_kwargs(args: Args, dead_zone: float) -> dict:
-    """Keyword arguments of the env constructor (the racing env's options; other envs get num_agents only)."""
-    if args.env_id != "multi_car_racing":
-        return {"num_agents": args.num_agents}
-    return {"num_agents": args.num_agents, **{k: getattr(args, k) for k in ENV_FIELDS}, "dead_zone": dead_zone}
-
-
 def dead_zone_at(episode: int, args: Args) -> float:
     """Linear dead-zone schedule: dead_zone_start at episode 0 to dead_zone_end at dead_zone_episodes. It is a
     warm-up for learning from scratch: a run whose agents start from a --checkpoint races at dead_zone_end."""
@@ -315,27 +314,6 @@ def dead_zone_at(episode: int, args: Args) -> float:
         return args.dead_zone_end
     frac = min(1.0, episode / max(1, args.dead_zone_episodes))
     return args.dead_zone_start + frac * (args.dead_zone_end - args.dead_zone_start)
-
-
-def next_dead_zone(args: Args, races_done: int) -> float:
-    """The dead zone to set once `races_done` races have ended; the env applies it at its next reset. Every race
-    races at dead_zone_at(the races ended when it starts). One race at a time resets after this (start_race): the
-    next race gets dead_zone_at(races_done). K > 1 races side by side have already auto-reset the ended race's
-    slot: the value is for the race that starts when the next one ends, dead_zone_at(races_done + 1). (So with K
-    side by side the warm-up lags by up to K - 1 races; races that end in the same step restart at one value.)"""
-    return dead_zone_at(races_done + (args.num_races > 1), args)
-
-
-def set_next_dead_zone(run) -> None:
-    """Give the racing env the dead zone of the race that starts next (next_dead_zone; other envs have none)."""
-    if run.args.env_id == "multi_car_racing":
-        run.envs.env_method("set_dead_zone", next_dead_zone(run.args, run.counters["episode"]))
-
-
-def race_seed(seed: int, episode: int) -> int:
-    """Track seed of training race `episode` (one race at a time): fixed by the run's seed and the episode number,
-    so a resumed run drives the very tracks the uninterrupted run would have."""
-    return int(np.random.SeedSequence([seed, episode]).generate_state(1)[0])
 
 
 # =====================================================================================
@@ -861,8 +839,6 @@ class Replay:
 # =====================================================================================
 RETURN_NORM_RATE = 0.01  # --return-norm: EMA rate of the return scale (DreamerV3)
 EVAL_POLICIES = ("deterministic", "mean-action", "stochastic")  # Agent.act's policies (--eval-policy)
-ACTING_PARTS = ("encoder.", "recurrent_input.", "cell.", "representation.")  # the world model's share of acting
-AGENT_PARTS = ("world_model", "actor", "critic", "targets", "model_optimizer", "actor_optimizer", "critic_optimizer")
 
 
 @torch.no_grad()
@@ -922,18 +898,6 @@ def imagine_rollout(world_model: WorldModel, actor: Actor, state: tuple, h, z, h
         features.append(torch.cat([z, h], -1))
         stds.append(std)
     return torch.stack(features), torch.stack(log_pis), torch.stack(samples), torch.stack(stds)
-
-
-def bf16_autocast(amp: str, device: torch.device) -> bool:
-    """Whether --amp runs the update under bfloat16 autocast: always with on, never with off; with auto on a CUDA
-    device that has bfloat16 in hardware (emulated bfloat16, before Ampere, is slower than float32), not on the
-    CPU."""
-    if amp != "auto":
-        return amp == "on"
-    if device.type != "cuda":
-        return False
-    with torch.cuda.device(device):  # (is_bf16_supported asks the current device)
-        return torch.cuda.is_bf16_supported(including_emulation=False)
 
 
 class Agent:
@@ -1257,54 +1221,13 @@ class Agent:
         real = torch.as_tensor(obs, device=self.device)
         return torch.cat([real, input_to_frames(recon), input_to_frames(torch.cat(imagined))], dim=2).cpu().numpy()
 
-    # --- persistence -------------------------------------------------------------------------
+    # --- persistence (what is saved: utils/checkpoint.py) -------------------------------------------
     def state_dict(self) -> dict:
-        return {name: getattr(self, name).state_dict() for name in AGENT_PARTS} | {
-            "return_scale": self.return_scale.clone(), "num_updates": self.num_updates,
-            "nonfinite_updates": self.nonfinite_updates, "nonfinite_in_a_row": self.nonfinite_in_a_row,
-        } | ({} if self.log_alpha is None else {
-            "log_alpha": self.log_alpha.detach().clone(), "alpha_optimizer": self.alpha_optimizer.state_dict(),
-        })  # fmt: skip
-
-    def acting_state_dict(self) -> dict:
-        """What acting needs and nothing else: encoder, posterior, recurrent core (with its input layer), actor.
-        No decoder, reward, continue, prior or critic, no targets, optimisers or replay (an exported policy)."""
-        world_model = {k: v for k, v in self.world_model.state_dict().items() if k.startswith(ACTING_PARTS)}
-        return {"world_model": world_model, "actor": self.actor.state_dict(), "num_updates": self.num_updates}
-
-    def set_learning_rates(self) -> None:
-        """Every optimiser's learning rate: its flag's value (--model-lr, --actor-lr, --critic-lr, --entropy-lr). Set
-        after a state is loaded, whose optimisers hold the rates they were saved with, so that a resumed run's or a
-        --checkpoint run's flags are the rates it learns at."""
-        pairs = [(self.model_optimizer, self.args.model_lr), (self.actor_optimizer, self.args.actor_lr),
-                 (self.critic_optimizer, self.args.critic_lr)]  # fmt: skip
-        if self.log_alpha is not None:
-            pairs.append((self.alpha_optimizer, self.args.entropy_lr))
-        for optimizer, lr in pairs:
-            for group in optimizer.param_groups:
-                group["lr"] = lr
+        return checkpoint_io.agent_state_dict(self)
 
     def load_state_dict(self, state: dict) -> None:
-        if "critic" not in state:  # an acting-only export: it drives, it cannot learn
-            missing, unexpected = self.world_model.load_state_dict(state["world_model"], strict=False)
-            missing = [k for k in missing if k.startswith(ACTING_PARTS)]
-            if missing or unexpected:
-                raise KeyError(f"acting-only state: missing {missing[:3]}, unexpected {unexpected[:3]}")
-            self.actor.load_state_dict(state["actor"])
-            self.num_updates, self.acting_only = int(state["num_updates"]), True
-            return
-        for name in AGENT_PARTS:
-            getattr(self, name).load_state_dict(state[name])
-        if "return_scale" in state:
-            self.return_scale.copy_(state["return_scale"])
-        if self.log_alpha is not None and "log_alpha" in state:  # (else alpha starts at --entropy-coef)
-            with torch.no_grad():
-                self.log_alpha.copy_(state["log_alpha"])
-            self.alpha_optimizer.load_state_dict(state["alpha_optimizer"])
-        self.num_updates = int(state["num_updates"])
-        self.nonfinite_updates = int(state.get("nonfinite_updates", 0))
-        self.nonfinite_in_a_row = int(state.get("nonfinite_in_a_row", 0))
-        self.set_learning_rates()  # the flags' rates, not those the saved optimisers hold
+        """A full state, or an acting-only export (the agent then drives, it cannot learn)."""
+        checkpoint_io.load_agent(self, state)
 
 
 # =====================================================================================
@@ -1332,13 +1255,13 @@ def train_agent(agent: Agent, replay: Replay, args: Args, logger, prefix: str, o
 
 def start_race(run) -> tuple[np.ndarray, int]:
     """One race at a time (K = 1): reset on the next race's track, a ghost track with its ghost (if it has one yet)
-    in the ghost stage, else the track race_seed(seed, episode), so a resumed run drives the same tracks."""
+    in the ghost stage, else the track races_seed(seed, episode), so a resumed run drives the same tracks."""
     args, episode = run.args, run.counters["episode"]
     if args.stage == "ghost":
         seed = args.ghost_seed + episode % args.ghost_tracks
         run.envs.set_options({"ghosts": {"car_0": run.ghosts[seed]}} if seed in run.ghosts else {})
     else:
-        seed = race_seed(args.seed, episode)
+        seed = races_seed(args.seed, episode)
     run.envs.seed(seed)
     return run.envs.reset(), seed
 

@@ -60,11 +60,12 @@ def single_car(path: str, index: int = 0) -> SingleCar:
     """Agent `index` of the checkpoint (or export) at `path`, set up to drive alone. The caller closes its env."""
     from utils import make_vec_env
     from utils.checkpoint import read_checkpoint  # one-line errors naming the file
+    from utils.run import env_kwargs
 
     script, checkpoint = read_checkpoint(path)
     args = script.args_from_checkpoint(checkpoint, path, num_agents=1)
     agent = script.agent_from_checkpoint(path, index)
-    envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
+    envs = make_vec_env(args.env_id, 1, None, **env_kwargs(args, args.dead_zone_end))
     return SingleCar(script, checkpoint, args, agent, envs)
 
 

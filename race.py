@@ -305,13 +305,13 @@ def build_racers(args: Args, device) -> list:
 
 def make_env(args, racers, render=False):
     """The race as a one-race vec env of the scripts (utils.make_vec_env), with the env settings the first Dreamer
-    racer trained with (its script's env_kwargs at the final dead zone; all cars share one env)."""
+    racer trained with (utils.run.env_kwargs at its final dead zone; all cars share one env)."""
     from utils import make_vec_env
 
     kwargs = {}
     dreamers = [r for r in racers if isinstance(r, DreamerRacer)]
     if dreamers:
-        kwargs = dreamers[0].module.env_kwargs(dreamers[0].args, dreamers[0].args.dead_zone_end)
+        kwargs = run_tools.env_kwargs(dreamers[0].args, dreamers[0].args.dead_zone_end)
     kwargs["num_agents"] = len(racers)
     if args.max_steps is not None:
         kwargs["max_steps"] = args.max_steps

@@ -25,7 +25,7 @@ import torch
 import tyro
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from utils.run import keep_freed_memory  # noqa: E402  (glibc keeps freed memory: --malloc-fix)
+from utils.run import env_kwargs, keep_freed_memory  # noqa: E402  (glibc keeps freed memory: --malloc-fix)
 
 
 @dataclasses.dataclass
@@ -70,7 +70,7 @@ def main(args: Args) -> dict:
     agents = [script.Agent(config) for _ in range(2)]
     replays = [script.Replay(config.replay_capacity, config.image_size) for _ in range(2)]
     step_bytes = script.Replay.bytes_per_step(config.image_size)
-    envs = make_vec_env("multi_car_racing", 1, args.seed, **script.env_kwargs(config, config.dead_zone_end))
+    envs = make_vec_env("multi_car_racing", 1, args.seed, **env_kwargs(config, config.dead_zone_end))
 
     def filled() -> int:
         return sum(len(r) for r in replays) * step_bytes

@@ -113,8 +113,9 @@ class FrameSkip(gymnasium.Wrapper):
 def env_kwargs() -> dict:
     """The single-car env with the settings the Dreamer runs are evaluated with (final dead zone)."""
     import dreamer_lstm
+    import utils.run
 
-    kwargs = dreamer_lstm.env_kwargs(dreamer_lstm.Args(), dreamer_lstm.Args().dead_zone_end)
+    kwargs = utils.run.env_kwargs(dreamer_lstm.Args(), dreamer_lstm.Args().dead_zone_end)
     kwargs.pop("num_agents")
     return kwargs
 

@@ -1076,7 +1076,7 @@ def test_evaluation_averages_steer_over_the_decisions_of_cars_still_racing(scrip
     from utils import make_vec_env
 
     args = tiny_args(script, num_agents=2, eval_episodes=1, eval_seed=3, max_steps=400, action_repeat=2)
-    envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
+    envs = make_vec_env(args.env_id, 1, None, **run_tools.env_kwargs(args, args.dead_zone_end))
     drivers = [_ScriptedSteer(1.0), _ScriptedSteer(-0.25)]
     readings = collector.drive_races(drivers, args, envs)
     envs.close()
@@ -1106,7 +1106,7 @@ def test_drive_races_reads_gas_brakes_speed_and_how_each_race_ended(script):
     from utils import make_vec_env
 
     args = tiny_args(script, num_agents=2, eval_episodes=1, eval_seed=3, max_steps=400, action_repeat=2)
-    envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
+    envs = make_vec_env(args.env_id, 1, None, **run_tools.env_kwargs(args, args.dead_zone_end))
     readings = collector.drive_races([_ScriptedPedal(1.0, 1.0), _ScriptedPedal(0.0, -1.0)], args, envs)
     envs.close()
     assert all(value.shape == (1, 2) for value in readings.values())
@@ -1117,7 +1117,7 @@ def test_drive_races_reads_gas_brakes_speed_and_how_each_race_ended(script):
     # return and progress, against the env stepped directly on the same track with the same actions (no collector)
     from envs import MultiCarRacing
 
-    env = MultiCarRacing(**script.env_kwargs(args, args.dead_zone_end))
+    env = MultiCarRacing(**run_tools.env_kwargs(args, args.dead_zone_end))
     env.reset(seed=args.eval_seed)
     actions = {"car_0": np.array([1.0, 1.0], np.float32), "car_1": np.array([0.0, -1.0], np.float32)}
     returns, progress = {agent: 0.0 for agent in actions}, {}
@@ -1225,7 +1225,6 @@ def test_k_races_of_different_seeds_or_a_resume_start_on_tracks_of_their_own(scr
               for seed in (11, 12, 13) for done in range(6)}  # fmt: skip
     for a, b in itertools.combinations(starts, 2):
         assert not starts[a] & starts[b], (a, b)
-    assert run_tools.races_seed(11, 3) == script.race_seed(11, 3)  # one race at a time: the same track seed
 
     class Built(Exception):
         pass
@@ -1283,7 +1282,8 @@ def test_dead_zone_of_the_next_race_is_set_before_its_reset(script):
     auto-reset the ended race's slot inside the step: one more, for the race that starts when the next one ends."""
     for races, ahead in ((1, 0), (3, 1)):
         args = tiny_args(script, num_races=races, dead_zone_start=-1.0, dead_zone_end=-0.5, dead_zone_episodes=4)
-        assert script.next_dead_zone(args, 2) == script.dead_zone_at(2 + ahead, args) == -1.0 + 0.5 * (2 + ahead) / 4
+        next_zone = run_tools.next_dead_zone(script, args, 2)
+        assert next_zone == script.dead_zone_at(2 + ahead, args) == -1.0 + 0.5 * (2 + ahead) / 4
     # the schedule is a warm-up for learning from scratch: agents that start trained race at its end from race 0
     assert script.dead_zone_at(0, tiny_args(script, checkpoint="best.pt", dead_zone_start=-1.0)) == -0.5
     # what main gives the env after each race (set_next_dead_zone): the racing env only, at the races ended so far
@@ -1291,7 +1291,7 @@ def test_dead_zone_of_the_next_race_is_set_before_its_reset(script):
     envs = types.SimpleNamespace(env_method=lambda *a: calls.append(a))
     for env_id in ("multi_car_racing", "highway-intersection"):
         args = tiny_args(script, env_id=env_id, dead_zone_start=-1.0, dead_zone_end=-0.5, dead_zone_episodes=4)
-        script.set_next_dead_zone(types.SimpleNamespace(args=args, envs=envs, counters={"episode": 2}))
+        script.set_next_dead_zone(types.SimpleNamespace(method=script, args=args, envs=envs, counters={"episode": 2}))
     assert calls == [("set_dead_zone", -0.75)]
 
 

@@ -15,6 +15,7 @@ import pedal_response
 from conftest import TINY_RUN
 import utils.checkpoint as ckpt
 from utils import make_vec_env
+from utils.run import env_kwargs
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +50,7 @@ def test_a_held_pedal_drives_the_env_as_the_same_actions_do_directly(trained):
     those of the env stepped directly with no action, decision by decision (action_repeat env steps each). Full gas
     moves the car onto new tiles; the first `after` decisions are kept as a replay stores them."""
     script, agent, args, _ = trained
-    envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
+    envs = make_vec_env(args.env_id, 1, None, **env_kwargs(args, args.dead_zone_end))
     try:
         held_frames, held_actions, standing, out, speed = pedal_response.drive(agent, args, envs, 10_200, 0, 0.0, 40)
         envs.seed(10_200)
@@ -255,7 +256,7 @@ def test_a_race_for_the_probe_holds_random_pedals_and_records_the_envs_own_speed
     values in [-1, 1], the same for the same track; the first action is zero."""
     script, agent, args, _ = trained
     args = dataclasses.replace(args, max_steps=400)
-    envs = make_vec_env(args.env_id, 1, None, **script.env_kwargs(args, args.dead_zone_end))
+    envs = make_vec_env(args.env_id, 1, None, **env_kwargs(args, args.dead_zone_end))
     try:
         frames, actions, speeds = pedal_response.drive_race(agent, args, envs, 10_201)
         assert len(frames) == len(actions) == len(speeds) and not actions[0].any() and speeds[0] == 0.0

@@ -2,7 +2,7 @@
 
 A *method* below is a dreamer script's module (``dreamer_lstm`` or ``dreamer_gru``): what these functions need of it
 is ``VARIANT`` (the name written into its checkpoints), ``Args`` (its hyperparameter dataclass) and ``Agent``
-(``state_dict()``, ``load_state_dict()``, ``acting_state_dict()``). The format:
+(whose ``state_dict()`` and ``load_state_dict()`` are ``agent_state_dict`` and ``load_agent``, below). The format:
 
 * a checkpoint is a dict ``{"variant", "args" (dict), "counters", "agents" (one state dict per agent), "rng",
   "extra"}`` saved with ``torch.save`` and read back with ``weights_only=True`` (tensors, numbers, strings, lists
@@ -189,6 +189,70 @@ def args_from_checkpoint(args_class, checkpoint: dict, path: str, **overrides):
         raise CheckpointError(f"{path}: its arguments do not fit this script: {first_line(e)}") from None
 
 
+# --- An agent's state ----------------------------------------------------------------------
+# What an Agent of either script saves: its networks, targets and optimisers by these attribute names, and with
+# --entropy-target its log alpha and alpha's optimiser; the return scale and the update counters.
+AGENT_PARTS = ("world_model", "actor", "critic", "targets", "model_optimizer", "actor_optimizer", "critic_optimizer")
+ACTING_PARTS = ("encoder.", "recurrent_input.", "cell.", "representation.")  # the world model's share of acting
+
+
+def agent_state_dict(agent) -> dict:
+    """Everything an Agent learns and counts (Agent.state_dict): a resumed agent continues as if never stopped."""
+    return {name: getattr(agent, name).state_dict() for name in AGENT_PARTS} | {
+        "return_scale": agent.return_scale.clone(), "num_updates": agent.num_updates,
+        "nonfinite_updates": agent.nonfinite_updates, "nonfinite_in_a_row": agent.nonfinite_in_a_row,
+    } | ({} if agent.log_alpha is None else {
+        "log_alpha": agent.log_alpha.detach().clone(), "alpha_optimizer": agent.alpha_optimizer.state_dict(),
+    })  # fmt: skip
+
+
+def acting_state_dict(agent) -> dict:
+    """What acting needs and nothing else: encoder, posterior, recurrent core (with its input layer), actor.
+    No decoder, reward, continue, prior or critic, no targets, optimisers or replay (an exported policy)."""
+    world_model = {k: v for k, v in agent.world_model.state_dict().items() if k.startswith(ACTING_PARTS)}
+    return {"world_model": world_model, "actor": agent.actor.state_dict(), "num_updates": agent.num_updates}
+
+
+def set_learning_rates(agent) -> None:
+    """Every optimiser's learning rate: its flag's value (--model-lr, --actor-lr, --critic-lr, --entropy-lr). Set
+    after a state is loaded, whose optimisers hold the rates they were saved with, so that a resumed run's or a
+    --checkpoint run's flags are the rates it learns at."""
+    args = agent.args
+    pairs = [(agent.model_optimizer, args.model_lr), (agent.actor_optimizer, args.actor_lr),
+             (agent.critic_optimizer, args.critic_lr)]  # fmt: skip
+    if agent.log_alpha is not None:
+        pairs.append((agent.alpha_optimizer, args.entropy_lr))
+    for optimizer, lr in pairs:
+        for group in optimizer.param_groups:
+            group["lr"] = lr
+
+
+def load_agent(agent, state: dict) -> None:
+    """Agent.load_state_dict: a full state (agent_state_dict; alpha starts at --entropy-coef if the state has none)
+    or an acting-only export (acting_state_dict: the agent drives, it cannot learn). The optimisers then learn at
+    the flags' rates (set_learning_rates)."""
+    if "critic" not in state:
+        missing, unexpected = agent.world_model.load_state_dict(state["world_model"], strict=False)
+        missing = [k for k in missing if k.startswith(ACTING_PARTS)]
+        if missing or unexpected:
+            raise KeyError(f"acting-only state: missing {missing[:3]}, unexpected {unexpected[:3]}")
+        agent.actor.load_state_dict(state["actor"])
+        agent.num_updates, agent.acting_only = int(state["num_updates"]), True
+        return
+    for name in AGENT_PARTS:
+        getattr(agent, name).load_state_dict(state[name])
+    if "return_scale" in state:
+        agent.return_scale.copy_(state["return_scale"])
+    if agent.log_alpha is not None and "log_alpha" in state:
+        with torch.no_grad():
+            agent.log_alpha.copy_(state["log_alpha"])
+        agent.alpha_optimizer.load_state_dict(state["alpha_optimizer"])
+    agent.num_updates = int(state["num_updates"])
+    agent.nonfinite_updates = int(state.get("nonfinite_updates", 0))
+    agent.nonfinite_in_a_row = int(state.get("nonfinite_in_a_row", 0))
+    set_learning_rates(agent)
+
+
 def load_agent_state(agent, state, path: str, index: int) -> None:
     """agent.load_state_dict, with a one-line CheckpointError naming the file when the state does not fit."""
     try:
@@ -239,13 +303,13 @@ def agent_from_checkpoint(method, path: str, index: int = 0, device="cpu"):
 
 
 def export_policy(method, checkpoint_path: str, out: str, index: int = 0) -> int:
-    """Write agent `index` of a checkpoint as an acting-only export (Agent.acting_state_dict, with its args and
+    """Write agent `index` of a checkpoint as an acting-only export (acting_state_dict, with its args and
     counters): what race.py and evaluate.py need to drive, small enough for git. Returns its size in bytes."""
     checkpoint = load_checkpoint(checkpoint_path, method.VARIANT)
     agent = agent_from_checkpoint(method, checkpoint_path, index)
     export = {
         "variant": method.VARIANT, "kind": "policy", "args": checkpoint["args"], "counters": checkpoint["counters"],
-        "agents": [agent.acting_state_dict()],
+        "agents": [acting_state_dict(agent)],
     }  # fmt: skip
     atomic_torch_save(export, out)
     return os.path.getsize(out)

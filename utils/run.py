@@ -2,7 +2,10 @@
 
 The scripts hold the method (networks, losses, replay, the agent's update and Algorithm 1's loop); this module holds
 what every run needs around it. A *method* is a dreamer script's module; what is used of it: ``VARIANT``, ``Args``,
-``PRESETS``, ``Agent``, ``Replay``, ``LOG_SIGMA_RANGE``, ``env_kwargs``, ``dead_zone_at`` and ``main`` (``cli``).
+``PRESETS``, ``Agent``, ``Replay``, ``LOG_SIGMA_RANGE``, ``dead_zone_at`` and ``main`` (``cli``).
+
+* the env and the device: ``env_kwargs`` (the racing env's options from Args), ``races_seed`` (training tracks),
+  ``set_next_dead_zone`` (the warm-up, race by race), ``bf16_autocast`` (--amp);
 
 * ``setup_run`` checks everything, then builds the ``Run`` (a new one, or a saved one exactly as it stopped): seeds,
   device, envs, agents, replays, logger (TensorBoard, progress.csv), ``config.json``;
@@ -341,13 +344,54 @@ class Run:
             print(message)
 
 
+# --- The env and the device ------------------------------------------------------------------
+ENV_FIELDS = ("max_steps", "stall_steps", "brake_speed_threshold", "collision_penalty", "offroad_penalty",
+              "speed_reward_coef")  # the racing env's options, as Args fields of the same names
+
+
+def env_kwargs(args, dead_zone: float) -> dict:
+    """Keyword arguments of the env constructor (the racing env's options; other envs get num_agents only)."""
+    if args.env_id != "multi_car_racing":
+        return {"num_agents": args.num_agents}
+    return {"num_agents": args.num_agents, **{k: getattr(args, k) for k in ENV_FIELDS}, "dead_zone": dead_zone}
+
+
 def races_seed(seed: int, races_done: int) -> int:
-    """The seed of the vec env of K races side by side, built after `races_done` races: race k starts on the track
-    of this seed + k (SB3's VecEnv.seed), its later tracks come from its env's own stream. Drawn from (seed,
-    races_done), as the scripts' race_seed: with seed + races_done, run seed 11's race 1 would be run seed 12's
-    race 0, and a run resumed after e races would race the tracks of a new run of seed + e. (One race at a time
-    resets each race on its own track, start_race: this seed is never used then.)"""
+    """A training track seed drawn from (run seed, races done), so a resumed run drives the very tracks the
+    uninterrupted run would have. One race at a time: the track of race `races_done` (the scripts' start_race).
+    K races side by side: the seed of their vec env built after `races_done` races; race k starts on the track of
+    this seed + k (SB3's VecEnv.seed), its later tracks come from its env's own stream. (With seed + races_done,
+    run seed 11's race 1 would be run seed 12's race 0, and a run resumed after e races would race the tracks of a
+    new run of seed + e.)"""
     return int(np.random.SeedSequence([seed, races_done]).generate_state(1)[0])
+
+
+def next_dead_zone(method, args, races_done: int) -> float:
+    """The dead zone to set once `races_done` races have ended; the env applies it at its next reset. Every race
+    races at method.dead_zone_at(the races ended when it starts). One race at a time resets after this
+    (start_race): the next race gets dead_zone_at(races_done). K > 1 races side by side have already auto-reset
+    the ended race's slot: the value is for the race that starts when the next one ends, dead_zone_at(races_done +
+    1). (So with K side by side the warm-up lags by up to K - 1 races; races that end in the same step restart at
+    one value.)"""
+    return method.dead_zone_at(races_done + (args.num_races > 1), args)
+
+
+def set_next_dead_zone(run: Run) -> None:
+    """Give the racing env the dead zone of the race that starts next (next_dead_zone; other envs have none)."""
+    if run.args.env_id == "multi_car_racing":
+        run.envs.env_method("set_dead_zone", next_dead_zone(run.method, run.args, run.counters["episode"]))
+
+
+def bf16_autocast(amp: str, device: torch.device) -> bool:
+    """Whether --amp runs the update under bfloat16 autocast: always with on, never with off; with auto on a CUDA
+    device that has bfloat16 in hardware (emulated bfloat16, before Ampere, is slower than float32), not on the
+    CPU."""
+    if amp != "auto":
+        return amp == "on"
+    if device.type != "cuda":
+        return False
+    with torch.cuda.device(device):  # (is_bf16_supported asks the current device)
+        return torch.cuda.is_bf16_supported(including_emulation=False)
 
 
 def setup_run(method, args, overrides=()) -> Run:
@@ -380,7 +424,7 @@ def setup_run(method, args, overrides=()) -> Run:
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
 
     n, episode = args.num_agents, int(resumed["counters"]["episode"]) if resumed else 0
-    kwargs = method.env_kwargs(args, method.dead_zone_at(episode, args))
+    kwargs = env_kwargs(args, method.dead_zone_at(episode, args))
     envs = make_vec_env(args.env_id, args.num_races, races_seed(args.seed, episode), args.use_subprocess, **kwargs)
     action_dim = int(envs.action_space.shape[0])
     run = Run(
@@ -618,7 +662,7 @@ def evaluate_and_keep_best(run: Run) -> None:
 
     args, counters, method = run.args, run.counters, run.method
     if run.eval_envs is None:
-        run.eval_envs = make_vec_env(args.env_id, 1, None, **method.env_kwargs(args, args.dead_zone_end))
+        run.eval_envs = make_vec_env(args.env_id, 1, None, **env_kwargs(args, args.dead_zone_end))
     readings = drive_races(run.agents, args, run.eval_envs)
     returns, progress, abs_steer = readings["return"], readings["progress"], readings["abs_steer"]
     for j in range(len(run.agents)):
