@@ -1224,6 +1224,7 @@ class Agent:
 
     # --- persistence (what is saved: utils/checkpoint.py) -------------------------------------------
     def state_dict(self) -> dict:
+        """Everything the agent learns and counts: networks, targets, optimisers, alpha, return scale, counters."""
         return checkpoint_io.agent_state_dict(self)
 
     def load_state_dict(self, state: dict) -> None:

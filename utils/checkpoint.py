@@ -1,8 +1,13 @@
 """Checkpoints and replay saves of the dreamer scripts: atomic, resumable, loaded with ``weights_only=True``.
 
 A *method* below is a dreamer script's module (``dreamer_lstm`` or ``dreamer_gru``): what these functions need of it
-is ``VARIANT`` (the name written into its checkpoints), ``Args`` (its hyperparameter dataclass) and ``Agent``
-(whose ``state_dict()`` and ``load_state_dict()`` are ``agent_state_dict`` and ``load_agent``, below). The format:
+is ``VARIANT`` (the name written into its checkpoints), ``Args`` (its hyperparameter dataclass) and ``Agent``, whose
+``state_dict()`` and ``load_state_dict()`` are ``agent_state_dict`` and ``load_agent`` (below). These read the Agent's
+attributes by name: ``world_model`` (acting uses its ``ACTING_PARTS``: ``encoder``, ``recurrent_input``, ``cell``,
+``representation``), ``actor``, ``critic``, ``targets``, the three optimisers, ``log_alpha`` and
+``alpha_optimizer`` (with --entropy-target), ``return_scale``, ``num_updates``, ``nonfinite_updates``,
+``nonfinite_in_a_row``, ``acting_only`` and ``args``' learning rates: a part renamed in a script is renamed here
+too (else an export drives without it: test_acting_only_export_acts_exactly_like_its_checkpoint fails). The format:
 
 * a checkpoint is a dict ``{"variant", "args" (dict), "counters", "agents" (one state dict per agent), "rng",
   "extra"}`` saved with ``torch.save`` and read back with ``weights_only=True`` (tensors, numbers, strings, lists

@@ -1,12 +1,12 @@
-"""A training run of a dreamer script: arguments, memory, run directory, resume, logging, checkpoints, command line.
+"""A training run of a dreamer script: arguments, memory, env and device, run directory, resume, logging,
+checkpoints, command line.
 
 The scripts hold the method (networks, losses, replay, the agent's update and Algorithm 1's loop); this module holds
 what every run needs around it. A *method* is a dreamer script's module; what is used of it: ``VARIANT``, ``Args``,
 ``PRESETS``, ``Agent``, ``Replay``, ``LOG_SIGMA_RANGE``, ``dead_zone_at`` and ``main`` (``cli``).
 
-* the env and the device: ``env_kwargs`` (the racing env's options from Args), ``races_seed`` (training tracks),
-  ``set_next_dead_zone`` (the warm-up, race by race), ``bf16_autocast`` (--amp);
-
+* the env and the device: ``env_kwargs`` (the racing env's options, from Args), ``races_seed`` (training tracks),
+  ``next_dead_zone`` / ``set_next_dead_zone`` (the warm-up, race by race), ``bf16_autocast`` (--amp);
 * ``setup_run`` checks everything, then builds the ``Run`` (a new one, or a saved one exactly as it stopped): seeds,
   device, envs, agents, replays, logger (TensorBoard, progress.csv), ``config.json``;
 * after every race: ``log_race`` and ``log_updates`` (TensorBoard and progress.csv), ``after_training``
@@ -357,12 +357,12 @@ def env_kwargs(args, dead_zone: float) -> dict:
 
 
 def races_seed(seed: int, races_done: int) -> int:
-    """A training track seed drawn from (run seed, races done), so a resumed run drives the very tracks the
-    uninterrupted run would have. One race at a time: the track of race `races_done` (the scripts' start_race).
-    K races side by side: the seed of their vec env built after `races_done` races; race k starts on the track of
-    this seed + k (SB3's VecEnv.seed), its later tracks come from its env's own stream. (With seed + races_done,
-    run seed 11's race 1 would be run seed 12's race 0, and a run resumed after e races would race the tracks of a
-    new run of seed + e.)"""
+    """A training track seed drawn from (run seed, races done). One race at a time: the track of race `races_done`
+    (the scripts' start_race), so a resumed run drives the very tracks the uninterrupted run would have. K races
+    side by side: the seed of their vec env built after `races_done` races; race k starts on the track of this
+    seed + k (SB3's VecEnv.seed), its later tracks come from its env's own stream (a resumed run's tracks then
+    differ from the uninterrupted run's, docs/reliability.md). (With seed + races_done, run seed 11's race 1 would
+    be run seed 12's race 0, and a run resumed after e races would race the tracks of a new run of seed + e.)"""
     return int(np.random.SeedSequence([seed, races_done]).generate_state(1)[0])
 
 
