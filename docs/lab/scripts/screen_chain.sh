@@ -4,6 +4,8 @@
 # /work/screens3) at seed 11 (sweep NAME), its report, and at seed 12 (sweep NAME12) only if seed 11's mean action
 # keeps |steer| <= 0.3 (the stopping rule), then its report. Each step resumes, or skips when done. Rules 2 and 3
 # (both seeds) and the GRU's part are judged and started by hand (docs/lab/screens.md).
+# A new machine has no clone: make it at the commit the screens' rules were fixed on.
+[ -d /work/screens3 ] || { git clone -q ${MAIN:-/work/main} /work/screens3 && git -C /work/screens3 checkout -q 723951d; } || exit 1
 cd /work/screens3
 name=$1; grid=$2; b11=$3; b12=$4
 python benchmarks/sweep.py --name $name --grid "$grid" --seeds 11 $b11 --num-cpus 1 >> /work/logs/sweep_$name.log 2>&1 || exit 1
