@@ -28,10 +28,10 @@ protocol (``learning.py --final`` until commit 32c3b4c), whose ``learning_final.
 * The bar, per variant over its seeds (protocol_bar): with its mean action, mean return >= 800 with every seed
   >= 650, mean progress >= 0.85 and mean |steer| <= 0.3; sampled, mean return >= 700. A variant short of seeds is
   provisional.
-* ``learning_final.md`` (write_protocol_report): per variant and policy and per peer the mean and the IQM over seeds
-  with rliable's stratified-bootstrap 95% intervals (descriptions), the bar, every run's row, the LSTM minus the
-  GRU and each variant minus each peer, judged by the exact permutation test and Welch's t interval
-  (benchmarks/stats.py), what random actions and the pure-pursuit driver score on the same tracks
+* ``learning_final.md`` (write_protocol_report): per variant and policy and per peer the mean over seeds with its t
+  95% interval and the IQM with rliable's stratified-bootstrap 95% interval (a description), the bar, every run's
+  row, the LSTM minus the GRU and each variant minus each peer, judged by the exact permutation test and Welch's t
+  interval (benchmarks/stats.py), what random actions and the pure-pursuit driver score on the same tracks
   (protocol_references), the env steps after which each peer's snapshots reach each variant's final mean return
   (sample_efficiency), and per variant the readings' means over seeds (protocol_why).
 
@@ -305,27 +305,33 @@ def groups(rows: list[dict], peers: dict[str, list[dict]]) -> list[tuple[str, st
 
 
 def protocol_summary(rows: list[dict], peers: dict[str, list[dict]], reps: int = 2000) -> str:
-    """Markdown: per variant and policy, and per peer, over its seeds: the mean and the IQM of the final return
-    with stratified-bootstrap 95% intervals (rliable: descriptions; over 5 seeds the IQM is the mean of the middle
-    3, the mean counts every seed), the lowest seed, the mean progress and |steer|, and the mean action's share of
-    tracks with a finished lap."""
-    from stats import interval_estimates
+    """Markdown: per variant and policy, and per peer, over its seeds: the mean of the final return with its Student
+    t 95% interval and the IQM with rliable's stratified-bootstrap 95% interval (a description: a percentile
+    bootstrap over so few seeds is too narrow; over 5 seeds the IQM is the mean of the middle 3, the mean counts
+    every seed), the lowest seed, the mean progress and |steer|, and the mean action's share of tracks with a
+    finished lap. A group of one run has no interval ("1 run")."""
+    from stats import interval_estimates, t_interval
 
     described = groups(rows, peers)
     scores = {f"{name} {policy}": column(mine, keys[0])[:, None] for name, policy, mine, keys in described}
     estimates = interval_estimates(scores, reps=reps)
+
+    def cell(point: float, interval: tuple[float, float], runs: int) -> str:
+        return f"{point:.1f} (1 run)" if runs == 1 else f"{point:.1f} [{interval[0]:.1f}, {interval[1]:.1f}]"
+
     lines = [
-        "| runs | policy | seeds | mean return [95% bootstrap] | IQM return [95% bootstrap] | min seed | mean progress "
+        "| runs | policy | seeds | mean return [t 95%] | IQM return [95% bootstrap] | min seed | mean progress "
         "| mean \\|steer\\| | laps finished |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for name, policy, mine, (ret, progress, steer) in described:
-        est = estimates[f"{name} {policy}"]
+        est, runs = estimates[f"{name} {policy}"], len(mine)
+        mean, mean_ci = t_interval(column(mine, ret))
         laps = f"{column(mine, 'mean_action_laps_finished').mean():.2f}" if policy == "mean action" else ""
         lines.append(
-            f"| {name} | {policy} | {len(mine)} | {est['mean']:.1f} [{est['mean_ci'][0]:.1f}, {est['mean_ci'][1]:.1f}] "
-            f"| {est['iqm']:.1f} [{est['iqm_ci'][0]:.1f}, {est['iqm_ci'][1]:.1f}] | {column(mine, ret).min():.1f} "
-            f"| {column(mine, progress).mean():.2f} | {column(mine, steer).mean():.2f} | {laps} |"
+            f"| {name} | {policy} | {runs} | {cell(mean, mean_ci, runs)} | {cell(est['iqm'], est['iqm_ci'], runs)} "
+            f"| {column(mine, ret).min():.1f} | {column(mine, progress).mean():.2f} | {column(mine, steer).mean():.2f} "
+            f"| {laps} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -659,10 +665,10 @@ def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
         f"# The final protocol (CPU budget)\n\nEach run trained until it had spent {PROTOCOL_CPU_HOURS:g} CPU-hours "
         f"of process CPU time; its final policy (latest.pt then) drove the {REPORT_TRACKS[1]} report tracks "
         f"{track_block(*REPORT_TRACKS)} sampled and with its mean action. The peers (benchmarks/ppo_peer.py, their "
-        f"deterministic policy) had the same CPU time and tracks. Means and IQMs over seeds carry rliable's "
-        f"stratified-bootstrap 95% intervals, which describe: over 5 seeds a percentile bootstrap is too narrow to "
-        f"judge, and the comparisons are judged by the exact permutation test and Welch's t interval "
-        f"(benchmarks/stats.py).\n\n"
+        f"deterministic policy) had the same CPU time and tracks. Means over seeds carry their Student t 95% "
+        f"intervals; IQMs rliable's stratified-bootstrap 95% intervals, which describe: over 5 seeds a percentile "
+        f"bootstrap is too narrow to judge. The comparisons are judged by the exact permutation test and Welch's t "
+        f"interval (benchmarks/stats.py).\n\n"
     )
     if not rows:
         text = header + "No run measured yet.\n"

@@ -368,11 +368,12 @@ def test_the_report_gives_mean_iqm_and_exact_tests_on_the_same_tracks_only(tmp_p
         cells = summary_cells(text, group, policy)
         middle = sorted(scores)[1:-1] if len(scores) == 5 else scores  # of 3 it trims none: the IQM is the mean
         assert cells[2] == str(len(scores)) and cells[5] == f"{min(scores):.1f}"
-        assert cells[3].startswith(f"{sum(scores) / len(scores):.1f} [")
+        t = sps.ttest_1samp(scores, 0.0).confidence_interval(0.95)  # the mean's Student t 95% interval
+        assert cells[3] == f"{np.mean(scores):.1f} [{t.low:.1f}, {t.high:.1f}]"
         assert cells[4].startswith(f"{sum(middle) / len(middle):.1f} [")
-        for cell in cells[3:5]:  # each interval holds its estimate, within the seeds' range
-            point, low, high = map(float, re.fullmatch(r"(\S+) \[(\S+), (\S+)\]", cell).groups())
-            assert min(scores) <= low <= point <= high <= max(scores) and low < high
+        # the IQM's bootstrap interval (a description) holds its estimate, within the seeds' range
+        point, low, high = map(float, re.fullmatch(r"(\S+) \[(\S+), (\S+)\]", cells[4]).groups())
+        assert min(scores) <= low <= point <= high <= max(scores) and low < high
     assert "5000.0" not in text and "6000.0" not in text  # other tracks: out
     assert [line for line in text.splitlines() if "RecurrentPPO" in line] == [  # only as a side without its seeds
         "Provisional: SB3 PPO lacks seeds 11, 12, 13, 14, 15; RecurrentPPO lacks seeds 11, 12, 13."]
@@ -429,6 +430,9 @@ def test_a_peer_row_of_an_unfinished_run_is_listed_not_compared_and_a_failed_or_
     assert "| SB3 PPO | 13 | 1500 | 1000000 | 1.00 (short of the budget) |" in text  # listed with every run
     ppo, recurrent = (summary_cells(text, peer, "deterministic") for peer in ("SB3 PPO", "RecurrentPPO"))
     assert ppo[2] == "2" and ppo[3].startswith("550.0 [") and recurrent[2] == "2" and recurrent[3].startswith("660.0 [")
+    one = final_protocol.protocol_summary([], {"recurrent_ppo": [{"final_return": "257.9", "final_progress": "0.39",
+                                                                  "final_mean_abs_steer": "0.76"}]}, reps=50)
+    assert summary_cells(one, "RecurrentPPO", "deterministic")[2:5] == ["1", "257.9 (1 run)", "257.9 (1 run)"]
     comparison = next(line for line in text.splitlines() if line.startswith("| mean action: lstm - SB3 PPO |"))
     assert comparison.split("|")[2].strip() == "4+2" and comparison.split("|")[3].strip() == "+180.0"  # 730 - 550
     assert ("Provisional: lstm lacks seeds 25; gru lacks seeds 21, 22, 23, 24, 25; SB3 PPO lacks seeds 13, 14, 15; "
