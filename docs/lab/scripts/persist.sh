@@ -29,8 +29,10 @@ for run in */*__*; do
 import sys, zipfile
 with zipfile.ZipFile(sys.argv[1]) as src, zipfile.ZipFile(sys.argv[2], "w", zipfile.ZIP_DEFLATED) as out:
     for name in src.namelist():
-        if name != "policy.optimizer.pth":
-            out.writestr(name, src.read(name))
+        if name != "policy.optimizer.pth":  # (the entry's own date: the same bytes at every stop, one git blob)
+            info = zipfile.ZipInfo(name, date_time=src.getinfo(name).date_time)
+            info.compress_type = zipfile.ZIP_DEFLATED
+            out.writestr(info, src.read(name))
 PY
   done
 done
