@@ -7,8 +7,14 @@ import os
 import gymnasium
 import numpy as np
 import pytest
+import torch
 
 import ppo_peer
+
+
+def parameters(policy) -> torch.Tensor:
+    """A policy's weights as one vector."""
+    return torch.cat([p.detach().flatten() for p in policy.parameters()])
 
 
 def test_frame_skip_sums_rewards_and_stops_at_the_end():
@@ -124,9 +130,20 @@ def test_a_recurrent_run_resumes_writes_its_row_and_its_curve(tmp_path, monkeypa
     first = ppo_peer.main([*argv, "--budget-steps", "64"])
     assert (first["variant"], first["env_steps"], first["updates"]) == ("recurrent_ppo", 2 * 64, 1)
     capsys.readouterr()
+    from sb3_contrib import RecurrentPPO
+
+    saved = RecurrentPPO.load(tmp_path / "recurrent_ppo__3" / "model.zip", device="cpu")
+    started, learn = [], RecurrentPPO.learn
+
+    def spy(self, *args, **kwargs):  # what the second sitting learns from: the first sitting's weights and counts
+        started.append((self.num_timesteps, self._n_updates, parameters(self.policy)))
+        return learn(self, *args, **kwargs)
+
+    monkeypatch.setattr(RecurrentPPO, "learn", spy)
     second = ppo_peer.main([*argv, "--budget-steps", "256"])  # continues: rollouts start at 128, 256, 384 env steps
     assert (second["env_steps"], second["updates"]) == (2 * 256, 4)
-    assert "continuing from " in capsys.readouterr().out  # (a fresh start would reach the same counts)
+    assert "continuing from " in capsys.readouterr().out
+    assert started[0][:2] == (64, 1) and torch.equal(started[0][2], parameters(saved.policy))  # (a fresh start: 0, 0)
     with open(tmp_path / "recurrent_ppo_peer.csv") as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == 1 and tuple(rows[0]) == ppo_peer.COLUMNS and rows[0]["variant"] == "recurrent_ppo"

@@ -208,10 +208,16 @@ def test_train_continues_with_the_replay_saved_beside_the_checkpoint(tiny_checkp
 
 def test_the_same_train_command_trains_the_same_agents(tiny_checkpoints, tmp_path):
     """Head-to-head training is reproducible whatever ran before it in the process: the replay batches come from
-    numpy's stream, which train() seeds from the seed and the races done, as it seeds torch's."""
+    numpy's stream, which train() seeds from the seed and the races done, as it seeds torch's. (And it trains: the
+    weights moved from the checkpoint's by the 2 updates.)"""
     import numpy as np
     import torch
 
+    def flat(agent):
+        return torch.cat([t.flatten().float() for net in ("world_model", "actor", "critic")
+                          for t in agent[net].values()])  # fmt: skip
+
+    start = ckpt.read_checkpoint(tiny_checkpoints["lstm"])[1]["agents"][0]
     weights = []
     for k, noise in enumerate((1, 2)):
         np.random.seed(noise)  # whatever the process drew before (a Ray worker, an earlier interval)
@@ -221,9 +227,10 @@ def test_the_same_train_command_trains_the_same_agents(tiny_checkpoints, tmp_pat
                    "--train-steps", "2", "--max-steps", "30", "--runs-dir", str(runs_dir)])  # fmt: skip
         (run_dir,) = list(runs_dir.iterdir())
         agent = ckpt.read_checkpoint(str(run_dir / "checkpoints" / "racer_0.pt"))[1]["agents"][0]
-        weights.append(torch.cat([t.flatten().float() for net in ("world_model", "actor", "critic")
-                                  for t in agent[net].values()]))  # fmt: skip
+        assert agent["num_updates"] == start["num_updates"] + 2
+        weights.append(flat(agent))
     assert weights[0].numel() > 1000 and torch.equal(weights[0], weights[1])
+    assert not torch.equal(weights[0], flat(start))
 
 
 def test_racers_are_saved_as_a_pair_a_kill_while_saving_leaves_the_previous_pair(tmp_path, monkeypatch):
