@@ -69,6 +69,7 @@ VARIANT = "gru"  # written into every checkpoint, so race.py knows which script 
 # =====================================================================================
 @dataclasses.dataclass
 class Args:
+    # An "episode" in these flags and in the run's counters is a race (every car's episode at once)
     # --- experiment
     preset: Literal["paper", "cpu"] = "paper"
     """paper: the paper's sizes and schedule; cpu: a configuration that learns on a 2-core CPU in hours: smaller
@@ -218,7 +219,8 @@ class Args:
     gamma: float = 0.99
     """discount factor"""
     tau: float = 0.005
-    """soft-update rate of the target networks, after every optimiser step"""
+    """soft-update rate of the target networks: the world model's (the KL terms' stop-gradient side) after every
+    world-model step taken, the slow critic after every critic step taken"""
     free_bits: float = 1.0
     """free nats per step of each KL term: max(free_bits, KL)"""
     kl_dyn_scale: float = 1.0
@@ -321,9 +323,9 @@ def dead_zone_at(episode: int, args: Args) -> float:
 # =====================================================================================
 LATENT_MIN_STD = 0.1  # sigma of posterior and prior: softplus(.) + this minimum
 LOG_SIGMA_RANGE = (-5.0, 2.0)  # the decoder's log sigma: the smallest --decoder-min-log-sigma allowed, its cap
-HEAD_MIN_STD = 0.1  # sigma of the reward and critic Gaussians
+HEAD_MIN_STD = 0.1  # a learned sigma of the reward and critic Gaussians: softplus(.) + this minimum
 TWOHOT_BINS, TWOHOT_SPAN = 255, 20.0  # --heads twohot: DreamerV3's bins, symexp(-20 .. 20) (+-4.9e8, 0 in the middle)
-ACTOR_STD_BOUNDS = (0.1, 1.0)  # the paper authors' soft bounds of the actor's sigma (0.1 .. 1.34: soft_bounded)
+ACTOR_STD_BOUNDS = (0.1, 1.0)  # the paper authors' (low, high) of soft_bounded for the actor's sigma: 0.1 .. 1.34
 
 
 def norm_1d(kind: str, size: int) -> nn.Module:
@@ -485,6 +487,11 @@ def gaussian_params(out: torch.Tensor, min_std: float) -> tuple[torch.Tensor, to
     (under --amp the head computed in bfloat16; distributions and losses do not)."""
     mean, raw_std = out.float().chunk(2, dim=-1)
     return mean, F.softplus(raw_std) + min_std
+
+
+def gaussian_nll(x: torch.Tensor, mean: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
+    """-log N(x; mean, std), elementwise."""
+    return 0.5 * ((x - mean) / std).pow(2) + torch.log(std) + 0.5 * math.log(2 * math.pi)
 
 
 def symexp(x: torch.Tensor) -> torch.Tensor:
@@ -651,6 +658,17 @@ class WorldModel(nn.Module):
         return out
 
 
+def policy_log_prob(action: torch.Tensor, mean: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
+    """log pi(a) = sum_d [log N(a_d; mean_d, sigma_d) - log(1 - tanh(a_d)^2 + 1e-6)] of the unclipped sample a
+    (paper 3.9): the Gaussian's log density plus a penalty that grows with |a| (extreme_action_term)."""
+    return (-gaussian_nll(action, mean, std) - torch.log(1 - torch.tanh(action).pow(2) + 1e-6)).sum(-1)
+
+
+def extreme_action_term(action: torch.Tensor) -> torch.Tensor:
+    """sum_d -log(1 - tanh(a_d)^2 + 1e-6): log pi's part that grows with |a| (0 at a = 0; --action-penalty)."""
+    return -torch.log(1 - torch.tanh(action).pow(2) + 1e-6).sum(-1)
+
+
 def soft_bounded(x: torch.Tensor, low: float, high: float) -> torch.Tensor:
     """low + softplus(high - softplus(high - x) - low): smooth and increasing, above low, saturating at
     low + softplus(high - low) (the actor's sigma for the bounds (0.1, 1): 0.1 .. 1.34, 0.61 at x = 0)."""
@@ -684,22 +702,6 @@ class Actor(nn.Module):
             return mean, None
         action = mean + std * torch.randn_like(std)
         return action.clamp(-1.0, 1.0), policy_log_prob(action, mean, std)
-
-
-def gaussian_nll(x: torch.Tensor, mean: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
-    """-log N(x; mean, std), elementwise."""
-    return 0.5 * ((x - mean) / std).pow(2) + torch.log(std) + 0.5 * math.log(2 * math.pi)
-
-
-def policy_log_prob(action: torch.Tensor, mean: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
-    """log pi(a) = sum_d [log N(a_d; mean_d, sigma_d) - log(1 - tanh(a_d)^2 + 1e-6)] of the unclipped sample a
-    (paper 3.9): the Gaussian's log density plus a penalty that grows with |a| (extreme_action_term)."""
-    return (-gaussian_nll(action, mean, std) - torch.log(1 - torch.tanh(action).pow(2) + 1e-6)).sum(-1)
-
-
-def extreme_action_term(action: torch.Tensor) -> torch.Tensor:
-    """sum_d -log(1 - tanh(a_d)^2 + 1e-6): log pi's part that grows with |a| (0 at a = 0; --action-penalty)."""
-    return -torch.log(1 - torch.tanh(action).pow(2) + 1e-6).sum(-1)
 
 
 class Critic(nn.Module):
@@ -783,7 +785,8 @@ class Replay:
 
     Frames are stored once (no separate next observation): a sequence of L steps holds L frames.
     Whole car episodes are added at once, so K parallel races never interleave inside the buffer;
-    sequences may cross episode boundaries, which is_first marks. Capacity is in steps.
+    sequences may cross episode boundaries, which is_first marks. A step is one decision (--action-repeat env
+    steps); capacity is in steps. chunk_size and saver serve only the replay's saves (utils/checkpoint.py).
     """
 
     def __init__(self, capacity: int, image_size: int, action_dim: int = 2, chunk_size: int = 1000):
@@ -917,7 +920,7 @@ class Agent:
                 "encoder": copy.deepcopy(self.world_model.encoder),
                 "representation": copy.deepcopy(self.world_model.representation),
                 "transition": copy.deepcopy(self.world_model.transition),
-                "critic": copy.deepcopy(self.critic),
+                "critic": copy.deepcopy(self.critic),  # (unread with --no-target-critic and Gaussian heads: kept)
             }
         ).requires_grad_(False)
         self.targets.eval()  # targets always use their (soft-updated) running statistics
@@ -990,6 +993,7 @@ class Agent:
             + args.kl_rep_scale * kl_free_bits(kl_rep, args.free_bits)
         ).mean()  # fmt: skip
         metrics = {
+            # "reconstruction": the frames' negative log-likelihood (below 0 once a learned sigma is small)
             "model_loss": loss, "reconstruction": image_nll.mean(), "reward": reward_nll.mean(),
             "continue": cont_nll.mean(), "kl_dyn": kl_dyn.mean(), "kl_rep": kl_rep.mean(),
         }  # fmt: skip
@@ -1058,7 +1062,7 @@ class Agent:
         metrics = {
             "actor": actor_loss, "critic": critic_loss, "actor_std": stds.mean(),
             "entropy": -log_pi.mean(),  # -log pi with the extreme-action term: an entropy estimate minus that penalty
-            "imagined_return": returns.mean(),
+            "imagined_return": returns.mean(),  # the lambda-return with the entropy bonus (and --action-penalty's term)
         }  # fmt: skip
         if args.return_norm:
             metrics["return_scale"] = self.return_scale.clone()
@@ -1129,10 +1133,13 @@ class Agent:
     def update(self, batch: dict) -> dict[str, float]:
         """One training update on a batch of B sequences of length L (numpy arrays from Replay.sample).
 
-        Each optimiser step whose loss or gradient is not finite is skipped: its network, its BatchNorm
-        statistics and its targets stay unchanged, and the update counts in nonfinite_updates. (The --return-norm
-        scale is moved by the actor's returns before its step: a finite batch moves it even if that step is
-        skipped.)"""
+        In order: the world model's loss and step, then its targets; imagination from the posterior states of that
+        loss (computed before the step) rolled out by the stepped model; the actor's and critic's losses and steps;
+        alpha's step (--entropy-target) on that imagination's entropy; the slow critic.
+
+        Each optimiser step whose loss or gradient is not finite is skipped: its network, its BatchNorm statistics
+        and its targets stay unchanged, and the update counts in nonfinite_updates. (The --return-norm scale is
+        moved by the actor's returns before its step: a finite batch moves it even if that step is skipped.)"""
         if self.acting_only:
             raise RuntimeError("an acting-only export has no decoder, critic or optimiser state: it cannot learn")
         obs, actions, rewards, is_first, terminated = self._batch_tensors(batch)
@@ -1169,17 +1176,18 @@ class Agent:
 
     # --- acting --------------------------------------------------------------------------
     def initial_state(self, n: int):
-        """Recurrent state of n cars before their first frame: (cell state, z, previous action)."""
+        """Recurrent state of n cars before their first frame: (the recurrent core's state tuple, z, previous
+        action)."""
         with torch.no_grad():
-            cell = tuple(s.clone() for s in self.world_model.cell.initial_state(n))
+            core_state = tuple(s.clone() for s in self.world_model.cell.initial_state(n))
         z = torch.zeros(n, self.args.latent_size, device=self.device)
-        return cell, z, torch.zeros(n, self.action_dim, device=self.device)
+        return core_state, z, torch.zeros(n, self.action_dim, device=self.device)
 
     @torch.no_grad()
     def act(self, obs: np.ndarray, state=None, is_first=None, policy: str = "stochastic"):
         """Actions for the n cars this agent drives: obs (n, H, W, 3) uint8, is_first (n,) bool.
 
-        Returns actions (n, A) numpy in [-1, 1] and the new state (cell, z, action). state=None starts every car
+        Returns actions (n, A) numpy in [-1, 1] and the new state (core state, z, action). state=None starts every car
         fresh; is_first restarts the marked cars (a new race) and defaults to none. `policy` (EVAL_POLICIES):
         "stochastic" samples z from the posterior and the action from the actor (training); "mean-action"
         samples z and takes the actor's mean; "deterministic" takes the posterior mean and the actor's mean.
@@ -1192,13 +1200,14 @@ class Agent:
         is_first = np.zeros(n, dtype=bool) if is_first is None else np.asarray(is_first, dtype=bool)
         frames = torch.as_tensor(preprocess_frames(obs, self.args.image_size), device=self.device)
         self._set_training(False)  # BatchNorm uses its running statistics while acting
-        cell, z, prev_action = state
+        core_state, z, prev_action = state
         embed_part = self.world_model.representation.embed_part(self.world_model.encoder(frames))
         first = torch.as_tensor(is_first, device=self.device)
         sample_z = policy != "deterministic"
-        cell, h, z, _, _ = self.world_model.observe_step(cell, z, prev_action, embed_part, first, sample_z)
+        core_state, h, z, _, _ = self.world_model.observe_step(core_state, z, prev_action, embed_part, first,
+                                                              sample_z)  # fmt: skip
         action, _ = self.actor.sample(torch.cat([z, h], -1), deterministic=policy != "stochastic")
-        return action.cpu().numpy(), (cell, z, action)
+        return action.cpu().numpy(), (core_state, z, action)
 
     @torch.no_grad()
     def video(self, obs: np.ndarray, actions: np.ndarray, is_first: np.ndarray, context: int = 5) -> np.ndarray:
@@ -1324,7 +1333,9 @@ def main(args: Args, overrides=()) -> str:
             if run.finished():
                 break
         if k_races == 1 and not run.finished():
-            obs, track_seed = start_race(run)  # the next race's own track (the ghost stage: with its ghost)
+            # the next race's own track (the ghost stage: with its ghost); the race the vec env's auto-reset began
+            # is replaced
+            obs, track_seed = start_race(run)
             races.start(obs)
     return finish_run(run)
 
