@@ -292,6 +292,22 @@ def check_finite(rows: list[dict], keys: tuple[str, ...], what: str) -> None:
                              f"{', '.join(repr(r[k]) for k in bad)}: measure it again")
 
 
+def check_seeds(rows: list[dict], seeds: tuple[int, ...], what: str, per: tuple[str, ...] = ("seed",)) -> None:
+    """Refuse (a one-line ValueError naming it) a row of a seed outside `seeds`, the protocol's (a run of another
+    seed measured on the report tracks, as ``ppo_peer.py --seed 16`` writes by default), or a second row of one run
+    (`per`: its seed, and its snapshot for a curve's rows): either would enter the statistics as a run of the
+    protocol."""
+    foreign = sorted({int(r["seed"]) for r in rows} - set(seeds))
+    if foreign:
+        raise ValueError(f"{what}: seed(s) {', '.join(map(str, foreign))} are not the protocol's "
+                         f"({', '.join(map(str, seeds))}): move their rows to a file of their own")
+    keys = [tuple(int(r[k]) for k in per) for r in rows]
+    twice = sorted({key for key in keys if keys.count(key) > 1})
+    if twice:
+        names = "; ".join(", ".join(f"{k} {v}" for k, v in zip(per, key)) for key in twice)
+        raise ValueError(f"{what}: more than one row for {names}: keep one per run")
+
+
 def groups(rows: list[dict], peers: dict[str, list[dict]]) -> list[tuple[str, str, list[dict], tuple]]:
     """What the report describes over seeds: (name, policy, rows, their return, progress and |steer| columns) for
     each variant with rows, with each policy, then each peer with rows, with its deterministic policy."""
@@ -653,14 +669,20 @@ def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
     measured = {peer: theirs for peer, theirs in measured.items() if theirs}
     check_finite(rows, PROTOCOL_POLICY_COLUMNS["mean-action"] + PROTOCOL_POLICY_COLUMNS["stochastic"],
                  "learning_final.csv")
+    for variant in VARIANTS:
+        check_seeds([r for r in rows if r["variant"] == variant], PROTOCOL_SEEDS, f"learning_final.csv ({variant})")
     for peer, theirs in measured.items():
         check_finite(theirs, PEER_POLICY_COLUMNS, f"{peer}_peer.csv")
+        check_seeds(theirs, PROTOCOL_PEER_SEEDS[peer], f"{peer}_peer.csv")
     # a peer's row that is not the protocol's final policy (peer_finished) is listed, not compared
     peers = {peer: [r for r in theirs if peer_finished(r)] for peer, theirs in measured.items()}
     unfinished = [f"{PEER_NAMES[peer]} seed {r['seed']} ({float(r['cpu_hours']):.2f} CPU-h, {r['env_steps']} env "
                   f"steps)" for peer, theirs in measured.items() for r in theirs if not peer_finished(r)]
     curves = {peer: read_peer_rows(protocol_peer_path(peer, results_dir, curve=True), CURVE_COLUMNS)
               for peer in PROTOCOL_PEERS}  # fmt: skip
+    for peer, curve in curves.items():
+        check_finite(curve, ("return",), f"{peer}_peer_curve.csv")
+        check_seeds(curve, PROTOCOL_PEER_SEEDS[peer], f"{peer}_peer_curve.csv", per=("seed", "snapshot"))
     header = (
         f"# The final protocol (CPU budget)\n\nEach run trained until it had spent {PROTOCOL_CPU_HOURS:g} CPU-hours "
         f"of process CPU time; its final policy (latest.pt then) drove the {REPORT_TRACKS[1]} report tracks "
@@ -681,7 +703,7 @@ def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
             + (f"\nNot the protocol's final policy (peer_finished), left out of the statistics: "
                f"{'; '.join(unfinished)}.\n" if unfinished else "")
             + COMPARISONS_TEXT + protocol_comparisons(rows, peers) + provisional_note(rows, peers)
-            + sample_efficiency(rows, curves, measured)
+            + sample_efficiency(rows, curves, peers)
         )  # fmt: skip
         why_rows = read_table(os.path.join(results_dir, WHY_CSV), WHY_COLUMNS, WHY_ADVICE)
         if why_rows:

@@ -207,8 +207,11 @@ def train(
     skip) reach a threshold of `snapshots`, the weights that took that step (they change only between rollouts) and
     the normaliser are kept as model_<threshold>.zip and vecnormalize_<threshold>.pkl (the zip written last). A
     snapshot is written once over every sitting; a resumed run deletes those past its saved steps (a killed sitting's
-    lost stretch) and takes them again. Returns the record: env steps, updates (SB3's ``_n_updates``, epochs over a
-    rollout of n_steps * n_envs / batch_size gradient steps each) and CPU hours."""
+    lost stretch) and takes them again. A save comes at a rollout's end, before SB3 trains on that rollout, so a
+    resumed sitting starts from weights that never train on it (its env steps and CPU time stay counted: one rollout,
+    8,192 env steps, per sitting, against the ~4.6M of a protocol run). Returns the record: env steps,
+    updates (SB3's ``_n_updates``, epochs over a rollout of n_steps * n_envs / batch_size gradient steps each) and
+    CPU hours."""
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.vec_env import VecNormalize
 
