@@ -550,22 +550,31 @@ def curve_means(curve: list[dict]) -> dict[int, tuple[float, int]]:
     return {n: (float(x.mean()), x.size) for n, x in returns.items()}
 
 
-def reached_at(means: dict[int, tuple[float, int]], target: float, seeds: int) -> str:
+def reached_at(means: dict[int, tuple[float, int]], target: float, seeds: int, final=None) -> str:
     """The first snapshot whose mean return (curve_means) reaches `target`, with how many of the peer's `seeds` that
-    mean is over, or "not within" the last one, with how many seeds that one's mean is over."""
-    reached = [n for n, (mean, _) in means.items() if round(mean, BAR_DECIMALS) >= round(target, BAR_DECIMALS)]
-    if not reached:
-        return f"not within {steps_label(max(means))} ({means[max(means)][1]} of {seeds} seeds)"
-    return f"{steps_label(reached[0])} ({means[reached[0]][1]} of {seeds} seeds)"
+    mean is over, or "not within" the last one, with how many seeds that one's mean is over; then, if `final` (the
+    mean return, mean env steps and number of the peer's final policies) reaches it, that they do."""
+    def reaches(mean: float) -> bool:
+        return round(mean, BAR_DECIMALS) >= round(target, BAR_DECIMALS)
+
+    reached = [n for n, (mean, _) in means.items() if reaches(mean)]
+    if reached:
+        return f"{steps_label(reached[0])} ({means[reached[0]][1]} of {seeds} seeds)"
+    text = f"not within {steps_label(max(means))} ({means[max(means)][1]} of {seeds} seeds)"
+    if final is not None and reaches(final[0]):
+        text += f"; its final policies do ({final[1] / 1e6:.1f}M env steps, {final[2]} seeds)"
+    return text
 
 
 def sample_efficiency(rows: list[dict], curves: dict[str, list[dict]], peers: dict[str, list[dict]]) -> str:
     """Markdown: for each variant and policy, its final mean return and mean env steps over its seeds, and the
     snapshot after which each peer's mean return (curve_means: over the seeds that have it) first reaches that
-    return (reached_at, out of the peer's seeds: those with a final row or a curve); then each peer's curve. ""
-    while no peer has a curve."""
+    return (reached_at, out of the peer's seeds: those with a final row or a curve), else whether its final policies
+    (`peers`: the finished rows) do; then each peer's curve and final policies. "" while no peer has a curve."""
     means = {peer: curve_means(curve) for peer, curve in curves.items() if curve}
     seeds = {peer: len({r["seed"] for r in curve + peers.get(peer, [])}) for peer, curve in curves.items() if curve}
+    finals = {peer: (column(theirs, "final_return").mean(), column(theirs, "env_steps").mean(), len(theirs))
+              for peer, theirs in peers.items() if theirs}  # fmt: skip
     if not means:
         return ""
     lines = [
@@ -586,14 +595,17 @@ def sample_efficiency(rows: list[dict], curves: dict[str, list[dict]], peers: di
         for policy, keys in PROTOCOL_POLICY_COLUMNS.items():
             target = column(mine, keys[0]).mean()
             lines.append(f"| {variant} | {POLICY_NAMES[policy]} | {target:.1f} | {steps:,.0f} | "
-                         + " | ".join(reached_at(curve, target, seeds[peer]) for peer, curve in means.items())
+                         + " | ".join(reached_at(curve, target, seeds[peer], finals.get(peer))
+                                      for peer, curve in means.items())
                          + " |")  # fmt: skip
     snapshots = sorted({n for curve in means.values() for n in curve})
-    lines += ["", "| peer snapshot: mean return (seeds) | " + " | ".join(map(steps_label, snapshots)) + " |",
-              "|---|" + "---|" * len(snapshots)]  # fmt: skip
+    lines += ["", "| peer snapshot: mean return (seeds) | " + " | ".join(map(steps_label, snapshots))
+              + f" | final policies ({PROTOCOL_CPU_HOURS:g} CPU-hours): mean return (seeds), mean env steps |",
+              "|---|" + "---|" * (len(snapshots) + 1)]  # fmt: skip
     lines += [
         f"| {PEER_NAMES[peer]} | "
-        + " | ".join(f"{curve[n][0]:.1f} ({curve[n][1]})" if n in curve else "" for n in snapshots) + " |"
+        + " | ".join(f"{curve[n][0]:.1f} ({curve[n][1]})" if n in curve else "" for n in snapshots)
+        + (f" | {finals[peer][0]:.1f} ({finals[peer][2]}), {finals[peer][1]:,.0f} |" if peer in finals else " |  |")
         for peer, curve in means.items()
     ]  # fmt: skip
     return "\n".join(lines) + "\n"

@@ -456,7 +456,7 @@ def test_reaching_the_dreamers_mean_is_judged_at_the_bars_precision_and_out_of_t
     rows = [protocol_row("lstm", 21, 600.0)]
     curve = [{"variant": "ppo", "seed": s, "snapshot": 50_000, "env_steps": 50_000, "return": 650.0,
               "progress": 0.5, "mean_abs_steer": 0.1, "tracks": "10300..10329"} for s in ("11", "12")]  # fmt: skip
-    peers = {"ppo": [{"seed": str(s)} for s in range(11, 16)]}  # five seeds, two with a curve
+    peers = {"ppo": [{"seed": str(s), "final_return": 500.0, "env_steps": 4e6} for s in range(11, 16)]}  # 2 curves
     assert "| lstm | mean action | 600.0 | 60,000 | 50k (2 of 5 seeds) |" in final_protocol.sample_efficiency(
         rows, {"ppo": curve}, peers)  # fmt: skip
 
@@ -503,25 +503,31 @@ def test_the_sample_efficiency_table_gives_the_first_snapshot_whose_mean_reaches
     curve = str(results / "recurrent_ppo_peer_curve.csv")  # snapshots up to 250k only
     ppo_peer.write_rows(snapshots("recurrent_ppo", 11, [10.0, 200.0, 300.0]) + snapshots(
         "recurrent_ppo", 12, [30.0, 400.0, 500.0]), curve, ppo_peer.CURVE_COLUMNS)  # fmt: skip
+    header = ",".join(final_protocol.PEER_COLUMNS) + ",tracks\n"  # PPO's final policies: 980 at 4.7M env steps
+    (results / "ppo_peer.csv").write_text(header + "ppo,11,4800,4600000,3.1,990.0,0.9,0.1,10300..10329\n"
+                                          "ppo,12,4800,4800000,3.1,970.0,0.9,0.1,10300..10329\n")  # fmt: skip
     write_references(results)
     text = final_protocol.write_protocol_report(str(results), reps=200)
     section = text[text.index("\nSample efficiency: "):]
     # PPO's means over its seeds: 100, 300, 650, 820 at 50k..500k, and 960 at 1M (one seed); RecurrentPPO's 20,
     # 300, 400 at 50k..250k. The Dreamer: lstm's mean action (650 + 750) / 2 = 700 -> PPO's 820 at 500k, past
-    # RecurrentPPO's last; sampled 950 -> 1M; gru's mean action 980 above either; sampled 300 -> 100k (equal)
+    # RecurrentPPO's last; sampled 950 -> 1M; gru's mean action 980 above either's snapshots, reached (equal) by
+    # PPO's final policies; sampled 300 -> 100k (equal)
     assert section.split("\n\n", 1)[1] == (
         "| Dreamer | its policy | its final mean return | its mean env steps | SB3 PPO snapshots reach it at "
         "| RecurrentPPO snapshots reach it at |\n"
         "|---|---|---|---|---|---|\n"
         "| lstm | mean action | 700.0 | 55,000 | 500k (2 of 2 seeds) | not within 250k (2 of 2 seeds) |\n"
         "| lstm | sampled | 950.0 | 55,000 | 1M (1 of 2 seeds) | not within 250k (2 of 2 seeds) |\n"
-        "| gru | mean action | 980.0 | 61,234 | not within 1M (1 of 2 seeds) | not within 250k (2 of 2 seeds) |\n"
+        "| gru | mean action | 980.0 | 61,234 | not within 1M (1 of 2 seeds); its final policies do (4.7M env steps, "
+        "2 seeds) | not within 250k (2 of 2 seeds) |\n"
         "| gru | sampled | 300.0 | 61,234 | 100k (2 of 2 seeds) | 100k (2 of 2 seeds) |\n"
         "\n"
-        "| peer snapshot: mean return (seeds) | 50k | 100k | 250k | 500k | 1M |\n"
-        "|---|---|---|---|---|---|\n"
-        "| SB3 PPO | 100.0 (2) | 300.0 (2) | 650.0 (2) | 820.0 (2) | 960.0 (1) |\n"
-        "| RecurrentPPO | 20.0 (2) | 300.0 (2) | 400.0 (2) |  |  |\n"
+        "| peer snapshot: mean return (seeds) | 50k | 100k | 250k | 500k | 1M | final policies (3.1 CPU-hours): mean "
+        "return (seeds), mean env steps |\n"
+        "|---|---|---|---|---|---|---|\n"
+        "| SB3 PPO | 100.0 (2) | 300.0 (2) | 650.0 (2) | 820.0 (2) | 960.0 (1) | 980.0 (2), 4,700,000 |\n"
+        "| RecurrentPPO | 20.0 (2) | 300.0 (2) | 400.0 (2) |  |  |  |\n"
     )
     # the figure: what it draws, and the file
     assert (results / "learning_final.png").stat().st_size > 10_000
