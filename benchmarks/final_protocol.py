@@ -288,6 +288,7 @@ def check_finite(rows: list[dict], keys: tuple[str, ...], what: str) -> None:
         bad = [k for k in keys if not finite(r[k])]
         if bad:
             run = r["candidate"] if "candidate" in r else f"seed {r['seed']}"  # (ship_rows name theirs)
+            run += f", snapshot {r['snapshot']}" if "snapshot" in r else ""  # (a curve's row)
             raise ValueError(f"{what}: {r['variant']} {run} has {', '.join(bad)} = "
                              f"{', '.join(repr(r[k]) for k in bad)}: measure it again")
 
@@ -550,7 +551,9 @@ def curve_means(curve: list[dict]) -> dict[int, tuple[float, int]]:
     return {n: (float(x.mean()), x.size) for n, x in returns.items()}
 
 
-def reached_at(means: dict[int, tuple[float, int]], target: float, seeds: int, final=None) -> str:
+def reached_at(
+    means: dict[int, tuple[float, int]], target: float, seeds: int, final: tuple[float, float, int] | None = None
+) -> str:
     """The first snapshot whose mean return (curve_means) reaches `target`, with how many of the peer's `seeds` that
     mean is over, or "not within" the last one, with how many seeds that one's mean is over; then, if `final` (the
     mean return, mean env steps and number of the peer's final policies) reaches it, that they do."""
@@ -562,17 +565,19 @@ def reached_at(means: dict[int, tuple[float, int]], target: float, seeds: int, f
         return f"{steps_label(reached[0])} ({means[reached[0]][1]} of {seeds} seeds)"
     text = f"not within {steps_label(max(means))} ({means[max(means)][1]} of {seeds} seeds)"
     if final is not None and reaches(final[0]):
-        text += f"; its final policies do ({final[1] / 1e6:.1f}M env steps, {final[2]} seeds)"
+        text += f"; its final policies do ({final[1] / 1e6:.1f}M env steps, {final[2]} seed{'s' * (final[2] > 1)})"
     return text
 
 
 def sample_efficiency(rows: list[dict], curves: dict[str, list[dict]], peers: dict[str, list[dict]]) -> str:
     """Markdown: for each variant and policy, its final mean return and mean env steps over its seeds, and the
     snapshot after which each peer's mean return (curve_means: over the seeds that have it) first reaches that
-    return (reached_at, out of the peer's seeds: those with a final row or a curve), else whether its final policies
-    (`peers`: the finished rows) do; then each peer's curve and final policies. "" while no peer has a curve."""
+    return (reached_at, out of the peer's seeds: those with a final row or a curve), else, when its final policies
+    (`peers`: the finished rows) reach it, that they do; then, per peer with a curve, its snapshots' means and its
+    final policies' mean return and env steps. "" while no peer has a curve."""
     means = {peer: curve_means(curve) for peer, curve in curves.items() if curve}
-    seeds = {peer: len({r["seed"] for r in curve + peers.get(peer, [])}) for peer, curve in curves.items() if curve}
+    seeds = {peer: len({int(r["seed"]) for r in curve + peers.get(peer, [])})
+             for peer, curve in curves.items() if curve}  # fmt: skip
     finals = {peer: (column(theirs, "final_return").mean(), column(theirs, "env_steps").mean(), len(theirs))
               for peer, theirs in peers.items() if theirs}  # fmt: skip
     if not means:
@@ -582,7 +587,8 @@ def sample_efficiency(rows: list[dict], curves: dict[str, list[dict]], peers: di
         "of the same seed and code where the reported run's were lost, as docs/learning.md says), their "
         "deterministic policy on the same report tracks, against the Dreamer's final mean return over its seeds. A "
         "peer reaches it at the first N whose mean return over the seeds that have that snapshot is at least as "
-        "high.\n",
+        "high; where none does, \"its final policies do\" follows if the peer's final policies (the last column) "
+        "reach it.\n",
         "| Dreamer | its policy | its final mean return | its mean env steps | "
         + " | ".join(f"{PEER_NAMES[peer]} snapshots reach it at" for peer in means) + " |",
         "|---|---|---|---|" + "---|" * len(means),

@@ -506,6 +506,9 @@ def test_the_sample_efficiency_table_gives_the_first_snapshot_whose_mean_reaches
     header = ",".join(final_protocol.PEER_COLUMNS) + ",tracks\n"  # PPO's final policies: 980 at 4.7M env steps
     (results / "ppo_peer.csv").write_text(header + "ppo,11,4800,4600000,3.1,990.0,0.9,0.1,10300..10329\n"
                                           "ppo,12,4800,4800000,3.1,970.0,0.9,0.1,10300..10329\n")  # fmt: skip
+    (results / "recurrent_ppo_peer.csv").write_text(  # RecurrentPPO's: 350, below every target but gru sampled's
+        header + "recurrent_ppo,11,900,1200000,3.1,340.0,0.3,0.8,10300..10329\n"
+        "recurrent_ppo,12,900,1400000,3.1,360.0,0.3,0.8,10300..10329\n")  # fmt: skip
     write_references(results)
     text = final_protocol.write_protocol_report(str(results), reps=200)
     section = text[text.index("\nSample efficiency: "):]
@@ -527,7 +530,7 @@ def test_the_sample_efficiency_table_gives_the_first_snapshot_whose_mean_reaches
         "return (seeds), mean env steps |\n"
         "|---|---|---|---|---|---|---|\n"
         "| SB3 PPO | 100.0 (2) | 300.0 (2) | 650.0 (2) | 820.0 (2) | 960.0 (1) | 980.0 (2), 4,700,000 |\n"
-        "| RecurrentPPO | 20.0 (2) | 300.0 (2) | 400.0 (2) |  |  |  |\n"
+        "| RecurrentPPO | 20.0 (2) | 300.0 (2) | 400.0 (2) |  |  | 350.0 (2), 1,300,000 |\n"
     )
     # the figure: what it draws, and the file
     assert (results / "learning_final.png").stat().st_size > 10_000
@@ -748,8 +751,14 @@ def test_a_run_outside_the_protocol_a_run_counted_twice_and_a_failed_snapshot_ar
     with pytest.raises(ValueError, match=r"^ppo_peer_curve\.csv: more than one row for seed 11, snapshot 50000: "):
         final_protocol.write_protocol_report(str(results), reps=50)
     ppo_peer.write_rows([{**snapshot, "return": float("nan")}], curve, ppo_peer.CURVE_COLUMNS)  # (replaces both)
-    with pytest.raises(ValueError, match=r"^ppo_peer_curve\.csv: ppo seed 11 has return = 'nan': measure it again"):
+    with pytest.raises(ValueError, match=r"^ppo_peer_curve\.csv: ppo seed 11, snapshot 50000 has return = 'nan': "):
         final_protocol.write_protocol_report(str(results), reps=50)
-    rows = [protocol_row("gru", 21), protocol_row("gru", 21, 500.0)]
-    with pytest.raises(ValueError, match=r"^learning_final\.csv \(gru\): more than one row for seed 21: "):
-        final_protocol.check_seeds(rows, final_protocol.PROTOCOL_SEEDS, "learning_final.csv (gru)")
+    (results / "ppo_peer.csv").unlink()
+    ppo_peer.write_rows([snapshot], curve, ppo_peer.CURVE_COLUMNS)
+    final_protocol.write_protocol_report(str(results), reps=50)
+    lines = (results / "learning_final.csv").read_text().splitlines()
+    for extra, message in [(lines[1].replace("lstm,21,", "lstm,26,"), r"seed\(s\) 26 are not the protocol's \(21, "),
+                           (lines[1], "more than one row for seed 21: ")]:  # (write_protocol_row refuses both)
+        (results / "learning_final.csv").write_text("\n".join([*lines, extra]) + "\n")
+        with pytest.raises(ValueError, match=r"^learning_final\.csv \(lstm\): " + message):
+            final_protocol.write_protocol_report(str(results), reps=50)
