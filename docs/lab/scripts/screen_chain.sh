@@ -1,14 +1,14 @@
 #!/bin/bash
 # screen_chain.sh.
-# usage: screen_chain.sh NAME GRID "BUDGET at seed 11" "BUDGET at seed 12": the LSTM screen of GRID (clone
+# usage: [VARIANTS=gru] screen_chain.sh NAME GRID "BUDGET at seed 11" "BUDGET at seed 12": the screen of GRID (clone
 # /work/screens3) at seed 11 (sweep NAME), its report, and at seed 12 (sweep NAME12) only if seed 11's mean action
 # keeps |steer| <= 0.3 (the stopping rule), then its report. Each step resumes, or skips when done. Rules 2 and 3
-# (both seeds) and the GRU's part are judged and started by hand (docs/lab/screens.md).
+# (both seeds): screen_judge.py NAME VARIANT (the lane scripts start a GRU part when the LSTM's passes).
 # A new machine has no clone: make it at the commit the screens' rules were fixed on.
 [ -d /work/screens3 ] || { git clone -q ${MAIN:-/work/main} /work/screens3 && git -C /work/screens3 checkout -q 723951d; } || exit 1
 cd /work/screens3
-name=$1; grid=$2; b11=$3; b12=$4
-python benchmarks/sweep.py --name $name --grid "$grid" --seeds 11 $b11 --num-cpus 1 >> /work/logs/sweep_$name.log 2>&1 || exit 1
+name=$1; grid=$2; b11=$3; b12=$4; variants=${VARIANTS:-lstm}
+python benchmarks/sweep.py --name $name --grid "$grid" --variants $variants --seeds 11 $b11 --num-cpus 1 >> /work/logs/sweep_$name.log 2>&1 || exit 1
 python benchmarks/sweep.py --name $name --report >> /work/logs/sweep_$name.log 2>&1 || exit 1
 if python - "$name" <<'PY'
 import csv, sys
@@ -17,7 +17,7 @@ rows = [r for r in csv.DictReader(open(path)) if r["policy"] == "mean-action"]
 sys.exit(0 if rows and all(float(r["abs_steer"]) <= 0.3 for r in rows) else 1)
 PY
 then
-  python benchmarks/sweep.py --name ${name}12 --grid "$grid" --seeds 12 $b12 --num-cpus 1 >> /work/logs/sweep_${name}12.log 2>&1 || exit 1
+  python benchmarks/sweep.py --name ${name}12 --grid "$grid" --variants $variants --seeds 12 $b12 --num-cpus 1 >> /work/logs/sweep_${name}12.log 2>&1 || exit 1
   python benchmarks/sweep.py --name ${name}12 --report >> /work/logs/sweep_${name}12.log 2>&1
 else
   echo "$(date -u) $name: seed 11 breaks rule 1; the screen ends" >> /work/logs/sweep_$name.log

@@ -1,0 +1,6 @@
+#!/bin/bash
+# The two lanes side by side; each step resumes, or skips when done.
+logs=${LOGS:-/work/logs}
+bash $logs/lane_a11.sh &
+bash $logs/lane_b11.sh &
+wait
