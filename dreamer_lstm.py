@@ -256,9 +256,6 @@ class Args:
     heads: Literal["gaussian", "twohot"] = "gaussian"
     """the reward and critic heads' distribution: gaussian (the paper; --head-sigma) or twohot (DreamerV3's symlog
     two-hot: TwoHot below; the critic also regresses on the slow critic's value)"""
-    terminal_weight: float = 1.0
-    """weight of the world model's reward and continue terms on terminal frames (an elimination, a finished lap;
-    ours; 1: the paper's loss): a terminal frame is about one decision in 300-600"""
     straight_through_clip: bool = False
     """imagination clips an action outside [-1, 1] with the identity's gradient (Bengio et al., 2013's
     straight-through estimator: imagine_rollout). False: the clip passes no gradient (the paper authors' form)"""
@@ -957,8 +954,7 @@ class Agent:
     # --- world model (paper 3.8) ------------------------------------------------------------
     def world_model_loss(self, obs, actions, rewards, is_first, terminated):
         """L = mean over batch and time of L_pred + beta_dyn L_dyn + beta_rep L_rep; also returns the posterior.
-        L_pred's reward and continue terms weigh --terminal-weight on terminal frames; each KL term is at least
-        --free-bits (kl_free_bits).
+        Each KL term is at least --free-bits (kl_free_bits).
 
         (The paper sums over time; the mean differs by the constant factor L, as in Dreamer's own code,
         and keeps the gradient-clip threshold of 100 meaningful for any sequence length.)
@@ -987,9 +983,8 @@ class Agent:
         # paper eq. L_dyn: trains the prior and, through the live h, the recurrent core and the earlier posteriors
         kl_dyn = gaussian_kl(sg_post_mean, sg_post_std, prior_mean, prior_std)
         kl_rep = gaussian_kl(post["post_mean"], post["post_std"], sg_prior_mean, sg_prior_std)  # paper eq. L_rep
-        weight = 1.0 + (args.terminal_weight - 1.0) * terminated  # --terminal-weight on terminal frames (1: exact)
         loss = (
-            image_nll + weight * reward_nll + weight * cont_nll
+            image_nll + reward_nll + cont_nll
             + args.kl_dyn_scale * kl_free_bits(kl_dyn, args.free_bits)
             + args.kl_rep_scale * kl_free_bits(kl_rep, args.free_bits)
         ).mean()  # fmt: skip

@@ -90,8 +90,6 @@ BAD_ARGUMENTS = [
     (["--gamma", "1.01"], "--gamma must lie in (0, 1], got 1.01"),
     (["--lambda", "-0.5"], "--lambda must lie in [0, 1], got -0.5"),
     (["--entropy-coef", "-1"], "--entropy-coef must be >= 0, got -1.0"),
-    (["--terminal-weight", "0"], "--terminal-weight must be > 0, got 0.0"),
-    (["--terminal-weight", "nan"], "--terminal-weight must be a finite number, got nan"),
     (["--grad-clip", "inf"], "--grad-clip must be a finite number, got inf"),
     (["--replay-capacity", "40"], "--replay-capacity must be >= --seq-len (50), got 40"),
     (["--dead-zone-end", "0.2"], "--dead-zone-end must lie in [-1, 0], got 0.2"),

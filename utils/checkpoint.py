@@ -41,6 +41,7 @@ RETIRED_ARGS = {
     "reward_nll_beta": (0.0, "345bb5f", "docs/lab/learning_screens.md"),
     "action_noise_corr": (0.0, "345bb5f", "docs/lab/screens.md"),
     "lr_anneal": (0.0, "2790f96", "docs/lab/screens.md"),
+    "terminal_weight": (1.0, "1d13134", "docs/lab/screens.md"),
 }
 REPLAY_FIELDS = ("obs", "action", "reward", "is_first", "terminated")  # the arrays of a Replay, one row per step
 

@@ -117,7 +117,6 @@ def validate_args(args, log_sigma_range: tuple[float, float]) -> None:
     if args.heads == "twohot":
         require(args.head_sigma == 0, "head_sigma", "is the Gaussian heads' sigma: leave it 0 with --heads twohot")
     require(args.entropy_lr > 0, "entropy_lr", "must be > 0")
-    require(args.terminal_weight > 0, "terminal_weight", "must be > 0")
     if args.action_penalty is not None:
         require(math.isfinite(args.action_penalty) and args.action_penalty >= 0, "action_penalty", "must be >= 0")
     if args.entropy_target is not None:
