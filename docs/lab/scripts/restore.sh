@@ -1,6 +1,6 @@
 #!/bin/bash
 # usage: restore.sh   on a new machine (no $peers): the clone of the peers' code, the lab scripts, and every
-# run's state that persist.sh kept, then `nohup $logs/queue_all9.sh > $logs/queue_all.log 2>&1 &`.
+# run's state that persist.sh kept, then `nohup $logs/queue_all11.sh > $logs/queue_all.log 2>&1 &`.
 set -e
 main=${MAIN:-/work/main}
 peers=${PEERS:-/work/peers}
@@ -9,7 +9,7 @@ state=$main/docs/lab/run_state
 [ -d $peers ] && { echo "restore.sh: $peers exists (not a new machine): nothing restored"; exit 1; }
 git clone -q $main $peers && git -C $peers checkout -q daef472
 mkdir -p $logs/rerun/scratch $peers/runs
-cp $main/docs/lab/scripts/*.sh $logs/ && chmod +x $logs/*.sh
+cp $main/docs/lab/scripts/*.sh $main/docs/lab/scripts/*.py $logs/ && chmod +x $logs/*.sh
 [ -d $state ] || exit 0
 for run in $(cd $state && ls -d */*__* 2>/dev/null); do
   mkdir -p $peers/runs/$run && cp $state/$run/* $peers/runs/$run/
