@@ -13,9 +13,13 @@ STEER = 0.3  # rule 1: the mean action's |steer| per seed
 name, variant = sys.argv[1], sys.argv[2]
 rows = {}
 for seed, path in ((11, f"sweep_{name}.csv"), (12, f"sweep_{name}12.csv")):
-    for r in csv.DictReader(open(os.path.join(SCREENING, path))):
-        if r["variant"] == variant and int(r["seed"]) == seed:
-            rows[seed, r["policy"]] = r
+    path = os.path.join(SCREENING, path)
+    if not os.path.exists(path):
+        sys.exit(f"{name}: no {path} (the screen stopped at seed 11, or seed 12 is not reported yet): not passed")
+    mine = [r for r in csv.DictReader(open(path)) if r["variant"] == variant and int(r["seed"]) == seed]
+    if len({r["tag"] for r in mine}) > 1:
+        sys.exit(f"{name}: {path} holds several flag sets; judge one at a time")
+    rows |= {(seed, r["policy"]): r for r in mine}
 missing = [(s, p) for s in (11, 12) for p in ("mean-action", "stochastic") if (s, p) not in rows]
 if missing:
     sys.exit(f"{name}: no row for {missing}")
