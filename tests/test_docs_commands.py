@@ -136,7 +136,7 @@ def test_links_to_a_section_name_one_that_exists(page):
     assert not broken, f"{page}: links to sections that do not exist: {broken}"
 
 
-# --- The reference pages (issue 41): short, and the lab notebook's notes in docs/lab/ ------------------------------
+# --- The reference pages: short, and the lab notebook's notes in docs/lab/ ------------------------------
 PAGE_LIMIT = 12_000  # bytes, as `wc -c` counts them
 LAB_NOTES = ("sitting", "our runs", "these vms")  # a lab notebook's words; docs/lab/ may use them
 

@@ -1,5 +1,5 @@
-"""Options screened to make the agents race (issue 40): an adaptive entropy weight, fixed-sigma and two-hot heads,
-the paper authors' normalisation mix, and a CPU-time budget. Each is off by default (tests/test_reference_runs.py
+"""Options screened to make the agents race (docs/sweeps.md): an adaptive entropy weight, fixed-sigma and two-hot
+heads, the paper authors' normalisation mix, and a CPU-time budget. Each is off by default (tests/test_reference_runs.py
 holds the default to what it computed before); here each does what it says when on."""
 
 import csv

@@ -1,4 +1,4 @@
-"""Issue 7, reliability: bad input, crashes mid-run and numerical faults lose nothing.
+"""Reliability: bad input, crashes mid-run and numerical faults lose nothing.
 
 Covers the dreamer scripts (both variants), race.py and plot.py: impossible arguments end with one line
 before any work; a save killed halfway leaves the previous checkpoint; unreadable checkpoints get one-line
