@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import glob
 import os
-import re
 import sys
 
 import numpy as np
@@ -26,6 +25,7 @@ from utils import make_vec_env  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from common import write_table  # noqa: E402
+from runs import eval_curve  # noqa: E402
 
 
 def random_returns(episodes: int, repeats: int, eval_seed: int = 10_000, num_agents: int = 2) -> np.ndarray:
@@ -48,36 +48,16 @@ def random_returns(episodes: int, repeats: int, eval_seed: int = 10_000, num_age
     return returns
 
 
-EVAL_TAG = re.compile(r"^car_(\d+)/eval/episodic_return$")
-
-
 def agent_evaluations(run_dir: str) -> list[dict]:
-    """A dreamer run's evaluations, read from its event files: one row per evaluation (in env-step order)
-    with ``env_steps``, ``updates`` (of car 0, the last logged at or before it) and ``car_i`` returns."""
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-
-    event_files = sorted(glob.glob(os.path.join(run_dir, "events.out.tfevents.*")))
-    if not event_files:
+    """A dreamer run's evaluations, read from its event files (runs.eval_curve): one row per evaluation (in
+    env-step order) with ``env_steps``, ``updates`` (of car 0, the last logged at or before it) and ``car_i``
+    returns."""
+    if not glob.glob(os.path.join(run_dir, "events.out.tfevents.*")):
         raise FileNotFoundError(f"no TensorBoard event file in {run_dir!r} (expected a dreamer run directory)")
-    evaluations: dict[int, dict] = {}
-    updates: list[tuple[int, float]] = []
-    for events_file in event_files:  # a resumed run writes one file per sitting
-        acc = EventAccumulator(events_file, size_guidance={"scalars": 0})
-        acc.Reload()
-        for tag in acc.Tags()["scalars"]:
-            if tag == "car_0/perf/updates":
-                updates += [(e.step, e.value) for e in acc.Scalars(tag)]
-            elif match := EVAL_TAG.match(tag):
-                for e in acc.Scalars(tag):
-                    evaluations.setdefault(e.step, {})[f"car_{match.group(1)}"] = round(float(e.value), 2)
-    if not evaluations:
+    rows = [{"env_steps": row["env_steps"], "updates": row["updates"]} | {k: v for k, v in row.items()
+            if k.startswith("car_")} for row in eval_curve(run_dir, cars=True)]  # fmt: skip
+    if not rows:
         raise ValueError(f"{run_dir!r} logged no evaluation (car_i/eval/episodic_return); is --eval-every set?")
-    updates.sort()
-    rows = []
-    for step in sorted(evaluations):
-        done = [value for at, value in updates if at <= step]
-        cars = dict(sorted(evaluations[step].items(), key=lambda kv: int(kv[0].split("_")[1])))
-        rows.append({"env_steps": step, "updates": int(done[-1]) if done else 0, **cars})
     return rows
 
 

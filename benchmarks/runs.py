@@ -5,7 +5,8 @@ what a checkpoint says about its run (updates, CPU-hours, a stop by the non-fini
 A run directory is the dreamer scripts' ``<runs_dir>/<env>__<exp_name>__<seed>__<time>/`` (TensorBoard event files,
 ``progress.csv``, ``checkpoints/``). ``benchmarks/experiment.py`` and ``sweep.py`` train their trials (one run
 directory per trial under ``<storage>/trials/``), and they, ``learning.py``, ``final_protocol.py``,
-``learning_report.py``, ``readings.py`` and ``experiment_report.py`` read them through this module.
+``learning_report.py``, ``readings.py``, ``experiment_report.py`` and ``highway_random.py`` read them through
+this module.
 """
 
 from __future__ import annotations
@@ -90,8 +91,12 @@ def training_hours(run_dir: str) -> float:
     return round(sum(end - start for _, start, end in sittings(run_dir)) / 3600, 4)
 
 
-def eval_curve(run_dir: str) -> list[dict]:
-    """Evaluation points of a run, with the update count and the training hours at each.
+CAR_EVAL = re.compile(r"^car_(\d+)/eval/episodic_return$")  # every car's evaluation return
+
+
+def eval_curve(run_dir: str, cars: bool = False) -> list[dict]:
+    """Evaluation points of a run, with the update count and the training hours at each; with `cars`, also every
+    car's return at each (``car_<i>``, in car order; ``eval_return`` is car 0's).
 
     Hours add up the sittings (each from its first logged scalar to its last; see ``sittings``), so the time
     between sittings does not count."""
@@ -103,6 +108,11 @@ def eval_curve(run_dir: str) -> list[dict]:
             progress = (
                 {e.step: e.value for e in acc.Scalars("car_0/eval/progress")} if "car_0/eval/progress" in tags else {}
             )
+            returns: dict[int, dict] = {}  # env step: {car_<i>: return}
+            car_tags = {int(m[1]): m[0] for m in map(CAR_EVAL.match, tags) if m} if cars else {}
+            for car in sorted(car_tags):
+                for e in acc.Scalars(car_tags[car]):
+                    returns.setdefault(e.step, {})[f"car_{car}"] = round(float(e.value), 2)
             updates = acc.Scalars("car_0/perf/updates") if "car_0/perf/updates" in tags else []
             update_steps = np.array([e.step for e in updates])
             update_values = np.array([e.value for e in updates])
@@ -115,6 +125,7 @@ def eval_curve(run_dir: str) -> list[dict]:
                         "wall_hours": round(hours_before + (e.wall_time - start) / 3600, 4),
                         "eval_return": round(float(e.value), 2),
                         "eval_progress": round(float(progress.get(e.step, float("nan"))), 4),
+                        **returns.get(e.step, {}),
                     }
                 )
         hours_before += (end - start) / 3600
