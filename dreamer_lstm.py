@@ -1349,9 +1349,10 @@ def args_from_checkpoint(checkpoint: dict, path: str, **overrides) -> Args:
     return checkpoint_io.args_from_checkpoint(Args, checkpoint, path, **overrides)
 
 
-def agent_from_checkpoint(path: str, index: int = 0, device="cpu") -> Agent:
-    """Agent `index` of a checkpoint of this script, built with the sizes it was trained with (race.py, evaluate.py)."""
-    return checkpoint_io.agent_from_checkpoint(sys.modules[__name__], path, index, device)
+def agent_from_checkpoint(path: str, index: int = 0, device="cpu", checkpoint: dict | None = None) -> Agent:
+    """Agent `index` of a checkpoint of this script, built with the sizes it was trained with (race.py, evaluate.py);
+    `checkpoint`: the file already loaded (load_checkpoint), not read again."""
+    return checkpoint_io.agent_from_checkpoint(sys.modules[__name__], path, index, device, checkpoint)
 
 
 if __name__ == "__main__":

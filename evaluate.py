@@ -64,7 +64,7 @@ def single_car(path: str, index: int = 0) -> SingleCar:
 
     script, checkpoint = read_checkpoint(path)
     args = script.args_from_checkpoint(checkpoint, path, num_agents=1)
-    agent = script.agent_from_checkpoint(path, index)
+    agent = script.agent_from_checkpoint(path, index, checkpoint=checkpoint)
     envs = make_vec_env(args.env_id, 1, None, **env_kwargs(args, args.dead_zone_end))
     return SingleCar(script, checkpoint, args, agent, envs)
 

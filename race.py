@@ -107,12 +107,9 @@ class DreamerRacer:
         path, _, index = spec.rpartition(":") if spec.rpartition(":")[2].isdigit() else (spec, "", "0")
         self.module, checkpoint = saved.read_checkpoint(path, device, training)
         self.path, self.index, self.variant = path, int(index), checkpoint["variant"]
-        if not 0 <= self.index < len(checkpoint["agents"]):
-            raise saved.CheckpointError(f"{path}: has {len(checkpoint['agents'])} agent(s), asked for agent "
-                                        f"{self.index}")  # fmt: skip
         try:  # the script's own reading of its arguments and networks, with one-line errors naming the file
             self.args = self.module.args_from_checkpoint(checkpoint, path)
-            self.agent = self.module.agent_from_checkpoint(path, self.index, device)
+            self.agent = self.module.agent_from_checkpoint(path, self.index, device, checkpoint)
         except (ValueError, RuntimeError, TypeError) as e:  # the script's CheckpointError, or impossible sizes
             text = (str(e).strip().splitlines() or [type(e).__name__])[0]
             message = text if text.startswith(path) else f"{path}: does not build an agent: {text}"

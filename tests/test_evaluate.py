@@ -49,6 +49,9 @@ def test_an_export_drives_exactly_like_its_checkpoint_and_the_json_has_every_tra
 def test_a_missing_file_or_no_tracks_is_one_line(tiny_run):
     with pytest.raises(SystemExit, match=r"^evaluate.py: error: no/such.pt: no such checkpoint file$"):
         evaluate.cli(["no/such.pt"])
+    with pytest.raises(SystemExit, match=r"^evaluate.py: error: pretrained/gru_cpu.pt: has 1 agent\(s\), asked for "
+                                         r"agent 1$"):  # fmt: skip
+        evaluate.cli(["pretrained/gru_cpu.pt", "--agent", "1"])  # an export holds agent 0 only
     with pytest.raises(SystemExit, match=r"^evaluate.py: error: .*: a directory, not a checkpoint file \(a run's are "
                                          r"checkpoints/best\.pt"):  # fmt: skip
         evaluate.cli([tiny_run])  # the run directory (what --resume takes)

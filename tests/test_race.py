@@ -65,6 +65,12 @@ def test_truncated_and_foreign_checkpoints_get_one_line_errors(tmp_path):
         assert str(path) in text and message in text and "\n" not in text
 
 
+def test_an_agent_the_checkpoint_does_not_hold_gets_one_line():
+    with pytest.raises(SystemExit) as exit_info:
+        race.main(["pretrained/gru_cpu.pt:1", "--opponent", "pursuit"])  # an export holds agent 0 only
+    assert str(exit_info.value).endswith("pretrained/gru_cpu.pt: has 1 agent(s), asked for agent 1")
+
+
 def test_bad_arguments(capsys):
     for argv, message in [
         (["--opponent", "pursuit"], "need at least two racers"),  # one racer

@@ -296,9 +296,11 @@ def read_checkpoint(path: str, device="cpu", training: bool = False) -> tuple:
     raise CheckpointError(f"{path}: unknown variant; known: {sorted(VARIANT_SCRIPTS)}")
 
 
-def agent_from_checkpoint(method, path: str, index: int = 0, device="cpu"):
-    """Build agent `index` of a checkpoint of `method` with the sizes it was trained with (race.py, evaluate.py)."""
-    checkpoint = load_checkpoint(path, method.VARIANT, map_location=device)
+def agent_from_checkpoint(method, path: str, index: int = 0, device="cpu", checkpoint: dict | None = None):
+    """Build agent `index` of a checkpoint of `method` with the sizes it was trained with (race.py, evaluate.py);
+    `checkpoint`: the file at `path` already loaded on `device` (load_checkpoint, read_checkpoint), not read again."""
+    if checkpoint is None:
+        checkpoint = load_checkpoint(path, method.VARIANT, map_location=device)
     if not 0 <= index < len(checkpoint["agents"]):
         raise CheckpointError(f"{path}: has {len(checkpoint['agents'])} agent(s), asked for agent {index}")
     state = checkpoint["agents"][index]
@@ -312,7 +314,7 @@ def export_policy(method, checkpoint_path: str, out: str, index: int = 0) -> int
     """Write agent `index` of a checkpoint as an acting-only export (acting_state_dict, with its args and
     counters): what race.py and evaluate.py need to drive, small enough for git. Returns its size in bytes."""
     checkpoint = load_checkpoint(checkpoint_path, method.VARIANT)
-    agent = agent_from_checkpoint(method, checkpoint_path, index)
+    agent = agent_from_checkpoint(method, checkpoint_path, index, checkpoint=checkpoint)
     export = {
         "variant": method.VARIANT, "kind": "policy", "args": checkpoint["args"], "counters": checkpoint["counters"],
         "agents": [acting_state_dict(agent)],
