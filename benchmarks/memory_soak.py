@@ -1,10 +1,11 @@
 """Memory soak: a long two-car race with both agents acting, watching resident memory.
 
-Both cars are driven by CPU-sized agents of a dreamer script (``Agent.act``, sampled actions, recurrent
-state carried and reset at every new race); every car's finished episodes go to its agent's replay as in
-training (``CarEpisode`` -> ``Replay.add_episode``). Resident memory (VmRSS of /proc/self/status) is
-reported at the start, every ``--report-every`` env steps and at the end, beside the bytes the replays
-have filled: a healthy run grows by the replays' own fill and nothing else.
+Both cars are driven by CPU-sized agents of a dreamer script (``Agent.act``, sampled actions, recurrent state
+carried and reset at every new race) at every env step, without action repeat; every car's finished episodes go to
+its agent's replay as in training (``CarEpisode`` -> ``Replay.add_episode``), one transition per env step (so, at
+the CPU preset's action repeat 2, twice as fast as a training run fills it). Resident memory (VmRSS of
+/proc/self/status) is reported at the start, every ``--report-every`` env steps and at the end, beside the bytes the
+replays have filled: a healthy run grows by the replays' own fill and nothing else.
 
     python benchmarks/memory_soak.py                       # 50,000 env steps
     python benchmarks/memory_soak.py --steps 5000 --report-every 1000

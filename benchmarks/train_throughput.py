@@ -8,8 +8,8 @@ setting: a bare 4-layer conv encoder (3-32-64-128-256, kernel 4, stride 2) forwa
 Each configuration also prints its matmul/conv FLOPs per update as a ratio to the reference's: the time
 ratio it would have if it ran at the reference's efficiency (paper size, 100 starts: 3.1x).
 
-Also measured: env steps per second of one two-car race while both agents act (and with random
-actions, for reference).
+Also measured: env steps per second of one two-car race while both agents act at every env step (and
+with random actions, for reference).
 
     python benchmarks/train_throughput.py                      # CPU size only (quick)
     python benchmarks/train_throughput.py --configs paper-100 paper-all cpu
@@ -169,7 +169,8 @@ def amp_cpu_seconds(script, overrides: dict, updates: int, warmup: int) -> tuple
 
 
 def env_throughput(script, overrides: dict, steps: int) -> tuple[float, float]:
-    """Env steps/s of one two-car race: both agents acting, and random actions."""
+    """Env steps/s of one two-car race: both agents acting at every env step (no action repeat: the cost of acting
+    at its most; a run at the CPU preset acts every 2nd step), and random actions."""
     from utils import make_vec_env
     from utils.collector import preprocess_frames
 
