@@ -1,6 +1,6 @@
 #!/bin/bash
 # usage: restore.sh   on a new machine (no $peers): the clone of the peers' code, the lab scripts, and every
-# run's state that persist.sh kept, then `nohup $logs/queue_all11.sh > $logs/queue_all.log 2>&1 &`.
+# run's state that persist.sh kept, then `nohup $logs/queue_all12.sh > $logs/queue_all.log 2>&1 &`.
 set -e
 main=${MAIN:-/work/main}
 peers=${PEERS:-/work/peers}

@@ -1,6 +1,0 @@
-#!/bin/bash
-# The two lanes side by side; each step resumes, or skips when done.
-logs=${LOGS:-/work/logs}
-bash $logs/lane_a10.sh &
-bash $logs/lane_b10.sh &
-wait
