@@ -91,9 +91,10 @@ class Args:
     compile: bool = False
     """torch.compile the networks' forward passes (same losses up to float rounding; minutes of compiling at the
     start; the recurrent core's steps are called directly and stay eager)"""
-    amp: Literal["auto", "on", "off"] = "auto"
-    """bfloat16 autocast of the update's forward passes (losses stay float32); auto: on a CUDA device with
-    bfloat16 in hardware (Ampere or newer), off elsewhere"""
+    amp: Literal["auto", "on", "off", "cuda"] = "auto"
+    """bfloat16 autocast of the update's forward passes (losses stay float32); auto: on where bfloat16 is in
+    hardware, a CUDA device of Ampere or newer or a CPU with bfloat16 instructions (AVX512-BF16), off elsewhere;
+    cuda: on such a CUDA device only. A run saves the on or off that auto chose"""
     runs_dir: str = "runs"
     """directory holding the run directories `{env_id}__{exp_name}__{seed}__{time}`"""
     resume: str | None = None

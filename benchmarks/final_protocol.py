@@ -36,7 +36,8 @@ protocol (``learning.py --final`` until commit 32c3b4c), whose ``learning_final.
   (sample_efficiency), and per variant the readings' means over seeds (protocol_why).
 
 How to run it (``learning.py`` stays the benchmark's one command line; its ``--results-dir`` moves
-learning_final.csv, learning_final.md and the peers' files):
+learning_final.csv, learning_final.md and the peers' files; the runs computed in float32, which on a CPU with
+bfloat16 instructions takes ``--overrides amp=off`` in a new storage):
 
     python benchmarks/experiment.py --stages single --single-cpu-hours 3.1 --seeds 21 22 23 24 25 \\
         --storage runs/final --results runs/final                          # the runs (their tables there)

@@ -38,7 +38,7 @@ from torch import nn
 from torch.utils.flop_counter import FlopCounterMode
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from utils.run import keep_freed_memory  # noqa: E402  (glibc keeps freed memory: --malloc-fix)
+from utils.run import cpu_has_bf16, keep_freed_memory, resolve_amp  # noqa: E402  (keep_freed_memory: --malloc-fix)
 
 CONFIGS = {
     "paper-100": {"imagination_starts": 100},  # the paper authors' setting
@@ -69,8 +69,9 @@ class Args:
     """glibc mallopt setting of the scripts (--malloc-fix), applied once for the reference and the agents alike"""
     compile: bool = False
     """torch.compile the agents' networks (the scripts' --compile)"""
-    amp: Literal["auto", "on", "off"] = "auto"
-    """bfloat16 autocast of the update (the scripts' --amp; auto: on with CUDA only)"""
+    amp: Literal["auto", "on", "off", "cuda"] = "auto"
+    """bfloat16 autocast of the update (the scripts' --amp; auto: where bfloat16 is in hardware, a CUDA device of
+    Ampere or newer or a CPU with bfloat16 instructions)"""
     env_steps: int = 300
     """env steps for the acting throughput (0: skip)"""
     amp_ratio: bool = False
@@ -204,7 +205,7 @@ def main(args: Args) -> None:
         torch.set_num_threads(args.threads)
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, script {args.script}")
     if args.amp_ratio:
-        print(f"bfloat16 in this CPU's instructions (oneDNN): {torch.ops.mkldnn._is_mkldnn_bf16_supported()}")
+        print(f"bfloat16 in this CPU's instructions (AVX512-BF16, --amp auto's rule): {cpu_has_bf16()}")
         for name in args.configs:
             config = {**config_of(script, name), "compile": args.compile}
             seconds, losses = amp_cpu_seconds(script, config, args.updates, args.warmup)
@@ -222,7 +223,8 @@ def main(args: Args) -> None:
         a = r["args"]
         print(
             f"{name:10s} B={a.batch_size} L={a.seq_len} H={a.imagination_horizon} {a.image_size}px depth={a.cnn_depth} "
-            f"deter={a.deter_size} hidden={a.hidden_size} starts={r['starts']}: update {r['total']:.2f} s "
+            f"deter={a.deter_size} hidden={a.hidden_size} starts={r['starts']} "
+            f"amp={resolve_amp(a.amp, torch.device('cpu'))}: update {r['total']:.2f} s "
             f"= {r['total'] / reference:.2f}x reference (world model {r['world_model']:.2f} s = "
             f"{r['world_model'] / reference:.2f}x, imagination+actor+critic {r['behaviour']:.2f} s = "
             f"{r['behaviour'] / reference:.2f}x); its FLOPs are {r['flops'] / reference_flops:.2f}x the reference's",

@@ -20,6 +20,7 @@ TINY = {
     "cnn_depth": 4, "deter_size": 16, "hidden_size": 16, "mlp_size": 16, "latent_size": 4, "image_size": 64,
     "batch_size": 3, "seq_len": 8, "imagination_horizon": 4,
     "imagination_starts": 0,  # every start (a preset's count may exceed the tiny batch's B * L)
+    "amp": "off",  # float32 on every machine (--amp auto is bfloat16 on a CPU with bfloat16 instructions)
 }  # fmt: skip
 
 # A tiny single-stage run: one prefill race, one update per race, evaluation after every race on one track.

@@ -172,7 +172,6 @@ def test_compile_gives_the_losses_of_eager(script, tmp_path):
 
 
 def test_amp_runs_the_networks_in_bfloat16_and_keeps_the_losses_of_float32(script):
-    assert not script.Agent(tiny_args(script)).amp  # auto: off on the CPU
     matmul_dtypes = []
     metrics = {}
     for amp in ("off", "on"):
@@ -1243,7 +1242,8 @@ def test_k_races_of_different_seeds_or_a_resume_start_on_tracks_of_their_own(scr
 
 def test_amp_auto_only_with_bfloat16_in_hardware(script, monkeypatch):
     """--amp auto: bfloat16 autocast on a CUDA device only if it has bfloat16 in hardware (a GPU before Ampere
-    emulates it, slower than float32), never on the CPU; on and off as they say."""
+    emulates it, slower than float32) and on a CPU only with bfloat16 instructions; cuda (auto's rule of old): on
+    such a CUDA device only; on and off as they say."""
     import contextlib
 
     asked, current = [], [None]
@@ -1262,9 +1262,33 @@ def test_amp_auto_only_with_bfloat16_in_hardware(script, monkeypatch):
     monkeypatch.setattr(torch.cuda, "device", select)
     monkeypatch.setattr(torch.cuda, "is_bf16_supported", emulating_gpu)
     assert script.bf16_autocast("auto", cuda) is False and asked == [(cuda, False)]  # asked of the run's device
+    assert script.bf16_autocast("cuda", cuda) is False
     monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda including_emulation=True: True)  # Ampere or newer
-    assert script.bf16_autocast("auto", cuda) is True and script.bf16_autocast("auto", cpu) is False
+    assert script.bf16_autocast("auto", cuda) is True and script.bf16_autocast("cuda", cuda) is True
+    for instructions in (False, True):
+        monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: instructions)
+        assert script.bf16_autocast("auto", cpu) is instructions and script.bf16_autocast("cuda", cpu) is False
+        assert script.Agent(tiny_args(script, amp="auto")).amp is instructions  # the agent applies the rule
     assert script.bf16_autocast("on", cpu) is True and script.bf16_autocast("off", cuda) is False
+
+
+def test_a_run_resolves_amp_once_says_so_and_warns_of_emulated_bfloat16(script, monkeypatch, capsys):
+    """setup_run's --amp: auto and cuda become on or off (what the run saves), each said; on without bfloat16 in
+    hardware (a run moved to another machine) is kept, with a warning that it is slower than float32."""
+    cpu = torch.device("cpu")
+    for instructions, amp, resolved, said in (
+        (True, "auto", "on", "--amp auto -> on: the updates in bfloat16\n"),
+        (False, "auto", "off", "--amp auto -> off: the updates in float32\n"),
+        (True, "cuda", "off", "--amp cuda (auto's rule until it took in bfloat16 CPUs: a run saved with auto then) "
+                              "-> off: the updates in float32\n"),
+        (True, "on", "on", ""),
+        (False, "off", "off", ""),
+        (False, "on", "on", "warning: --amp on, and cpu has no bfloat16 in hardware: emulated, slower than float32 "
+                            "(docs/performance.md); --amp off computes otherwise, but faster\n"),
+    ):
+        monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: instructions)
+        assert run_tools.resolved_amp_args(tiny_args(script, amp=amp), cpu).amp == resolved
+        assert capsys.readouterr().out == said
 
 
 def test_the_amp_ratio_benchmark_starts_both_settings_alike(script, monkeypatch):

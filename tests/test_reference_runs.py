@@ -6,6 +6,7 @@ the same arguments must end with the same networks, optimisers, counters and log
 must resume to that same end. (Tolerances allow other CPUs' float rounding; a changed computation, such as one
 random draw more or less, moves the numbers by orders of magnitude more.)"""
 
+import json
 import os
 import shutil
 import sys
@@ -14,6 +15,7 @@ import pytest
 import torch
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "fixtures"))
+from conftest import TINY_RUN
 from record_reference_runs import REFERENCE_RUN, logged_rows
 
 FIXTURES = os.path.join(os.path.dirname(os.path.abspath(__file__)), "fixtures")
@@ -62,11 +64,29 @@ def test_a_new_run_computes_what_the_reference_run_computed(script, tmp_path):
     check_against_reference(script, run_dir)
 
 
-def test_a_run_directory_written_before_the_refactor_resumes_to_the_same_end(script, tmp_path):
+def test_a_run_directory_written_before_the_refactor_resumes_to_the_same_end(script, tmp_path, monkeypatch):
+    """Also on a CPU with bfloat16 instructions: the directory was saved with --amp auto, when auto meant bfloat16
+    on CUDA only, and resumes with that rule (--amp cuda), in float32 on the CPU as the reference computed, saved
+    resolved from then on."""
+    monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: True)
     run_dir = str(tmp_path / "run")
     shutil.copytree(os.path.join(FIXTURES, f"reference_{script.VARIANT}"), run_dir)
+    assert torch.load(os.path.join(run_dir, "checkpoints", "latest.pt"), weights_only=True)["args"]["amp"] == "auto"
     script.main(script.Args(resume=run_dir, total_episodes=3, torch_threads=1), {"total_episodes"})
     check_against_reference(script, run_dir)
+    assert script.load_checkpoint(os.path.join(run_dir, "checkpoints", "latest.pt"))["args"]["amp"] == "off"
+
+
+@pytest.mark.parametrize("instructions", [True, False])
+def test_a_new_run_saves_what_amp_auto_chose(script, tmp_path, monkeypatch, instructions):
+    """--amp auto is resolved when a run starts, by this CPU's bfloat16 instructions, and saved as on or off (in
+    config.json and the checkpoint), so that the run computes alike wherever it is resumed."""
+    monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: instructions)
+    run_dir = script.main(script.Args(**{**TINY_RUN, "amp": "auto", "stage": "single"}, runs_dir=str(tmp_path)))
+    chosen = "on" if instructions else "off"
+    with open(os.path.join(run_dir, "config.json")) as f:
+        assert json.load(f)["amp"] == chosen
+    assert script.load_checkpoint(os.path.join(run_dir, "checkpoints", "latest.pt"))["args"]["amp"] == chosen
 
 
 def test_the_reference_check_fails_for_a_changed_computation(script, tmp_path):

@@ -28,7 +28,7 @@ import pytest
 import torch
 import utils.checkpoint as ckpt
 import utils.run as run_tools
-from conftest import SCRIPTS, TINY, assert_same, random_batch
+from conftest import SCRIPTS, TINY, assert_same, random_batch, tiny_args
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 RUN = dict(
@@ -259,10 +259,13 @@ def last_row(run_dir) -> dict:
         return list(csv.DictReader(f))[-1]
 
 
-def test_a_run_killed_mid_race_resumes_exactly(script, tmp_path, monkeypatch, capsys):
+@pytest.mark.parametrize("amp", ["off", "on"])
+def test_a_run_killed_mid_race_resumes_exactly(script, tmp_path, monkeypatch, capsys, amp):
     """Race stage, two agents: one run of 3 races; another killed while it trains after race 3, resumed from its
-    race-2 checkpoint. Both end with the same counters, networks, optimisers, RNG states and replays."""
-    whole = script.main(script.Args(stage="race", total_episodes=3, runs_dir=str(tmp_path / "a"), **RUN))
+    race-2 checkpoint. Both end with the same counters, networks, optimisers, RNG states and replays. In float32
+    and with bfloat16 updates (--amp on: auto's choice on a CPU with bfloat16 instructions)."""
+    run = {**RUN, "amp": amp}
+    whole = script.main(script.Args(stage="race", total_episodes=3, runs_dir=str(tmp_path / "a"), **run))
     assert "replay buffers: 2 x 500 steps x 12,302 B = 12.3 MB" in capsys.readouterr().out
 
     real_update, calls = script.Agent.update, []
@@ -275,7 +278,7 @@ def test_a_run_killed_mid_race_resumes_exactly(script, tmp_path, monkeypatch, ca
 
     monkeypatch.setattr(script.Agent, "update", update_then_killed)
     with pytest.raises(Killed):
-        script.main(script.Args(stage="race", total_episodes=3, runs_dir=str(tmp_path / "b"), **RUN))
+        script.main(script.Args(stage="race", total_episodes=3, runs_dir=str(tmp_path / "b"), **run))
     monkeypatch.undo()
     (killed,) = glob.glob(str(tmp_path / "b" / "*"))
     assert script.load_checkpoint(f"{killed}/checkpoints/latest.pt")["counters"]["episode"] == 2
@@ -661,6 +664,22 @@ def test_saved_arguments_are_read_back_new_flags_default_and_removed_ones_are_na
                                        "old_mode='fast', old_noise=0.9\n")  # fmt: skip
     with pytest.raises(ckpt.CheckpointError, match=r"^run/latest.pt: its arguments do not fit this script: "):
         ckpt.args_from_checkpoint(Args, {"args": {"seed": 3}}, "run/latest.pt", unknown_override=1)
+
+
+def test_saved_amp_keeps_the_rule_its_run_computed_with(script, monkeypatch):
+    """--amp as read back from a checkpoint, on a CPU with bfloat16 instructions (where auto now means on): a run
+    saves what auto resolved to (kept); auto was saved when it meant bfloat16 on CUDA only (cuda: float32 on the
+    CPU); no --amp at all, before it existed (off: float32 everywhere). An agent built from such a checkpoint
+    (race.py --train continues one) computes its updates as that run did."""
+    monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: True)
+    base = dataclasses.asdict(script.Args(seed=3))
+    for saved, read in (("on", "on"), ("off", "off"), ("auto", "cuda"), (None, "off")):
+        args = {k: v for k, v in base.items() if k != "amp"} | ({} if saved is None else {"amp": saved})
+        assert ckpt.args_from_checkpoint(script.Args, {"args": args}, "run/latest.pt").amp == read
+    old_run = os.path.join(ROOT, "tests", "fixtures", f"reference_{script.VARIANT}", "checkpoints", "latest.pt")
+    assert torch.load(old_run, weights_only=True)["args"]["amp"] == "auto"
+    assert script.agent_from_checkpoint(old_run).amp is False
+    assert script.Agent(tiny_args(script, amp="auto")).amp is True  # (a new agent at auto: on, on such a CPU)
 
 
 @pytest.mark.parametrize("name", sorted(ckpt.RETIRED_ARGS))

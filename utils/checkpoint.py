@@ -181,9 +181,13 @@ def retired_args(checkpoint: dict) -> dict[str, str]:
 def args_from_checkpoint(args_class, checkpoint: dict, path: str, **overrides):
     """The Args a checkpoint was trained with (new flags keep their defaults, flags removed since are dropped: a note
     names each with its saved value, since a run trained with another value than the one the code now behaves as
-    would go on differently; a retired option at its neutral value goes without a note)."""
+    would go on differently; a retired option at its neutral value goes without a note). --amp: a run saves the
+    on or off it resolved (utils/run.py resolve_amp); a checkpoint holding auto was saved when auto meant bfloat16
+    on CUDA only and goes on with that rule (cuda), one without --amp was saved before it existed, in float32 (off)."""
     names = {field.name for field in dataclasses.fields(args_class)}
     saved = checkpoint["args"] if isinstance(checkpoint["args"], dict) else {}
+    if "amp" in names and saved.get("amp", "auto") == "auto":
+        saved = {**saved, "amp": "cuda" if "amp" in saved else "off"}
     retired = retired_args(checkpoint)
     dropped = sorted(set(saved) - names - (set(RETIRED_ARGS) - set(retired)))
     if dropped:

@@ -6,7 +6,8 @@ what every run needs around it. A *method* is a dreamer script's module; what is
 ``PRESETS``, ``Agent``, ``Replay``, ``LOG_SIGMA_RANGE``, ``dead_zone_at`` and ``main`` (``cli``).
 
 * the env and the device: ``env_kwargs`` (the racing env's options, from Args), ``races_seed`` (training tracks),
-  ``next_dead_zone`` / ``set_next_dead_zone`` (the warm-up, race by race), ``bf16_autocast`` (--amp);
+  ``next_dead_zone`` / ``set_next_dead_zone`` (the warm-up, race by race), ``resolve_amp`` and ``bf16_autocast``
+  (--amp);
 * ``setup_run`` checks everything, then builds the ``Run`` (a new one, or a saved one exactly as it stopped): seeds,
   device, envs, agents, replays, logger (TensorBoard, progress.csv), ``config.json``;
 * after every race: ``log_race`` and ``log_updates`` (TensorBoard and progress.csv), ``after_training``
@@ -381,16 +382,45 @@ def set_next_dead_zone(run: Run) -> None:
         run.envs.env_method("set_dead_zone", next_dead_zone(run.method, run.args, run.counters["episode"]))
 
 
+def cpu_has_bf16() -> bool:
+    """Whether this CPU has x86's bfloat16 instructions (AVX512-BF16, which AMX CPUs have too): there an update under
+    bfloat16 autocast costs 1.3-1.4x less CPU time than in float32 (docs/performance.md); without them bfloat16 is
+    emulated, slower than float32. (Other CPUs' bfloat16, such as ARM's, is not measured here: False.)"""
+    return bool(getattr(torch.cpu, "_is_avx512_bf16_supported", lambda: False)())
+
+
+def resolve_amp(amp: str, device: torch.device) -> str:
+    """--amp as a run computes on `device`, "on" or "off". auto: on where bfloat16 is in hardware, a CUDA device of
+    Ampere or newer (emulated bfloat16, before Ampere, is slower than float32) or a CPU with bfloat16 instructions
+    (cpu_has_bf16); cuda: on such a CUDA device only (auto's rule until it took such CPUs in too). A new run saves
+    what auto resolved to, and a run saved with auto before then resumes with cuda (args_from_checkpoint), so that
+    each goes on computing as it did."""
+    if amp in ("on", "off"):
+        return amp
+    if device.type == "cuda":
+        with torch.cuda.device(device):  # (is_bf16_supported asks the current device)
+            return "on" if torch.cuda.is_bf16_supported(including_emulation=False) else "off"
+    return "on" if amp == "auto" and device.type == "cpu" and cpu_has_bf16() else "off"
+
+
+def resolved_amp_args(args, device: torch.device):
+    """`args` with --amp resolved (resolve_amp) for a run on `device`, saying so; and a warning where bfloat16 is on
+    without it in hardware (after a move to another machine, a run saved with on computes emulated bfloat16, which
+    is slower than float32: a CPU-hour budget buys fewer updates)."""
+    if args.amp not in ("on", "off"):  # saved resolved: the run computes alike wherever it resumes
+        resolved = resolve_amp(args.amp, device)
+        rule = "" if args.amp == "auto" else " (auto's rule until it took in bfloat16 CPUs: a run saved with auto then)"
+        print(f"--amp {args.amp}{rule} -> {resolved}: the updates in {'bfloat16' if resolved == 'on' else 'float32'}")
+        args = dataclasses.replace(args, amp=resolved)
+    if args.amp == "on" and resolve_amp("auto", device) == "off":
+        print(f"warning: --amp on, and {device} has no bfloat16 in hardware: emulated, slower than float32 "
+              "(docs/performance.md); --amp off computes otherwise, but faster")
+    return args
+
+
 def bf16_autocast(amp: str, device: torch.device) -> bool:
-    """Whether --amp runs the update under bfloat16 autocast: always with on, never with off; with auto on a CUDA
-    device that has bfloat16 in hardware (emulated bfloat16, before Ampere, is slower than float32), not on the
-    CPU."""
-    if amp != "auto":
-        return amp == "on"
-    if device.type != "cuda":
-        return False
-    with torch.cuda.device(device):  # (is_bf16_supported asks the current device)
-        return torch.cuda.is_bf16_supported(including_emulation=False)
+    """Whether an Agent on `device` runs its update under bfloat16 autocast, by --amp's rule (resolve_amp)."""
+    return resolve_amp(amp, device) == "on"
 
 
 def setup_run(method, args, overrides=()) -> Run:
@@ -421,6 +451,7 @@ def setup_run(method, args, overrides=()) -> Run:
     torch.manual_seed(args.seed)
     torch.backends.cudnn.deterministic = args.torch_deterministic
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+    args = resolved_amp_args(args, device)
 
     n, episode = args.num_agents, int(resumed["counters"]["episode"]) if resumed else 0
     kwargs = env_kwargs(args, method.dead_zone_at(episode, args))
