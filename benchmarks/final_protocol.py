@@ -33,7 +33,9 @@ protocol (``learning.py --final`` until commit 32c3b4c), whose ``learning_final.
   row, the LSTM minus the GRU and each variant minus each peer, judged by the exact permutation test and Welch's t
   interval (benchmarks/stats.py), what random actions and the pure-pursuit driver score on the same tracks
   (protocol_references), the env steps after which each peer's snapshots reach each variant's final mean return
-  (sample_efficiency), and per variant the readings' means over seeds (protocol_why).
+  (sample_efficiency), per variant the readings' means over seeds (protocol_why) and, for a protocol that replaced
+  one of the same columns and tracks (REPLACED_PROTOCOL), this one's final returns against that one's, per variant
+  and policy, by the same two tests (protocol_against_replaced).
 
 How to run it (``learning.py`` stays the benchmark's one command line; its ``--results-dir`` moves
 learning_final.csv, learning_final.md and the peers' files; the runs computed in float32, which on a CPU with
@@ -94,6 +96,10 @@ OLD_PROTOCOL_HOME = os.path.join("benchmarks", "results", "history", "8000_updat
 PROTOCOL_ADVICE = (
     f"move the old protocol's files (learning_final.csv, learning_final.md) to {OLD_PROTOCOL_HOME}/ first"
 )
+# The protocol this one replaced when both measure the same columns on the same tracks (the runs of another setting):
+# its history folder under the results (<results>/history/<folder>/, where its learning_final.csv is kept) and its
+# seeds; learning_final.md then compares the two (protocol_against_replaced). None: this protocol replaced no such one.
+REPLACED_PROTOCOL: tuple[str, tuple[int, ...]] | None = None
 REFERENCES_JSON = "references_report.json"  # random actions and the pure-pursuit driver on the report tracks
 WHY_ADVICE = f"it holds other readings than {WHY_CSV}'s: move it aside first"
 
@@ -494,23 +500,40 @@ def provisional_note(rows: list[dict], peers: dict[str, list[dict]]) -> str:
     return f"\nProvisional: {'; '.join(short)}.\n" if short else ""
 
 
-def comparison_verdict(claim: dict) -> str:
-    """The final protocol's word for a comparison (stats.two_group_claim's outcome): "beats" when the first is
-    higher by both the exact test (p < 0.05) and Welch's interval (above 0), "behind" when it is lower by both,
-    else "no detectable difference" (or too few runs to judge)."""
-    words = {"supported": "beats", "contradicted": "behind", "too few runs": claim["verdict"]}
-    return words.get(claim["outcome"], "no detectable difference")
+def comparison_verdict(claim: dict, words: tuple[str, str] = ("beats", "behind")) -> str:
+    """The final protocol's word for a comparison (stats.two_group_claim's outcome): `words`' first ("beats") when
+    the first is higher by both the exact test (p < 0.05) and Welch's interval (above 0), its second ("behind") when
+    it is lower by both, else "no detectable difference" (or too few runs to judge)."""
+    said = {"supported": words[0], "contradicted": words[1], "too few runs": claim["verdict"]}
+    return said.get(claim["outcome"], "no detectable difference")
+
+
+def comparison_table(sides: list[tuple[str, np.ndarray, np.ndarray, bool]],
+                     words: tuple[str, str] = ("beats", "behind")) -> str:
+    """Markdown: one row per comparison (name, the first side's returns, the second's, provisional) over
+    independent runs: the difference of the means, Welch's t 95% interval, the exact permutation test's one-sided p
+    that the first is higher and that it is lower, and the verdict (comparison_verdict with `words`: the exact test
+    and the t interval, never a bootstrap, judge so few runs), marked provisional when a side lacks some of its
+    seeds. A comparison a side of which has no run is left out."""
+    from stats import two_group_claim
+
+    lines = ["| comparison | runs | difference of means | Welch t 95% | permutation p: higher / lower | verdict |",
+             "|---|---|---|---|---|---|"]  # fmt: skip
+    for name, x, y, provisional in sides:
+        if x.size and y.size:
+            claim = two_group_claim(x, y)
+            low, high = claim["ci"]
+            interval = "none (a side has one run)" if np.isnan(low) else f"[{low:+.1f}, {high:+.1f}]"
+            verdict = comparison_verdict(claim, words) + (" (provisional: seeds missing)" if provisional else "")
+            lines.append(f"| {name} | {claim['sizes']} | {claim['estimate']:+.1f} | {interval} "
+                         f"| {claim['p']:.3f} / {claim['p_opposite']:.3f} | {verdict} |")
+    return "\n".join(lines) + "\n"
 
 
 def protocol_comparisons(rows: list[dict], peers: dict[str, list[dict]]) -> str:
-    """Markdown: the LSTM minus the GRU with each policy, and each variant with each policy minus each peer (its
-    deterministic policy), over independent runs: the difference of the means, Welch's t 95% interval, the exact
-    permutation test's one-sided p that the first is higher and that it is lower, and the verdict
-    (comparison_verdict: the exact test and the t interval, never a bootstrap, judge so few runs), marked
-    provisional while a side lacks some of its seeds (provisional_note). A comparison a side of which has no row is
-    left out."""
-    from stats import two_group_claim
-
+    """Markdown (comparison_table): the LSTM minus the GRU with each policy, and each variant with each policy minus
+    each peer (its deterministic policy), over independent runs, judged "beats" / "behind" / "no detectable
+    difference", provisional while a side lacks some of its seeds (provisional_note)."""
     mine = {variant: [r for r in rows if r["variant"] == variant] for variant in VARIANTS}
     short = {variant: bool(missing_seeds(mine[variant], PROTOCOL_SEEDS)) for variant in VARIANTS}
     short |= {peer: bool(missing_seeds(theirs, PROTOCOL_PEER_SEEDS[peer])) for peer, theirs in peers.items()}
@@ -523,17 +546,37 @@ def protocol_comparisons(rows: list[dict], peers: dict[str, list[dict]]) -> str:
          short[variant] or short[peer])
         for variant in VARIANTS for p in PROTOCOL_POLICY_COLUMNS for peer, theirs in peers.items()
     ]  # fmt: skip
-    lines = ["| comparison | runs | difference of means | Welch t 95% | permutation p: higher / lower | verdict |",
-             "|---|---|---|---|---|---|"]  # fmt: skip
-    for name, x, y, provisional in sides:
-        if x.size and y.size:
-            claim = two_group_claim(x, y)
-            low, high = claim["ci"]
-            interval = "none (a side has one run)" if np.isnan(low) else f"[{low:+.1f}, {high:+.1f}]"
-            verdict = comparison_verdict(claim) + (" (provisional: seeds missing)" if provisional else "")
-            lines.append(f"| {name} | {claim['sizes']} | {claim['estimate']:+.1f} | {interval} "
-                         f"| {claim['p']:.3f} / {claim['p_opposite']:.3f} | {verdict} |")
-    return "\n".join(lines) + "\n"
+    return comparison_table(sides)
+
+
+def replaced_path(results_dir: str) -> str:
+    """Where the replaced protocol's learning_final.csv is kept (REPLACED_PROTOCOL's history folder)."""
+    return os.path.join(results_dir, "history", REPLACED_PROTOCOL[0], "learning_final.csv")
+
+
+def protocol_against_replaced(rows: list[dict], results_dir: str) -> str:
+    """Markdown: per variant and policy, this protocol's final return minus the replaced protocol's (REPLACED_PROTOCOL,
+    its rows read from replaced_path: refused, naming the file, if a value is not finite or a seed is not its own or
+    counted twice), over independent runs (comparison_table), judged "higher" / "lower" / "no detectable
+    difference"; provisional while this protocol lacks seeds. Without the file, a line saying so."""
+    seeds, path = REPLACED_PROTOCOL[1], replaced_path(results_dir)
+    name = os.path.relpath(path, results_dir)
+    if not os.path.exists(path):
+        return f"\nThe protocol this one replaced: no {name} here, no comparison.\n"
+    before = read_table(path, PROTOCOL_COLUMNS, "not a final protocol's learning_final.csv")
+    check_finite(before, PROTOCOL_POLICY_COLUMNS["mean-action"] + PROTOCOL_POLICY_COLUMNS["stochastic"], name)
+    sides = []
+    for variant in VARIANTS:
+        now, then = ([r for r in table if r["variant"] == variant] for table in (rows, before))
+        check_seeds(then, seeds, f"{name} ({variant})")
+        short = bool(missing_seeds(now, PROTOCOL_SEEDS) or missing_seeds(then, seeds))
+        sides += [(f"{POLICY_NAMES[p]}: {variant}", column(now, keys[0]), column(then, keys[0]), short)
+                  for p, keys in PROTOCOL_POLICY_COLUMNS.items()]  # fmt: skip
+    return (
+        f"\nAgainst the protocol this one replaced ({name}: seeds {', '.join(map(str, seeds))}), per variant and "
+        f"policy: this protocol's final return minus that one's, higher or lower by the same two tests:\n\n"
+        + comparison_table(sides, ("higher", "lower"))
+    )  # fmt: skip
 
 
 def steps_label(steps: int) -> str:
@@ -680,7 +723,8 @@ def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
     protocol's columns) and its peers' rows and snapshots on the report tracks (``<peer>_peer.csv`` and
     ``<peer>_peer_curve.csv``, when present): the mean and IQM per variant and policy and per peer, the references
     on the same tracks (protocol_references: driven the first time), the bar, every
-    run's row, the comparisons, the peers' sample efficiency and, when learning_final_readings.csv is there, the
+    run's row, the comparisons, the peers' sample efficiency, the comparison with the protocol this one replaced
+    (protocol_against_replaced, when REPLACED_PROTOCOL names one) and, when learning_final_readings.csv is there, the
     readings per variant (protocol_why); and its figure, learning_final.png (plot_protocol).
     Returns the text."""
     rows = read_table(os.path.join(results_dir, "learning_final.csv"), PROTOCOL_COLUMNS, PROTOCOL_ADVICE)
@@ -723,6 +767,7 @@ def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
                f"{'; '.join(unfinished)}.\n" if unfinished else "")
             + COMPARISONS_TEXT + protocol_comparisons(rows, peers) + provisional_note(rows, peers)
             + sample_efficiency(rows, curves, peers)
+            + (protocol_against_replaced(rows, results_dir) if REPLACED_PROTOCOL else "")
         )  # fmt: skip
         why_rows = read_table(os.path.join(results_dir, WHY_CSV), WHY_COLUMNS, WHY_ADVICE)
         if why_rows:

@@ -404,6 +404,70 @@ def test_the_report_gives_mean_iqm_and_exact_tests_on_the_same_tracks_only(tmp_p
         final_protocol.write_protocol_report(str(results), reps=200)
 
 
+def test_a_protocol_that_replaced_another_is_compared_with_it_per_variant_and_policy(tmp_path, monkeypatch):
+    """With REPLACED_PROTOCOL named, learning_final.md compares this protocol's final returns with the replaced one's
+    (kept in history/<folder>/), per variant and policy, by Welch's interval and the exact permutation test computed
+    here; a file of other seeds or a failed value is refused naming it; without the file, a line says so."""
+    results = tmp_path / "results"
+    results.mkdir()
+    write_references(results)
+    monkeypatch.setattr(final_protocol, "PROTOCOL_SEEDS", (31, 32, 33, 34, 35))
+    now = {("lstm", "mean action"): [700.0, 750.0, 800.0, 850.0, 900.0], ("lstm", "sampled"): [500.0, 610.0, 720.0,
+           830.0, 940.0], ("gru", "mean action"): [400.0, 450.0, 500.0, 550.0, 600.0],
+           ("gru", "sampled"): [700.0, 700.0, 700.0, 700.0, 710.0]}  # fmt: skip
+    before = {("lstm", "mean action"): [300.0, 350.0, 400.0, 450.0, 500.0], ("lstm", "sampled"): [550.0, 650.0,
+              750.0, 850.0, 600.0], ("gru", "mean action"): [650.0, 700.0, 750.0, 800.0, 850.0],
+              ("gru", "sampled"): [600.0, 650.0, 700.0, 750.0, 800.0]}  # fmt: skip
+    history = results / "history" / "cpu_float32"
+    history.mkdir(parents=True)
+    for seeds, scores, path in [((31, 32, 33, 34, 35), now, results / "learning_final.csv"),
+                                ((21, 22, 23, 24, 25), before, history / "learning_final.csv")]:
+        for variant in ("lstm", "gru"):
+            for k, seed in enumerate(seeds):
+                final_protocol.write_protocol_row(protocol_row(variant, seed, scores[variant, "mean action"][k],
+                                                               scores[variant, "sampled"][k]), str(path))  # fmt: skip
+    assert "replaced" not in final_protocol.write_protocol_report(str(results), reps=100)  # none named: no section
+    monkeypatch.setattr(final_protocol, "REPLACED_PROTOCOL", ("cpu_float32", (21, 22, 23, 24, 25)))
+    text = final_protocol.write_protocol_report(str(results), reps=100)
+    section = text[text.index("Against the protocol this one replaced"):]
+    assert section.startswith(f"Against the protocol this one replaced ({os.path.join('history', 'cpu_float32')}"
+                              f"{os.sep}learning_final.csv: seeds 21, 22, 23, 24, 25)")  # fmt: skip
+    rows = {line.split("|")[1].strip(): [cell.strip() for cell in line.split("|")[2:-1]]
+            for line in section.splitlines() if line.startswith("| ") and not line.startswith("| comparison")}
+    verdicts = {("lstm", "mean action"): "higher", ("gru", "mean action"): "lower",  # every split: p = 1/252
+                ("lstm", "sampled"): "no detectable difference", ("gru", "sampled"): "no detectable difference"}
+    assert sorted(rows) == sorted(f"{policy}: {variant}" for variant, policy in now)
+    for (variant, policy), x in now.items():
+        y = before[variant, policy]
+        welch = sps.ttest_ind(x, y, equal_var=False).confidence_interval(0.95)
+        cells = rows[f"{policy}: {variant}"]
+        assert cells[:2] == ["5+5", f"{np.mean(x) - np.mean(y):+.1f}"]
+        assert cells[2:4] == [f"[{welch.low:+.1f}, {welch.high:+.1f}]",
+                              f"{permutation_p(x, y):.3f} / {permutation_p(y, x):.3f}"]  # fmt: skip
+        assert cells[4] == verdicts[variant, policy]
+    assert permutation_p(now["lstm", "mean action"], before["lstm", "mean action"]) == pytest.approx(1 / 252)
+    # this protocol short of a seed: every comparison of that variant is provisional
+    kept = [r for r in common.read_table(str(results / "learning_final.csv")) if r["seed"] != "35" or r["variant"]
+            != "gru"]  # fmt: skip
+    common.write_table(str(results / "learning_final.csv"), kept, final_protocol.PROTOCOL_COLUMNS)
+    section = final_protocol.write_protocol_report(str(results), reps=100).split("this one replaced")[1]
+    assert "| mean action: gru | 4+5 |" in section and "| lower (provisional: seeds missing) |" in section
+    assert "| mean action: lstm | 5+5 |" in section and "| higher |" in section
+    # the replaced protocol's file: a seed not its own, or a failed value, is refused naming the file
+    text = (history / "learning_final.csv").read_text()
+    (history / "learning_final.csv").write_text(text.replace("\nlstm,25,", "\nlstm,26,"))
+    with pytest.raises(ValueError, match=r"cpu_float32.learning_final\.csv \(lstm\): seed\(s\) 26 are not the "):
+        final_protocol.write_protocol_report(str(results), reps=100)
+    first = text.splitlines()[1].split(",")
+    first[final_protocol.PROTOCOL_COLUMNS.index("final_return")] = "nan"
+    (history / "learning_final.csv").write_text(text.replace(text.splitlines()[1], ",".join(first)))
+    failed = rf"cpu_float32.learning_final\.csv: {first[0]} seed {first[1]} has final_return = 'nan'"
+    with pytest.raises(ValueError, match=failed):
+        final_protocol.write_protocol_report(str(results), reps=100)
+    (history / "learning_final.csv").unlink()
+    assert "The protocol this one replaced: no history" in final_protocol.write_protocol_report(str(results), reps=100)
+
+
 def test_a_peer_row_of_an_unfinished_run_is_listed_not_compared_and_a_failed_or_foreign_row_is_refused(tmp_path):
     """A peer's run ends at its CPU budget or at the zoo's step budget (n_timesteps x frame_skip env steps); a row
     measured before either (ppo_peer.py --evaluate-only in between) is listed and left out of every statistic. A row
