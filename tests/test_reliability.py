@@ -632,7 +632,7 @@ def test_a_run_killed_with_sigkill_resumes_with_nothing_but_resume(uninterrupted
 
 def test_an_explicit_flag_on_resume_overrides_and_says_so(uninterrupted, tmp_path):
     """`--resume <run> --total-episodes 6` extends the finished 5-race run by one race, and prints the change;
-    a setting that fixes the networks cannot change."""
+    a setting that fixes the networks or the replay cannot change, and a checkpoint outside a run is refused."""
     import shutil
 
     run_dir = shutil.copytree(uninterrupted, tmp_path / "run")
@@ -642,8 +642,16 @@ def test_an_explicit_flag_on_resume_overrides_and_says_so(uninterrupted, tmp_pat
     checkpoint = importlib.import_module("dreamer_lstm").load_checkpoint(str(run_dir / "checkpoints" / "latest.pt"))
     assert checkpoint["counters"]["episode"] == 6 and checkpoint["args"]["total_episodes"] == 6
     assert checkpoint["args"]["torch_threads"] == 1  # not passed: kept
-    refused = run_script(["--resume", str(run_dir), "--deter-size", "32"])
-    assert refused.returncode == 1 and "--deter-size cannot change in a resumed run" in refused.stderr
+    for name, value in [("--deter-size", "32"), ("--replay-capacity", "700")]:  # (the saved replay holds 500 steps)
+        refused = run_script(["--resume", str(run_dir), name, value])
+        assert refused.returncode == 1 and f"{name} cannot change in a resumed run" in refused.stderr
+    # a checkpoint outside a run's checkpoints/ has no run directory to go on in: refused, nothing written beside it
+    copy = tmp_path / "copies" / "latest.pt"
+    copy.parent.mkdir()
+    shutil.copy(run_dir / "checkpoints" / "latest.pt", copy)
+    refused = run_script(["--resume", str(copy)])
+    assert refused.returncode == 1 and f"--resume {copy}: not in a run's checkpoints/ folder" in refused.stderr
+    assert sorted(os.listdir(tmp_path)) == ["copies", "run"] and os.listdir(copy.parent) == ["latest.pt"]
 
 
 def test_saved_arguments_are_read_back_new_flags_default_and_removed_ones_are_named_with_their_values(capsys):

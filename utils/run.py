@@ -56,9 +56,10 @@ from utils.checkpoint import (
 from utils.collector import drive_races
 
 # Arguments that fix the networks' shapes (a --checkpoint brings its own; a resumed run cannot change them),
-# and what a run is (a resumed run cannot change those either).
+# and what a run is, with the size of the replay it reloads (a resumed run cannot change those either).
 ARCHITECTURE = ("image_size", "cnn_depth", "deter_size", "hidden_size", "mlp_size", "latent_size", "norm", "heads")
-IDENTITY = ("env_id", "num_agents", "num_races", "stage", "seed", "exp_name", "runs_dir", "checkpoint", "preset")
+IDENTITY = ("env_id", "num_agents", "num_races", "stage", "seed", "exp_name", "runs_dir", "checkpoint", "preset",
+            "replay_capacity")
 
 
 class NumericalFault(RuntimeError):
@@ -436,7 +437,11 @@ def setup_run(method, args, overrides=()) -> Run:
         resumed = load_checkpoint(checkpoint_path, method.VARIANT, training=True)
         args = resumed_args(method.Args, resumed, checkpoint_path, args, overrides)
         validate_args(args, method.LOG_SIGMA_RANGE)
-        run_dir = os.path.dirname(os.path.dirname(os.path.abspath(checkpoint_path)))
+        folder = os.path.dirname(os.path.abspath(checkpoint_path))
+        if os.path.basename(folder) != "checkpoints":  # (the run goes on in the directory that holds checkpoints/)
+            raise UsageError(f"--resume {args.resume}: not in a run's checkpoints/ folder, so no run directory to go "
+                             f"on in; give the run directory (runs/<run>) or a checkpoint in its checkpoints/")
+        run_dir = os.path.dirname(folder)
     else:
         args, start = new_run_args(method, args)
         validate_args(args, method.LOG_SIGMA_RANGE)  # again: a --checkpoint brings its networks' form (--heads)
