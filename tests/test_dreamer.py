@@ -1065,6 +1065,10 @@ def test_the_collector_refuses_agents_that_do_not_match_the_cars():
         collector.Races(agents, args, one_race_of_two, None)
     with pytest.raises(ValueError, match="^3 action repeats for 2 agents"):
         collector.Races(agents * 2, args, one_race_of_two, None, repeats=[1, 2, 3])
+    narrow = _ConstantDriver(np.zeros(2, np.float32))
+    narrow.action_dim = 1  # (its actions would fill both columns of the race's actions without a word)
+    with pytest.raises(ValueError, match=r"^agents of action sizes \[1, 2\] in one race"):
+        collector.Races([agents[0], narrow], args, one_race_of_two, None)
     with pytest.raises(ValueError, match="^drive_races drives one race at a time: eval_envs holds 4 slots for 2"):
         collector.drive_races(agents * 2, args, two_races_of_two)
 

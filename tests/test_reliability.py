@@ -116,6 +116,12 @@ def test_validate_args_raises_value_error_naming_the_flag(script, tmp_path):
         run_tools.validate_args(script.Args(batch_size=0), script.LOG_SIGMA_RANGE)
     with pytest.raises(ValueError, match=r"^--decoder-min-log-sigma must lie in \[-5, 2\], got 3.0$"):
         run_tools.validate_args(script.Args(decoder_min_log_sigma=3.0), script.LOG_SIGMA_RANGE)
+    for bad, message in [({"action_penalty": float("nan")}, "--action-penalty must be a finite number, got nan"),
+                         ({"action_penalty": -1.0}, "--action-penalty must be >= 0, got -1.0"),
+                         ({"entropy_target": float("inf")}, "--entropy-target must be a finite number, got inf"),
+                         ({"entropy_lr": 0.0}, "--entropy-lr must be > 0, got 0.0")]:  # (optional floats too)
+        with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+            run_tools.validate_args(script.Args(**bad), script.LOG_SIGMA_RANGE)
     with pytest.raises(ValueError, match="--tau"):  # main checks first, before it writes anything
         script.main(script.Args(tau=2.0, runs_dir=str(tmp_path / "runs")))
     assert not (tmp_path / "runs").exists()

@@ -245,7 +245,7 @@ def load_agent(agent, state: dict) -> None:
         missing, unexpected = agent.world_model.load_state_dict(state["world_model"], strict=False)
         missing = [k for k in missing if k.startswith(ACTING_PARTS)]
         if missing or unexpected:
-            raise KeyError(f"acting-only state: missing {missing[:3]}, unexpected {unexpected[:3]}")
+            raise ValueError(f"acting-only state: missing {missing[:3]}, unexpected {unexpected[:3]}")
         agent.actor.load_state_dict(state["actor"])
         agent.num_updates, agent.acting_only = int(state["num_updates"]), True
         return

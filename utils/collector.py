@@ -82,7 +82,10 @@ class Races:
             raise ValueError(f"{len(repeats)} action repeats for {len(agents)} agents: one per agent")
         self.agents, self.args, self.envs, self.n = agents, args, envs, len(agents)
         self.repeat = np.tile(repeats or [args.action_repeat] * self.n, envs.num_envs // self.n)  # per slot
-        self.actions = np.zeros((envs.num_envs, max(a.action_dim for a in agents)), dtype=np.float32)
+        dims = sorted({a.action_dim for a in agents})
+        if len(dims) > 1:
+            raise ValueError(f"agents of action sizes {dims} in one race: its cars share one action space")
+        self.actions = np.zeros((envs.num_envs, dims[0]), dtype=np.float32)
         self.states, slots = [None] * self.n, envs.num_envs  # agent i's recurrent state over its K cars
         self.is_first, self.racing = np.ones(slots, dtype=bool), np.ones(slots, dtype=bool)
         self.held, self.reward = np.zeros(slots, dtype=int), np.zeros(slots)  # since the car's last decision

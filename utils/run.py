@@ -111,18 +111,15 @@ def validate_args(args, log_sigma_range: tuple[float, float]) -> None:
     }.items():  # fmt: skip
         for name in names:
             require(getattr(args, name) >= minimum, name, f"must be >= {minimum}")
-    for name in ("model_lr", "critic_lr", "actor_lr", "grad_clip"):
+    for name in ("model_lr", "critic_lr", "actor_lr", "entropy_lr", "grad_clip"):
         require(getattr(args, name) > 0, name, "must be > 0")
     require(0 < args.gamma <= 1, "gamma", "must lie in (0, 1]")
     require(0 <= args.lambda_ <= 1, "lambda_", "must lie in [0, 1]")
     require(args.head_sigma >= 0, "head_sigma", "must be >= 0 (0: learned)")
     if args.heads == "twohot":
         require(args.head_sigma == 0, "head_sigma", "is the Gaussian heads' sigma: leave it 0 with --heads twohot")
-    require(args.entropy_lr > 0, "entropy_lr", "must be > 0")
-    if args.action_penalty is not None:
-        require(math.isfinite(args.action_penalty) and args.action_penalty >= 0, "action_penalty", "must be >= 0")
-    if args.entropy_target is not None:
-        require(math.isfinite(args.entropy_target), "entropy_target", "must be a finite number")
+    require(args.action_penalty is None or args.action_penalty >= 0, "action_penalty", "must be >= 0")
+    if args.entropy_target is not None:  # (finite, as every float above)
         require(args.entropy_coef > 0, "entropy_coef", "must be > 0 with --entropy-target (alpha starts there)")
     require(0 < args.tau <= 1, "tau", "must lie in (0, 1]")
     low, high = log_sigma_range
@@ -554,7 +551,7 @@ def restore_run(run: Run, resumed: dict, path: str) -> None:
     """Put a checkpoint's agents, counters, ghosts, recent wins, CPU time and replays into `run`."""
     n = run.args.num_agents
     if len(resumed["agents"]) != n:
-        raise CheckpointError(f"{path}: holds {len(resumed['agents'])} agent(s), its arguments {n}")
+        raise CheckpointError(f"{path}: holds {len(resumed['agents'])} agent(s), its saved --num-agents is {n}")
     for i, (agent, state) in enumerate(zip(run.agents, resumed["agents"])):
         load_agent_state(agent, state, path, i)
     run.counters.update(resumed["counters"])
@@ -578,10 +575,21 @@ def checkpoint_extra(run: Run) -> dict:
     }
 
 
+def save_run_checkpoint(run: Run, name: str, extra: dict | None = None) -> str:
+    """checkpoints/<name>: the run's agents, arguments, counters and `extra` (default checkpoint_extra) (atomic)."""
+    path = os.path.join(run.checkpoint_dir, name)
+    save_checkpoint(path, run.method.VARIANT, run.args, run.agents, run.counters, extra or checkpoint_extra(run))
+    return path
+
+
+def save_replays(run: Run) -> None:
+    """Save every agent's replay (the new chunks) and keep what each save holds (run.manifests) for latest.pt."""
+    run.manifests = [save_replay(replay, run.replay_dir(j)) for j, replay in enumerate(run.replays)]
+
+
 def save_latest(run: Run) -> str:
     """checkpoints/latest.pt, naming each agent's replay save; then the replay files it does not name go."""
-    path = os.path.join(run.checkpoint_dir, "latest.pt")
-    save_checkpoint(path, run.method.VARIANT, run.args, run.agents, run.counters, checkpoint_extra(run))
+    path = save_run_checkpoint(run, "latest.pt")
     for j, manifest in enumerate(run.manifests):
         if manifest is not None:
             prune_replay(run.replay_dir(j), manifest)
@@ -592,7 +600,7 @@ def finish_run(run: Run) -> str:
     """Save the replays and latest.pt, close everything, say why the run stopped; raise NumericalFault if that is
     why."""
     reason = run.stop_reason()
-    run.manifests = [save_replay(replay, run.replay_dir(j)) for j, replay in enumerate(run.replays)]
+    save_replays(run)
     latest = save_latest(run)
     if run.pbar is not None:
         run.pbar.close()
@@ -695,7 +703,7 @@ def evaluate_and_keep_best(run: Run) -> None:
     """Evaluate on the held-out tracks, log it, print one line, keep best.pt (and eval_<race>.pt if asked)."""
     from utils import make_vec_env
 
-    args, counters, method = run.args, run.counters, run.method
+    args, counters = run.args, run.counters
     if run.eval_envs is None:
         run.eval_envs = make_vec_env(args.env_id, 1, None, **env_kwargs(args, args.dead_zone_end))
     readings = drive_races(run.agents, args, run.eval_envs)
@@ -714,11 +722,10 @@ def evaluate_and_keep_best(run: Run) -> None:
               f" ({args.eval_policy}, {len(returns)} held-out tracks)")  # fmt: skip
     extra = checkpoint_extra(run)
     if args.eval_checkpoints:
-        path = os.path.join(run.checkpoint_dir, f"eval_{counters['episode']:06d}.pt")
-        save_checkpoint(path, method.VARIANT, args, run.agents, counters, extra)
+        save_run_checkpoint(run, f"eval_{counters['episode']:06d}.pt", extra)
     if returns.mean() > counters["best_eval_return"]:
         counters["best_eval_return"] = float(returns.mean())
-        save_checkpoint(os.path.join(run.checkpoint_dir, "best.pt"), method.VARIANT, args, run.agents, counters, extra)
+        save_run_checkpoint(run, "best.pt", extra)
 
 
 def after_training(run: Run, cars: list, env_sps: float) -> None:
@@ -732,7 +739,7 @@ def after_training(run: Run, cars: list, env_sps: float) -> None:
             evaluate_and_keep_best(run)
         # The replay first, then latest.pt naming it: a kill between the two leaves the previous pair intact.
         if args.replay_save_every and episode % args.replay_save_every == 0:
-            run.manifests = [save_replay(replay, run.replay_dir(j)) for j, replay in enumerate(run.replays)]
+            save_replays(run)
         if args.checkpoint_every and episode % args.checkpoint_every == 0:
             save_latest(run)
     run.check_budget()
