@@ -80,7 +80,7 @@ class Args:
     seed: int = 1
     """seed of python, numpy, torch and of the training tracks"""
     torch_deterministic: bool = True
-    """if toggled, `torch.backends.cudnn.deterministic=True`"""
+    """`torch.backends.cudnn.deterministic` (deterministic cuDNN kernels on a GPU)"""
     cuda: bool = True
     """use CUDA when it is available (else the CPU)"""
     torch_threads: int = 0
@@ -98,8 +98,9 @@ class Args:
     runs_dir: str = "runs"
     """directory holding the run directories `{env_id}__{exp_name}__{seed}__{time}`"""
     resume: str | None = None
-    """continue a run: its run directory or a checkpoint file, with its saved args and counters (flags given again
-    override them, except that a change to what fixes the networks or what the run is, is refused)"""
+    """continue a run: its run directory (or a checkpoint file in its checkpoints/), with its saved args and counters
+    (flags given again override them, except that a change to what fixes the networks or what the run is, is
+    refused)"""
     checkpoint: str | None = None
     """start the agents' networks and optimisers from this checkpoint (e.g. a single-stage best.pt for ghost), and
     their replays from the replay saved beside it; the checkpoint's network sizes and form (--norm, --heads)

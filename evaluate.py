@@ -152,8 +152,9 @@ def main(args: Args) -> None:
 def cli(argv: list[str] | None = None) -> None:
     """The command line: a bad file or value ends with one line naming it, no traceback."""
     from utils.checkpoint import CheckpointError
+    from utils.run import tyro_cli
 
-    args = tyro.cli(Args, args=argv)
+    args = tyro_cli(Args, argv, __doc__)
     try:
         main(args)
     except (CheckpointError, ValueError) as e:

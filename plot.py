@@ -381,7 +381,7 @@ def usage_error(message: str) -> None:
 
 def parse_args(argv=None) -> Args:
     """Args of a command line, checked: any impossible value exits with status 2 and one line naming it."""
-    args = tyro.cli(Args, args=argv, description=__doc__)
+    args = run_tools.tyro_cli(Args, argv, __doc__)
     if not os.path.isdir(args.logdir):
         usage_error(f"logdir {args.logdir!r} is not a directory")
     if not math.isfinite(args.sigma) or args.sigma < 0:

@@ -21,7 +21,8 @@ mean progress, eliminations, collision steps; plus an mp4 of the first race (``-
 its own replay buffer (the one saved beside its checkpoint unless ``--fresh-replay``), filled with its own car's
 transitions, and ``--train-steps`` updates after every race (the scripts' ``train_agent``); TensorBoard logging per
 racer (return, progress, win rate, losses) and, after every race, a checkpoint per racer with its replay beside it
-(``runs/<run>/checkpoints/racer_<i>.pt`` and ``racer_<i>_replay_car_0/``), so a later sitting continues from both.
+(``runs/<run>/checkpoints/racer_<i>.pt`` and ``racer_<i>_replay_car_0/``), so a later ``--train`` command continues
+from both.
 """
 
 from __future__ import annotations
@@ -260,7 +261,7 @@ def usage_error(message: str) -> None:
 
 def parse_args(argv=None) -> Args:
     """Args of a command line, checked: any impossible value exits with status 2 and one line naming it."""
-    args = tyro.cli(Args, args=argv, description=__doc__)
+    args = run_tools.tyro_cli(Args, argv, __doc__)
     racers = len(args.checkpoints) + len(args.opponent)
     if racers < 1 or (racers < 2 and not args.train):
         fewest = "one racer with --train" if args.train else "two racers"

@@ -129,6 +129,33 @@ def test_validate_args_raises_value_error_naming_the_flag(script, tmp_path):
     assert exit_message(script, ["--batch-size", "0"]) == expected
 
 
+def test_help_shows_each_flags_docstring_as_one_paragraph(monkeypatch, capsys):
+    """tyro_cli: a field docstring wrapped over indented source lines reads as one paragraph in --help (tyro alone
+    starts a help line at every source line); a blank line still separates paragraphs."""
+
+    @dataclasses.dataclass
+    class Args:
+        speed: float = 1.0
+        """how fast the car goes, in metres
+        per second, before the
+        dead zone"""
+        mode: str = "a"
+        """first paragraph
+
+        second paragraph"""
+
+    monkeypatch.setenv("COLUMNS", "300")
+    with pytest.raises(SystemExit):
+        run_tools.tyro_cli(Args, ["--help"], "what the command does")
+    text = capsys.readouterr().out
+    assert "what the command does" in text
+    assert "how fast the car goes, in metres per second, before the dead zone (default: 1.0)" in text
+    lines = [line.strip(" │") for line in text.splitlines()]
+    first = next(i for i, line in enumerate(lines) if "first paragraph" in line)
+    assert lines[first].endswith("first paragraph") and lines[first + 1] == ""
+    assert lines[first + 2].startswith("second paragraph")
+
+
 def test_the_command_line_prints_one_line_and_exits_1(tmp_path):
     result = subprocess.run(
         [sys.executable, "dreamer_lstm.py", "--batch-size", "0", "--runs-dir", str(tmp_path / "runs")],

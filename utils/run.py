@@ -152,14 +152,34 @@ def usage_error(program: str, message: str) -> None:
     raise SystemExit(2)
 
 
+def tyro_cli(args_class, argv: list[str] | None = None, description: str | None = None):
+    """``tyro.cli(args_class, args=argv, description=description)``, with each field's docstring one paragraph in
+    --help. tyro (1.0.16, pinned) joins a docstring's line to the one before only when the line starts with a letter,
+    and looks before it removes the docstring's indentation: every indented continuation line would start a help
+    line of its own. Its joining gets the docstring without the indentation (inspect.cleandoc) instead."""
+    import inspect
+
+    import tyro
+    from tyro import _strings
+
+    join = _strings.remove_single_line_breaks
+    if not getattr(join, "cleans_first", False):
+        def cleaned_then_joined(helptext: str) -> str:
+            return join(inspect.cleandoc(helptext))
+
+        cleaned_then_joined.cleans_first = True
+        _strings.remove_single_line_breaks = cleaned_then_joined
+    return tyro.cli(args_class, args=argv, description=description)
+
+
 def parse_args(method, argv: list[str] | None = None):
     """Args of a command line, with its --preset applied under the flags it sets, and the fields it sets. A new run
     from --checkpoint without --preset takes the preset the checkpoint was trained at, at this code's values of it
     (its action repeat, batch, horizon...; other flags the checkpoint's run set are not carried over)."""
-    import tyro
-
     argv = sys.argv[1:] if argv is None else list(argv)
-    args = tyro.cli(method.Args, args=argv)
+    description = (f"{method.__doc__.splitlines()[0]} The defaults are the paper's (or its authors' code's); "
+                   f"\"(ours)\" marks this project's own. --preset cpu: a configuration for a CPU (docs/agent.md).")
+    args = tyro_cli(method.Args, argv, description)
     explicit = explicit_fields(method.Args, argv)
     if args.resume:
         return args, explicit
@@ -682,7 +702,7 @@ def report_update_time(run: Run) -> None:
                f" agent(s) = {minutes:.1f} min of training per race.")  # fmt: skip
     if args.preset == "paper":
         script = os.path.basename(run.method.__file__)
-        message += f" For a CPU-sized run: python {script} --preset cpu --seed 1 (README.md)"
+        message += f" For a CPU-sized run: python {script} --preset cpu --stage single --seed 1 (README.md)"
     run.print(message)
 
 
