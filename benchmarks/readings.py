@@ -27,9 +27,10 @@ import numpy as np
 from calibration import calibrate_checkpoint
 from common import checkpoint_updates
 from runs import progress_rows
+from utils.collector import READINGS
 
 POLICIES = ("stochastic", "mean-action")
-DRIVING = ("return", "progress", "abs_steer", "gas", "brake_share", "speed", "lap_finished", "eliminated")
+DRIVING = READINGS  # what the collector reads of each car's race (utils/collector.py), over the tracks
 TRAINING = {  # column: the progress.csv tag averaged over the last SCREEN_WINDOW updates
     "actor_sigma": "car_0/losses/actor_std", "entropy": "car_0/losses/entropy", "alpha": "car_0/losses/alpha",
     "imagined_return": "car_0/losses/imagined_return",
