@@ -23,14 +23,15 @@ them. Each command runs one mode (``--protocol-row``, ``--protocol-report``, ``-
 
 The final protocol (CPU budget: per variant the seeds 21..25, each a single-stage trial of ``benchmarks/experiment.py
 --single-cpu-hours 3.1``, measured on the report tracks 10300..10329; its bar and its peers' files) is
-``final_protocol.py``, which the ``--protocol-*`` modes call. It replaces the 8,000-update protocol (final policies
-on the tracks 10100..10119, its runs the experiment's single stage at 8,000 updates), whose files are in
-``benchmarks/results/history/8000_updates/``. (This command line also trained and plotted such runs one at a time
-until commit b28dd0c.)
+``final_protocol.py``, which the ``--protocol-*`` modes call (``--protocol-ship``: ``ship.py``). It replaces the
+8,000-update protocol (final policies on the tracks 10100..10119, its runs the experiment's single stage at 8,000
+updates), whose files are in ``benchmarks/results/history/8000_updates/``. (This command line also trained and
+plotted such runs one at a time until commit b28dd0c.)
 
 This file holds the measurement of a saved policy on a block of tracks and the command line. The rest lives beside
 it: ``runs.py`` (where the runs are; what their event files, progress.csv and checkpoints hold),
-``learning_report.py`` (the references and a run's diagnostics), ``final_protocol.py`` and ``calibration.py``. A
+``learning_report.py`` (the references and a run's diagnostics), ``final_protocol.py``, ``ship.py`` and
+``calibration.py``. A
 saved agent on other tracks, or its acting-only export: ``evaluate.py`` at the top level (``python evaluate.py
 CHECKPOINT --first-track 10100 --tracks 20``, ``python evaluate.py CHECKPOINT --export OUT``).
 """
@@ -50,6 +51,7 @@ sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import common  # noqa: E402  (the blocks of tracks, the results' CSV rows)
 import final_protocol as protocol  # noqa: E402  (the --protocol-* modes)
+import ship  # noqa: E402  (--protocol-ship)
 from calibration import calibrate_checkpoint, write_calibration_row  # noqa: E402
 from learning_report import diagnostics, diagnostics_table  # noqa: E402
 from runs import RUNS, experiment_name, find_run, learning_runs  # noqa: E402
@@ -208,7 +210,7 @@ def run_mode(args: Args) -> None:
         print(table)
     elif args.protocol_ship:
         shipped = args.shipped or os.path.join(ROOT, "pretrained", f"{args.variant}_cpu.pt")
-        print(protocol.ship(args.variant, args.runs_dir, shipped, args.results_dir, args.ship_seeds))
+        print(ship.ship(args.variant, args.runs_dir, shipped, args.results_dir, args.ship_seeds))
     elif args.protocol_row or args.protocol_report:
         if args.protocol_row:
             path = os.path.join(args.results_dir, "learning_final.csv")

@@ -21,6 +21,7 @@ import final_protocol
 import learning
 import runs
 import readings
+import ship
 from conftest import write_sitting
 
 BUDGET_SECONDS = 3600 * final_protocol.PROTOCOL_CPU_HOURS
@@ -639,7 +640,7 @@ def test_the_shipped_agent_is_replaced_only_by_a_better_seed_on_the_screening_tr
 
     monkeypatch.setattr(evaluate, "evaluate_checkpoint", screening_readings)
     monkeypatch.setattr(utils.checkpoint, "export_policy", export)
-    text = final_protocol.ship("lstm", trials, str(shipped), results)
+    text = ship.ship("lstm", trials, str(shipped), results)
     seed23 = os.path.join(trial_runs[23], "checkpoints", "latest.pt")
     assert exported == [seed23] and shipped.read_bytes() == b"x" * 1000  # 520 beats the shipped 500
     with open(tmp_path / "ship_lstm.csv") as f:
@@ -653,7 +654,7 @@ def test_the_shipped_agent_is_replaced_only_by_a_better_seed_on_the_screening_tr
 
     returns[str(shipped)] = 600.0  # now the shipped agent drives better: nothing is exported
     shipped.write_bytes(b"the agent shipped before")
-    assert "update what" not in final_protocol.ship("lstm", trials, str(shipped), results)
+    assert "update what" not in ship.ship("lstm", trials, str(shipped), results)
     assert exported == [seed23] and shipped.read_bytes() == b"the agent shipped before"
     with open(tmp_path / "ship_lstm.csv") as f:  # a second decision is added to the record, the first one kept
         rows = list(csv.DictReader(f))
@@ -662,10 +663,10 @@ def test_the_shipped_agent_is_replaced_only_by_a_better_seed_on_the_screening_tr
     assert [float(r["return"]) for r in rows if r["candidate"] == "shipped"] == [500.0, 600.0]
 
     returns[str(shipped)] = 100.0  # an export over the limit is refused and removed
-    too_big = final_protocol.SHIP_MAX_BYTES + 1
+    too_big = ship.SHIP_MAX_BYTES + 1
     monkeypatch.setattr(utils.checkpoint, "export_policy", lambda *a: export(*a, size=too_big))
     with pytest.raises(ValueError, match="over the 10 MB"):
-        final_protocol.ship("lstm", trials, str(shipped), results)
+        ship.ship("lstm", trials, str(shipped), results)
     assert shipped.read_bytes() == b"the agent shipped before" and not os.path.exists(str(shipped) + ".new")
     with open(tmp_path / "ship_lstm.csv") as f:  # the record names the agent that stays, not the refused one
         assert [(r["decision"], r["candidate"]) for r in csv.DictReader(f) if r["shipped"] == "True"] == [
@@ -674,7 +675,7 @@ def test_the_shipped_agent_is_replaced_only_by_a_better_seed_on_the_screening_tr
     monkeypatch.setattr(utils.checkpoint, "export_policy", export)
     returns[seed23], before = float("nan"), list(exported)  # a failed drive is refused, not kept (max() keeps a NaN)
     with pytest.raises(ValueError, match=r"^ship_lstm: lstm seed 23 has return = nan: measure it again$"):
-        final_protocol.ship("lstm", trials, str(shipped), results)
+        ship.ship("lstm", trials, str(shipped), results)
     assert shipped.read_bytes() == b"the agent shipped before" and exported == before
 
     short = fake_trial(str(tmp_path / "short"), seed=21, cpu_seconds=BUDGET_SECONDS - 1)
@@ -682,7 +683,7 @@ def test_the_shipped_agent_is_replaced_only_by_a_better_seed_on_the_screening_tr
         fake_trial(str(tmp_path / "short"), seed=seed)
     monkeypatch.setattr(evaluate, "evaluate_checkpoint", refuse_to_drive)
     with pytest.raises(ValueError, match=f"{short}.*not a final policy yet"):
-        final_protocol.ship("lstm", str(tmp_path / "short"), str(shipped), results)
+        ship.ship("lstm", str(tmp_path / "short"), str(shipped), results)
 
 
 def test_a_record_that_is_not_a_shipping_record_is_refused_before_anything_is_driven(tmp_path, monkeypatch):
@@ -694,7 +695,7 @@ def test_a_record_that_is_not_a_shipping_record_is_refused_before_anything_is_dr
     (tmp_path / "ship_lstm.csv").write_text("variant,candidate,return,note\nlstm,shipped,1.0,x\n")
     monkeypatch.setattr(evaluate, "evaluate_checkpoint", refuse_to_drive)
     with pytest.raises(ValueError, match=r"ship_lstm.csv: not a shipping record \(columns note are not of decision,"):
-        final_protocol.ship("lstm", trials, str(shipped), str(tmp_path))
+        ship.ship("lstm", trials, str(shipped), str(tmp_path))
     assert shipped.read_bytes() == b"the agent shipped before"
 
 
