@@ -55,12 +55,12 @@ import os
 
 import numpy as np
 
+import ppo_peer
 import readings
 from common import (
     PROTOCOL_CPU_HOURS, RESULTS, TRACKS, checkpoint_updates, read_table, replace_rows, track_block, write_text,
 )  # fmt: skip
 from learning_report import baselines
-from ppo_peer import ALGOS as PEER_ALGOS, COLUMNS as PEER_CSV_COLUMNS, CURVE_COLUMNS, read_rows as read_peer_csv
 from runs import VARIANTS, cpu_hours_of, eval_curve, eval_summary, numerical_stop, run_of, training_hours
 
 # --- The protocol ----------------------------------------------------------------------------
@@ -82,7 +82,7 @@ PROTOCOL_COLUMNS = (
 )  # fmt: skip
 PROTOCOL_PEERS = ("ppo", "recurrent_ppo")  # benchmarks/ppo_peer.py's variants (--algo ppo, recurrent-ppo)
 PROTOCOL_PEER_SEEDS = {"ppo": (11, 12, 13, 14, 15), "recurrent_ppo": (11, 12, 13)}
-PEER_COLUMNS = tuple(c for c in PEER_CSV_COLUMNS if c != "tracks")  # a peer's row (ppo_peer.py's), its tracks aside
+PEER_COLUMNS = tuple(c for c in ppo_peer.COLUMNS if c != "tracks")  # a peer's row (ppo_peer.py's), its tracks aside
 PEER_POLICY_COLUMNS = ("final_return", "final_progress", "final_mean_abs_steer")  # its deterministic policy's driving
 # Why a run drives as it does: benchmarks/readings.py's readings of its final policy on the report tracks, per policy,
 # kept beside learning_final.csv (the driving from the row's own drives, not driven again; the training logs' last
@@ -105,9 +105,9 @@ WHY_ADVICE = f"it holds other readings than {WHY_CSV}'s: move it aside first"
 
 # --- A run's row of learning_final.csv --------------------------------------------------------
 def protocol_peer_path(peer: str, results_dir: str = RESULTS, curve: bool = False) -> str:
-    """The CSV of a peer's rows, ppo_peer.py's default: ``<peer>_peer.csv`` (one row per seed and tracks: its rows
-    of the report tracks are read, read_peer_rows), or with `curve` its snapshots' ``<peer>_peer_curve.csv``."""
-    return os.path.join(results_dir, f"{peer}_peer{'_curve' * curve}.csv")
+    """The CSV of a peer's rows where ppo_peer.py keeps them (ppo_peer.results_path: its rows of the report tracks
+    are read, read_peer_rows), or with `curve` its snapshots'."""
+    return ppo_peer.results_path(peer, results_dir, curve)
 
 
 def protocol_run(variant: str, seed: int, runs_dir: str) -> str:
@@ -250,12 +250,12 @@ def protocol_bar(rows: list[dict]) -> dict[str, tuple[float, bool]]:
 
 
 def read_peer_rows(path: str, columns: tuple[str, ...] = PEER_COLUMNS) -> list[dict]:
-    """A peer's rows (or with CURVE_COLUMNS its curve's) measured on the report tracks (protocol_peer_path; none
-    while its file does not exist): only runs measured on the same tracks are compared, and a row of other tracks
-    is left out (ppo_peer.read_rows: a row without a ``tracks`` column was measured on 10100..10119). A file that
-    lacks one of `columns`, or holds another peer's rows (``ppo_peer.py --results`` given the wrong file), is
+    """A peer's rows (or with ppo_peer.CURVE_COLUMNS its curve's) measured on the report tracks (protocol_peer_path;
+    none while its file does not exist): only runs measured on the same tracks are compared, and a row of other
+    tracks is left out (ppo_peer.read_rows: a row without a ``tracks`` column was measured on 10100..10119). A file
+    that lacks one of `columns`, or holds another peer's rows (``ppo_peer.py --results`` given the wrong file), is
     refused with a one-line ValueError naming it."""
-    rows = read_peer_csv(path)
+    rows = ppo_peer.read_rows(path)
     missing = [c for c in columns if rows and c not in rows[0]]
     if missing:
         raise ValueError(f"{path} lacks the column(s) {', '.join(missing)} of a peer's row")
@@ -274,7 +274,7 @@ def peer_finished(row: dict) -> bool:
     (PROTOCOL_CPU_HOURS, passed by at most PEER_CPU_OVERSHOOT) spent, or the zoo's step budget (n_timesteps,
     frame_skip env steps each) taken first. A row measured with --evaluate-only before either, or of a run given
     another --cpu-hours or --budget-steps, is not."""
-    config = {variant: config for variant, config in PEER_ALGOS.values()}[row["variant"]]
+    config = {variant: config for variant, config in ppo_peer.ALGOS.values()}[row["variant"]]
     steps, hours = config["n_timesteps"] * config["frame_skip"], float(row["cpu_hours"])
     if hours > PROTOCOL_CPU_HOURS + PEER_CPU_OVERSHOOT:
         return False
@@ -740,7 +740,7 @@ def write_protocol_report(results_dir: str = RESULTS, reps: int = 2000) -> str:
     peers = {peer: [r for r in theirs if peer_finished(r)] for peer, theirs in measured.items()}
     unfinished = [f"{PEER_NAMES[peer]} seed {r['seed']} ({float(r['cpu_hours']):.2f} CPU-h, {r['env_steps']} env "
                   f"steps)" for peer, theirs in measured.items() for r in theirs if not peer_finished(r)]
-    curves = {peer: read_peer_rows(protocol_peer_path(peer, results_dir, curve=True), CURVE_COLUMNS)
+    curves = {peer: read_peer_rows(protocol_peer_path(peer, results_dir, curve=True), ppo_peer.CURVE_COLUMNS)
               for peer in PROTOCOL_PEERS}  # fmt: skip
     for peer, curve in curves.items():
         check_finite(curve, ("return",), f"{peer}_peer_curve.csv")

@@ -335,7 +335,13 @@ def write_rows(rows: list[dict], path: str, columns: tuple[str, ...]) -> None:
     )  # fmt: skip
 
 
-def write_row(row: dict, path: str = os.path.join(RESULTS, "ppo_peer.csv")) -> None:
+def results_path(variant: str, results_dir: str = RESULTS, curve: bool = False) -> str:
+    """Where a peer's rows are kept: ``<results_dir>/<variant>_peer.csv`` (one row per seed and tracks), or with
+    `curve` its snapshots' ``<variant>_peer_curve.csv``."""
+    return os.path.join(results_dir, f"{variant}_peer{'_curve' * curve}.csv")
+
+
+def write_row(row: dict, path: str = results_path("ppo")) -> None:
     """Add `row`, replacing an earlier row of the same seed and tracks."""
     write_rows([row], path, COLUMNS)
 
@@ -404,10 +410,10 @@ def main(argv=None) -> dict | list[dict]:
     import torch
 
     torch.set_num_threads(args.torch_threads)
-    results = args.results or os.path.join(RESULTS, f"{variant}_peer.csv")
+    results = args.results or results_path(variant)
     run_dir = os.path.join(args.runs_dir, f"{variant}__{args.seed}")
     if args.curve:
-        curve_path = os.path.join(os.path.dirname(os.path.abspath(results)), f"{variant}_peer_curve.csv")
+        curve_path = results_path(variant, os.path.dirname(os.path.abspath(results)), curve=True)
         return curve(args.algo, args.seed, run_dir, args.first_track, args.tracks, curve_path)
     if args.evaluate_only:
         record = read_record(run_dir)
