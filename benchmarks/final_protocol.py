@@ -60,7 +60,7 @@ import readings
 from common import (
     PROTOCOL_CPU_HOURS, RESULTS, TRACKS, checkpoint_updates, read_table, replace_rows, track_block, write_text,
 )  # fmt: skip
-from learning_report import baselines
+from references import baselines
 from runs import VARIANTS, cpu_hours_of, eval_curve, eval_summary, numerical_stop, run_of, training_hours
 
 # --- The protocol ----------------------------------------------------------------------------
@@ -360,7 +360,7 @@ def protocol_summary(rows: list[dict], peers: dict[str, list[dict]], reps: int =
 
 
 def protocol_references(results_dir: str) -> str:
-    """Markdown: what random actions and the pure-pursuit driver at 70 score on the report tracks (learning_report's
+    """Markdown: what random actions and the pure-pursuit driver at 70 score on the report tracks (references.py's
     baselines, driven once and then read from REFERENCES_JSON beside learning_final.csv)."""
     refs = baselines(*REPORT_TRACKS, results_dir=results_dir, filename=REFERENCES_JSON)
     random, pursuit = refs["random"], refs["pursuit@70"]

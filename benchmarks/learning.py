@@ -28,12 +28,11 @@ The final protocol (CPU budget: per variant the seeds 21..25, each a single-stag
 updates), whose files are in ``benchmarks/results/history/8000_updates/``. (This command line also trained and
 plotted such runs one at a time until commit b28dd0c.)
 
-This file holds the measurement of a saved policy on a block of tracks and the command line. The rest lives beside
-it: ``runs.py`` (where the runs are; what their event files, progress.csv and checkpoints hold),
-``learning_report.py`` (the references and a run's diagnostics), ``final_protocol.py``, ``ship.py`` and
-``calibration.py``. A
-saved agent on other tracks, or its acting-only export: ``evaluate.py`` at the top level (``python evaluate.py
-CHECKPOINT --first-track 10100 --tracks 20``, ``python evaluate.py CHECKPOINT --export OUT``).
+This file holds the measurement of a saved policy on a block of tracks, a run's diagnostics and the command line.
+The rest lives beside it: ``runs.py`` (where the runs are; what their event files, progress.csv and checkpoints
+hold), ``references.py`` (random actions and the pursuit driver), ``final_protocol.py``, ``ship.py`` and
+``calibration.py``. A saved agent on other tracks, or its acting-only export: ``evaluate.py`` at the top level
+(``python evaluate.py CHECKPOINT --first-track 10100 --tracks 20``, ``python evaluate.py CHECKPOINT --export OUT``).
 """
 
 from __future__ import annotations
@@ -44,6 +43,7 @@ import os
 import sys
 from typing import Annotated, Literal
 
+import numpy as np
 import tyro
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -53,8 +53,7 @@ import common  # noqa: E402  (the blocks of tracks, the results' CSV rows)
 import final_protocol as protocol  # noqa: E402  (the --protocol-* modes)
 import ship  # noqa: E402  (--protocol-ship)
 from calibration import calibrate_checkpoint, write_calibration_row  # noqa: E402
-from learning_report import diagnostics, diagnostics_table  # noqa: E402
-from runs import RUNS, experiment_name, find_run, learning_runs  # noqa: E402
+from runs import RUNS, experiment_name, find_run, learning_runs, progress_rows  # noqa: E402
 
 RESULTS = common.RESULTS
 
@@ -96,6 +95,52 @@ def policy_summary(
     if args.env_id == "multi_car_racing":  # action 0 is the steer there (highway-env: the acceleration)
         result["mean_abs_steer"] = means["abs_steer"]
     return result
+
+
+# --- A run's training logs (--diagnose) ------------------------------------------------------
+# What to look at when a run falls short: (column, tag of progress.csv), averaged per bucket of updates.
+DIAGNOSTICS = (
+    ("training return", "car_0/charts/episodic_return"),
+    ("training progress", "car_0/charts/progress"),
+    ("actor sigma", "car_0/losses/actor_std"),
+    ("entropy", "car_0/losses/entropy"),
+    ("kl_dyn", "car_0/losses/kl_dyn"),
+    ("reward NLL (real data)", "car_0/losses/reward"),
+    ("imagined return", "car_0/losses/imagined_return"),
+    ("eval return", "car_0/eval/episodic_return"),
+    ("eval progress", "car_0/eval/progress"),
+    ("eval mean |steer|", "car_0/eval/mean_abs_steer"),
+)
+
+
+def diagnostics(run_dir: str, bucket: int = 500) -> list[dict]:
+    """A run's progress.csv in buckets of `bucket` updates: per bucket its training races and the mean of each
+    DIAGNOSTICS column over the rows logged in it. A row belongs to the bucket of the updates made when it was
+    logged (rows before the first update: bucket 0); empty cells stay out of the means (NaN if all are empty).
+    The imagined return is the lambda-return of imagination with its entropy part; the training races are driven
+    by the sampled policy; the evaluation uses the run's --eval-policy."""
+    table = {}
+    for updates, row in progress_rows(run_dir):
+        cell = table.setdefault(updates // bucket, {"races": 0, **{name: [] for name, _ in DIAGNOSTICS}})
+        cell["races"] += bool(row.get("car_0/charts/episodic_return"))
+        for name, tag in DIAGNOSTICS:
+            if row.get(tag):
+                cell[name].append(float(row[tag]))
+    return [
+        {"updates": f"{b * bucket}-{(b + 1) * bucket - 1}", "races": cell.pop("races"),
+         **{name: float(np.mean(v)) if v else float("nan") for name, v in cell.items()}}
+        for b, cell in sorted(table.items())
+    ]  # fmt: skip
+
+
+def diagnostics_table(rows: list[dict]) -> str:
+    """Markdown of diagnostics(): one line per bucket."""
+    names = list(rows[0]) if rows else ["updates", "races"]
+    lines = ["| " + " | ".join(n.replace("|", "\\|") for n in names) + " |", "|" + "---|" * len(names)]
+    for row in rows:
+        cells = [v if isinstance(v, (str, int)) else "" if np.isnan(v) else f"{v:.2f}" for v in row.values()]
+        lines.append("| " + " | ".join(str(c) for c in cells) + " |")
+    return "\n".join(lines) + "\n"
 
 
 # --- Command line ----------------------------------------------------------------------------

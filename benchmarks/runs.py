@@ -5,8 +5,7 @@ what a checkpoint says about its run (updates, CPU-hours, a stop by the non-fini
 A run directory is the dreamer scripts' ``<runs_dir>/<env>__<exp_name>__<seed>__<time>/`` (TensorBoard event files,
 ``progress.csv``, ``checkpoints/``). ``benchmarks/experiment.py`` and ``sweep.py`` train their trials (one run
 directory per trial under ``<storage>/trials/``), and they, ``learning.py``, ``final_protocol.py``,
-``learning_report.py``, ``readings.py``, ``experiment_report.py`` and ``highway_random.py`` read them through
-this module.
+``readings.py``, ``experiment_report.py`` and ``highway_random.py`` read them through this module.
 """
 
 from __future__ import annotations

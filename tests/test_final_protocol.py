@@ -75,7 +75,7 @@ def refuse_to_drive(*args, **kwargs):
 
 
 def write_references(results):
-    """The references on the report tracks as learning_report.baselines keeps them (read back, not driven here)."""
+    """The references on the report tracks as references.baselines keeps them (read back, not driven here)."""
     (results / final_protocol.REFERENCES_JSON).write_text(json.dumps({
         "random": {"eval_return": -61.3, "eval_progress": 0.04},
         "pursuit@70": {"eval_return": 905.5, "eval_progress": 0.99}, "tracks": "10300..10329"}))  # fmt: skip

@@ -1,4 +1,4 @@
-"""benchmarks/learning.py and what it reads beside the final policies (learning_report.py): curves from event files
+"""benchmarks/learning.py and what it reads beside the final policies (references.py): curves from event files
 over resumed sittings (runs.py), diagnostics, the references, a saved policy's summary, and the command line."""
 
 import csv
@@ -11,7 +11,7 @@ import pytest
 from torch.utils.tensorboard import SummaryWriter
 
 import learning
-import learning_report
+import references
 import runs
 from conftest import as_process, write_sitting
 
@@ -54,7 +54,7 @@ def test_event_files_of_one_process_are_one_sitting_and_the_time_between_them_co
 
 
 def test_diagnostics_average_each_bucket_of_updates(tmp_path):
-    tags = dict(learning_report.DIAGNOSTICS)
+    tags = dict(learning.DIAGNOSTICS)
     columns = ["charts/episode", "car_0/perf/updates", *tags.values()]
     logged = [  # (episode, updates, training return, actor sigma, eval return)
         (1, "", -80.0, "", ""), (2, "", -60.0, "", ""),  # prefill races: bucket 0
@@ -68,18 +68,18 @@ def test_diagnostics_average_each_bucket_of_updates(tmp_path):
         for episode, updates, ret, sigma, evaluation in logged:
             writer.writerow({"charts/episode": episode, "car_0/perf/updates": updates, tags["training return"]: ret,
                              tags["actor sigma"]: sigma, tags["eval return"]: evaluation})  # fmt: skip
-    rows = learning_report.diagnostics(str(tmp_path), bucket=500)
+    rows = learning.diagnostics(str(tmp_path), bucket=500)
     assert [(r["updates"], r["races"]) for r in rows] == [("0-499", 4), ("500-999", 3), ("1500-1999", 1)]
     assert [r["training return"] for r in rows] == pytest.approx([(-80 - 60 + 10 + 30) / 4, 200.0, 400.0])
     assert [r["actor sigma"] for r in rows] == pytest.approx([0.8, 0.55, 0.4])
     assert rows[0]["eval return"] == 50.0 and rows[1]["eval return"] == 250.0 and np.isnan(rows[2]["eval return"])
-    table = learning_report.diagnostics_table(rows).splitlines()
+    table = learning.diagnostics_table(rows).splitlines()
     assert table[0].startswith("| updates | races | training return |") and len(table) == 2 + 3
     assert table[2].startswith("| 0-499 | 4 | -25.00 |") and table[4].endswith("|  |  |  |")
 
 
 def test_diagnose_reads_a_final_protocol_trial_when_no_learning_run_has_the_seed(tmp_path):
-    tags = dict(learning_report.DIAGNOSTICS)
+    tags = dict(learning.DIAGNOSTICS)
     run = tmp_path / "trials" / "single_gru_seed21" / "multi_car_racing__gru_single__21__1700000000"
     run.mkdir(parents=True)
     with open(run / "progress.csv", "w", newline="") as f:
@@ -115,16 +115,16 @@ def test_diagnose_refuses_to_guess_among_several_trials_of_the_seed(tmp_path):
 
 
 def test_the_references_are_measured_once_for_their_tracks_and_refuse_others(tmp_path):
-    base = learning_report.baselines(10_000, 1, results_dir=str(tmp_path))
+    base = references.baselines(10_000, 1, results_dir=str(tmp_path))
     assert base["pursuit@70"]["eval_progress"] > 0.95 and base["pursuit@70"]["eval_return"] > 800
     assert base["random"]["eval_progress"] < 0.2 and base["random"]["eval_return"] < 0
     with open(tmp_path / "references.json", "w") as f:  # read back, not recomputed
         json.dump({"random": {"eval_return": -1.0, "eval_progress": 0.01},
                    "pursuit@70": {"eval_return": 2.0, "eval_progress": 1.0}, "tracks": "10000..10000"}, f)  # fmt: skip
-    assert learning_report.baselines(10_000, 1, results_dir=str(tmp_path))["random"]["eval_return"] == -1.0
+    assert references.baselines(10_000, 1, results_dir=str(tmp_path))["random"]["eval_return"] == -1.0
     with pytest.raises(ValueError, match=r"references.json holds the references on tracks 10000..10000, not "
                                          r"10000..10009: give another results_dir"):  # fmt: skip
-        learning_report.baselines(10_000, 10, results_dir=str(tmp_path))
+        references.baselines(10_000, 10, results_dir=str(tmp_path))
 
 
 @pytest.mark.parametrize("variant", ["lstm", "gru"])
