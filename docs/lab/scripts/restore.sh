@@ -10,6 +10,8 @@ state=$main/docs/lab/run_state
 git clone -q $main $peers && git -C $peers checkout -q daef472
 mkdir -p $logs/rerun/scratch $peers/runs
 cp $main/docs/lab/scripts/*.sh $main/docs/lab/scripts/*.py $logs/ && chmod +x $logs/*.sh
+# the second final protocol's code (fixed 2026-12-07; docs/lab/final_protocol.md): protocol2.sh runs nothing without it
+[ -f $logs/protocol2_commit ] || git -C $main rev-parse 9ee7f0e > $logs/protocol2_commit
 [ -d $state ] || exit 0
 for run in $(cd $state && ls -d */*__* 2>/dev/null); do
   mkdir -p $peers/runs/$run && cp $state/$run/* $peers/runs/$run/
