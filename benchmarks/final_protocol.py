@@ -557,7 +557,7 @@ def protocol_against_replaced(rows: list[dict], results_dir: str) -> str:
     """Markdown: per variant and policy, this protocol's final return minus the replaced protocol's (REPLACED_PROTOCOL,
     its rows read from replaced_path: refused, naming the file, if a value is not finite or a seed is not its own or
     counted twice), over independent runs (comparison_table), judged "higher" / "lower" / "no detectable
-    difference"; provisional while this protocol lacks seeds. Without the file, a line saying so."""
+    difference"; provisional while either protocol lacks seeds. Without the file, a line saying so."""
     seeds, path = REPLACED_PROTOCOL[1], replaced_path(results_dir)
     name = os.path.relpath(path, results_dir)
     if not os.path.exists(path):

@@ -138,22 +138,25 @@ def test_help_shows_each_flags_docstring_as_one_paragraph(monkeypatch, capsys):
         speed: float = 1.0
         """how fast the car goes, in metres
         per second, before the
-        dead zone"""
+        dead zone (its flag
+        --speed) and after"""
         mode: str = "a"
         """first paragraph
 
-        second paragraph"""
+        second paragraph, then a list:
+        - one
+        - two"""
 
     monkeypatch.setenv("COLUMNS", "300")
     with pytest.raises(SystemExit):
         run_tools.tyro_cli(Args, ["--help"], "what the command does")
     text = capsys.readouterr().out
     assert "what the command does" in text
-    assert "how fast the car goes, in metres per second, before the dead zone (default: 1.0)" in text
+    assert "how fast the car goes, in metres per second, before the dead zone (its flag --speed) and after" in text
     lines = [line.strip(" │") for line in text.splitlines()]
     first = next(i for i, line in enumerate(lines) if "first paragraph" in line)
     assert lines[first].endswith("first paragraph") and lines[first + 1] == ""
-    assert lines[first + 2].startswith("second paragraph")
+    assert lines[first + 2] == "second paragraph, then a list:" and lines[first + 3].startswith("- one")
 
 
 def test_the_command_line_prints_one_line_and_exits_1(tmp_path):
@@ -493,6 +496,22 @@ def test_race_out_must_be_a_directory(tmp_path, capsys):
     assert exit_info.value.code == 2
     assert f"--out '{tmp_path / 'file'}' exists and is not a directory" in capsys.readouterr().err
     assert (tmp_path / "file").read_text() == "x"
+
+
+def test_an_acting_only_state_that_does_not_fit_and_a_wrong_agent_count_are_named_in_one_line(tmp_path):
+    """An acting-only export whose world model lacks an acting part is one line naming the file and what is missing
+    (a plain message, not a KeyError's quoted repr); a checkpoint whose agents do not match its own --num-agents is
+    refused naming both counts."""
+    lstm = importlib.import_module("dreamer_lstm")
+    agent = lstm.Agent(lstm.Args(**TINY))
+    state = ckpt.acting_state_dict(agent)
+    state["world_model"] = {k: v for k, v in state["world_model"].items() if not k.startswith("encoder.")}
+    with pytest.raises(ckpt.CheckpointError, match=r"^x\.pt: agent 0 does not fit the networks it names: acting-only "
+                       r"state: missing \['encoder\."):  # fmt: skip
+        ckpt.load_agent_state(lstm.Agent(lstm.Args(**TINY)), state, "x.pt", 0)
+    run = types.SimpleNamespace(args=types.SimpleNamespace(num_agents=2))
+    with pytest.raises(ckpt.CheckpointError, match=r"^y\.pt: holds 1 agent\(s\), its saved --num-agents is 2$"):
+        run_tools.restore_run(run, {"agents": [state]}, "y.pt")
 
 
 def test_race_checkpoint_that_builds_no_agent_is_one_line(tmp_path):

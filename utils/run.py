@@ -155,9 +155,11 @@ def usage_error(program: str, message: str) -> None:
 def tyro_cli(args_class, argv: list[str] | None = None, description: str | None = None):
     """``tyro.cli(args_class, args=argv, description=description)``, with each field's docstring one paragraph in
     --help. tyro (1.0.16, pinned) joins a docstring's line to the one before only when the line starts with a letter,
-    and looks before it removes the docstring's indentation: every indented continuation line would start a help
-    line of its own. Its joining gets the docstring without the indentation (inspect.cleandoc) instead."""
+    and looks before it removes the docstring's indentation: every indented continuation line, or one that starts
+    with "(" or "--", would start a help line of its own. Here a docstring loses its indentation (inspect.cleandoc)
+    and its lines are joined first, except before a blank line, an indented line or a list item ("- ", "* ", "1.")."""
     import inspect
+    import re
 
     import tyro
     from tyro import _strings
@@ -165,7 +167,7 @@ def tyro_cli(args_class, argv: list[str] | None = None, description: str | None 
     join = _strings.remove_single_line_breaks
     if not getattr(join, "cleans_first", False):
         def cleaned_then_joined(helptext: str) -> str:
-            return join(inspect.cleandoc(helptext))
+            return join(re.sub(r"(?<=\S)\n(?![\s]|[-*] |\d+[.)] )", " ", inspect.cleandoc(helptext)))
 
         cleaned_then_joined.cleans_first = True
         _strings.remove_single_line_breaks = cleaned_then_joined
@@ -455,6 +457,8 @@ def setup_run(method, args, overrides=()) -> Run:
         args = resumed_args(method.Args, resumed, checkpoint_path, args, overrides)
         validate_args(args, method.LOG_SIGMA_RANGE)
         folder = os.path.dirname(os.path.abspath(checkpoint_path))
+        if os.path.basename(folder) != "checkpoints":  # (a link to a run's checkpoint: that run)
+            folder = os.path.dirname(os.path.realpath(checkpoint_path))
         if os.path.basename(folder) != "checkpoints":  # (the run goes on in the directory that holds checkpoints/)
             raise UsageError(f"--resume {args.resume}: not in a run's checkpoints/ folder, so no run directory to go "
                              f"on in; give the run directory (runs/<run>) or a checkpoint in its checkpoints/")
