@@ -704,6 +704,12 @@ def test_an_explicit_flag_on_resume_overrides_and_says_so(uninterrupted, tmp_pat
     refused = run_script(["--resume", str(copy)])
     assert refused.returncode == 1 and f"--resume {copy}: not in a run's checkpoints/ folder" in refused.stderr
     assert sorted(os.listdir(tmp_path)) == ["copies", "run"] and os.listdir(copy.parent) == ["latest.pt"]
+    link = tmp_path / "links" / "latest.pt"  # a link to a run's checkpoint resumes that run, in its own directory
+    link.parent.mkdir()
+    os.symlink(run_dir / "checkpoints" / "latest.pt", link)
+    followed = run_script(["--resume", str(link)])
+    assert followed.returncode == 0 and f"run directory: {run_dir} " in followed.stdout, followed.stderr[-2000:]
+    assert os.listdir(link.parent) == ["latest.pt"]
 
 
 def test_saved_arguments_are_read_back_new_flags_default_and_removed_ones_are_named_with_their_values(capsys):
