@@ -9,9 +9,10 @@ Read top to bottom:
 1. Args ............ every hyperparameter (the paper's defaults) and the CPU preset
 2. Environment ..... the dead-zone warm-up (the env's options, track seeds: utils/run.py)
 3. Networks ........ encoder, recurrent core (LSTM with learned initial h and c), posterior/prior,
-                     decoder, reward, continue, actor, critic (paper appendix)
-4. Losses .......... their terms: Gaussian likelihoods and KL, free bits, lambda-returns (paper 3.8-3.9;
-                     the Agent of section 6 adds them up)
+                     decoder, reward, continue, actor, critic (paper appendix), and the heads' and the
+                     actor's distributions (Gaussian likelihoods, DreamerV3's two-hot, the policy's log pi)
+4. Losses .......... their terms: image likelihood and KL, free bits, lambda-returns, discount weights,
+                     the returns' range (paper 3.8-3.9; the Agent of section 6 adds them up)
 5. Replay .......... per-agent ring buffer of uint8 frames, uniform sequence sampling
 6. Agent ........... world-model update, imagination, actor and critic updates, acting
 7. Training loop ... Algorithm 1 in `main`: decentralized agents act, store, train; stages single / ghost / race
@@ -73,7 +74,7 @@ class Args:
     # --- experiment
     preset: Literal["paper", "cpu"] = "paper"
     """paper: the paper's sizes and schedule; cpu: a configuration that learns on a 2-core CPU in hours: smaller
-    networks and the method options its screens chose (its values: PRESETS in this file, docs/deviations.md; the
+    networks and the method options chosen for it (its values: PRESETS in this file, docs/deviations.md; the
     defaults this help shows are the paper's; explicit flags override the preset's values)"""
     exp_name: str = os.path.basename(__file__)[: -len(".py")]
     """the name of this experiment (part of the run name)"""
@@ -238,7 +239,7 @@ class Args:
     """bootstrap the lambda-returns with the slow critic (a copy soft-updated with tau after every critic step; also
     --heads twohot's regression target) instead of the critic itself"""
 
-    # --- options beyond the paper: off by default (the paper's form); docs/deviations.md lists each with its screen
+    # --- options beyond the paper: off by default (the paper's form); docs/deviations.md lists each, measured
     entropy_target: float | None = None
     """adapt alpha so that the policy's entropy (-log pi, as in the lambda-return) per action dimension tends to this
     many nats: SAC's automatic temperature (Haarnoja et al., 2018), alpha starting at --entropy-coef. None: alpha
@@ -290,7 +291,7 @@ PRESETS: dict[str, dict] = {
         "action_repeat": 2, "prefill_episodes": 20, "train_steps_per_episode": 100,
         "dead_zone_episodes": 30, "eval_every": 5, "video_every": 25, "decoder_min_log_sigma": 0.0,
         # this variant's own: the paper's trade (B * L * H = 5 * 32 * 48 = 7,680 imagined steps per update), and the
-        # defaults its screens chose (docs/deviations.md): SAC's alpha toward 0 nats per action dimension with the
+        # defaults chosen for it (docs/deviations.md): SAC's alpha toward 0 nats per action dimension with the
         # extreme-action term at its own weight 1, and imagination from half the starts (80 * 48 = 3,840 steps)
         "batch_size": 5, "imagination_horizon": 48,
         "imagination_starts": 80, "entropy_target": 0.0, "action_penalty": 1.0,
@@ -388,7 +389,7 @@ def conv_transpose_as_subpixel(x: torch.Tensor, layer: nn.ConvTranspose2d) -> to
     Output pixel s*q + r only sees inputs q-m+1 .. q, through kernel taps r, r+s, ..., so each of the s*s
     output phases r is an ordinary m x m conv of the input: one conv with s*s times the output channels,
     then pixel_shuffle interleaves the phases. Same function and parameters (float rounding aside); for the
-    decoder's last layer (k12 s4, 750 frames) oneDNN runs this in 0.18 s forward instead of 0.44 s (measured).
+    decoder's last layer (k12 s4, 750 frames) oneDNN runs this about 2x faster on a CPU than the transposed conv.
     """
     weight, s = layer.weight, layer.stride[0]  # weight (c_in, c_out, k, k)
     c_in, c_out, k, _ = weight.shape
@@ -404,7 +405,7 @@ class Decoder(nn.Module):
 
     At 96 px s = 8 (8 -> 10 -> 22 -> 96, the appendix's 64-channel decoder for d = 32); at 64 px s = 4
     (4 -> 6 -> 14 -> 64). The output is the mean of a Gaussian over pixels with one learned log sigma
-    (clamped to [--decoder-min-log-sigma, LOG_SIGMA_RANGE's 2]).
+    (clamped to [--decoder-min-log-sigma, 2]: LOG_SIGMA_RANGE).
     """
 
     def __init__(self, feature_size: int, depth: int, image_size: int, norm: str, min_log_sigma: float):
@@ -639,7 +640,8 @@ class WorldModel(nn.Module):
     def observe(self, embed: torch.Tensor, actions: torch.Tensor, is_first: torch.Tensor, sample: bool = True) -> dict:
         """Posterior over sequences: embed (B, L, E), actions (B, L, A) (action that led to frame t), is_first (B, L).
 
-        The only Python loop of the world model; every sequence starts from the learned initial state.
+        The only Python loop of the world model; every sequence starts from the learned initial state and z = 0,
+        with its first step's real previous action (zeroed only where is_first marks an episode's start).
         Returns stacked (B, L, .) tensors: states (tuple), h, z, post_mean, post_std.
         """
         batch, length = is_first.shape
@@ -716,7 +718,8 @@ class Critic(nn.Module):
         return self.net(features)
 
     def dist(self, features: torch.Tensor) -> Gaussian | TwoHot:
-        """The lambda-return's distribution at `features` (..., F): .mean is the value V(s)."""
+        """The lambda-return's distribution at `features` (..., F): .mean is the value V(s). Through self(...), not
+        self.net.dist, so that --compile's compiled forward is the one used."""
         return self.net.distribution(self(features))
 
 
@@ -888,19 +891,19 @@ def imagine_rollout(world_model: WorldModel, actor: Actor, state: tuple, h, z, h
     `straight_through` (--straight-through-clip) gives the model the same clipped action with the identity's
     gradient instead.
     """
-    features, log_pis, samples, stds = [torch.cat([z, h], -1)], [], [], []
+    features, log_pis, raw_actions, stds = [torch.cat([z, h], -1)], [], [], []
     for _ in range(horizon):
         mean, std = actor(features[-1])
         action = mean + std * torch.randn_like(std)  # Actor.sample, keeping sigma for the diagnostics
         log_pis.append(policy_log_prob(action, mean, std))
-        samples.append(action)
+        raw_actions.append(action)
         clipped = action.clamp(-1.0, 1.0)
         if straight_through:
             clipped = action + (clipped - action).detach()
         state, h, z = world_model.imagine_step(state, z, clipped)
         features.append(torch.cat([z, h], -1))
         stds.append(std)
-    return torch.stack(features), torch.stack(log_pis), torch.stack(samples), torch.stack(stds)
+    return torch.stack(features), torch.stack(log_pis), torch.stack(raw_actions), torch.stack(stds)
 
 
 class Agent:
@@ -920,7 +923,7 @@ class Agent:
                 "encoder": copy.deepcopy(self.world_model.encoder),
                 "representation": copy.deepcopy(self.world_model.representation),
                 "transition": copy.deepcopy(self.world_model.transition),
-                "critic": copy.deepcopy(self.critic),  # (unread with --no-target-critic and Gaussian heads: kept)
+                "critic": copy.deepcopy(self.critic),  # (always kept: checkpoints hold it whatever the flags)
             }
         ).requires_grad_(False)
         self.targets.eval()  # targets always use their (soft-updated) running statistics
@@ -1036,17 +1039,17 @@ class Agent:
                 self.actor.train()
                 self.actor(torch.cat([post["z"], post["h"]], -1).detach())
         state, h, z, start_cont = self.start_states(post, terminated)
-        bootstrap = self.targets["critic"] if args.target_critic else self.critic
+        value_net = self.targets["critic"] if args.target_critic else self.critic  # what the returns bootstrap on
         wm.eval()
         self.actor.eval()
         with frozen(wm, self.critic):  # only the actor's parameters take gradient from the actor loss
-            features, log_pi, samples, stds = imagine_rollout(wm, self.actor, state, h, z, args.imagination_horizon,
-                                                             args.straight_through_clip)  # fmt: skip
+            features, log_pi, raw_actions, stds = imagine_rollout(wm, self.actor, state, h, z,
+                                                                 args.imagination_horizon, args.straight_through_clip)
             rewards = wm.reward.dist(features[1:]).mean  # r_1..r_H
             continues = torch.sigmoid(wm.cont(features[1:]).float().squeeze(-1))  # c_1..c_H
-            values = bootstrap.dist(features[1:]).mean  # V(s_1..s_H)
+            values = value_net.dist(features[1:]).mean  # V(s_1..s_H)
             weights = discount_weights(continues, args.gamma, start_cont)
-            returns, objective = self.returns_and_objective(rewards, continues, values, log_pi, samples)
+            returns, objective = self.returns_and_objective(rewards, continues, values, log_pi, raw_actions)
             actor_loss = -(weights * objective).mean()  # its gradient flows back through the imagined dynamics
         wm.train()
         self.actor.train()
@@ -1069,11 +1072,11 @@ class Agent:
         # update()'s alpha step
         if self.log_alpha is not None:
             metrics["alpha"] = self.log_alpha.detach().exp()
-            apart = 0 if args.action_penalty is None else extreme_action_term(samples.detach()).mean()
-            metrics["alpha_entropy"] = -log_pi.detach().mean() + apart
+            penalty_part = 0 if args.action_penalty is None else extreme_action_term(raw_actions.detach()).mean()
+            metrics["alpha_entropy"] = -log_pi.detach().mean() + penalty_part
         return actor_loss, critic_loss, metrics
 
-    def returns_and_objective(self, rewards, continues, values, log_pi, samples):
+    def returns_and_objective(self, rewards, continues, values, log_pi, raw_actions):
         """The lambda-returns the critic learns, and the actor's objective (paper 3.9): the lambda-return of the
         imagined rewards with the entropy bonus -alpha log pi_t, which comes with r_{t+1}. The two are the same
         tensor unless --return-norm scales the objective's task part; it also moves that scale (an EMA of the task
@@ -1084,7 +1087,7 @@ class Agent:
         # = -alpha log N(a) - beta term, added to the rewards (lambda_returns is linear in r, V and log pi)
         action_term = None
         if args.action_penalty is not None:
-            action_term = (alpha - args.action_penalty) * extreme_action_term(samples)
+            action_term = (alpha - args.action_penalty) * extreme_action_term(raw_actions)
         if not args.return_norm:  # the paper's
             shaped = rewards if action_term is None else rewards + action_term
             returns = lambda_returns(shaped, continues, values, log_pi, gamma, lam, alpha)
@@ -1295,8 +1298,10 @@ def main(args: Args, overrides=()) -> str:
     args, n, k_races = run.args, run.args.num_agents, run.args.num_races
     # One race at a time starts on its own track (start_race); K races side by side auto-reset on the tracks of
     # each race's seeded stream, with the dead zone set ahead for the race that starts next (below).
-    obs, track_seed = start_race(run) if k_races == 1 else (run.envs.reset(), None)
-    if k_races > 1:
+    if k_races == 1:
+        obs, track_seed = start_race(run)
+    else:
+        obs, track_seed = run.envs.reset(), None
         set_next_dead_zone(run)
     races = Races(run.agents, args, run.envs, obs)  # agent i drives car i of every race
     run.pbar = tqdm(total=args.total_episodes, initial=run.counters["episode"], desc=f"{VARIANT} {args.stage}")

@@ -4,7 +4,7 @@ The two scripts are duplicates on purpose (CleanRL style: each file stands alone
 them from drifting apart: every line that differs must sit in the files' header (names of the
 variant), on the VARIANT line, on a default that the paper gives differently per variant
 (batch size, imagination horizon; also in the CPU preset's part marked as the variant's own, with the defaults
-its screens chose), or inside the RecurrentCell class (the cell and its state). The bound of 44 changed lines is the
+chosen for it), or inside the RecurrentCell class (the cell and its state). The bound of 44 changed lines is the
 size of that difference today; a fix made in one file and not the other fails here.
 """
 
@@ -15,7 +15,7 @@ import os
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 MAX_CHANGED_LINES = 44
 PER_VARIANT_DEFAULTS = ("batch_size", "imagination_horizon")
-OWN_PART = "# this variant's own:"  # opens the CPU preset's per-variant lines (its trade, its screened defaults)
+OWN_PART = "# this variant's own:"  # opens the CPU preset's per-variant lines (its trade, its chosen defaults)
 
 
 def allowed_lines(source: str) -> set[int]:
