@@ -14,7 +14,7 @@ Read top to bottom:
 4. Losses .......... their terms: image likelihood and KL, free bits, lambda-returns, discount weights,
                      the returns' range (paper 3.8-3.9; the Agent of section 6 adds them up)
 5. Replay .......... per-agent ring buffer of uint8 frames, uniform sequence sampling
-6. Agent ........... world-model update, imagination, actor and critic updates, acting
+6. Agent ........... world-model update, imagination, actor, critic and entropy-weight updates, acting
 7. Training loop ... Algorithm 1 in `main`: decentralized agents act, store, train; stages single / ghost / race
 8. Checkpoints ..... this script's readers of the checkpoint format
 
@@ -1025,7 +1025,8 @@ class Agent:
         return state, h, z, cont
 
     def behaviour_losses(self, post: dict, terminated: torch.Tensor):
-        """Actor loss (backprop through the frozen dynamics) and critic loss on imagined rollouts.
+        """The behaviour's losses on imagined rollouts: the actor's (backprop through the frozen dynamics), the
+        critic's, and alpha's under --entropy-target (else None); and their metrics.
 
         BatchNorm sees imagined states only through its running statistics: the world model's come from the
         real posterior states of its own loss, the actor's from a no-grad train-mode pass over the same real
@@ -1052,13 +1053,7 @@ class Agent:
             actor_loss = -(weights * objective).mean()  # its gradient flows back through the imagined dynamics
         wm.train()
         self.actor.train()
-        value = self.critic.dist(features[:-1].detach())  # V(s_0..s_{H-1}) on detached states
-        critic_nll = value.nll(returns.detach())
-        if args.heads == "twohot":  # DreamerV3: also regress on the slow critic's value (weight 1)
-            with torch.no_grad():
-                slow_value = self.targets["critic"].dist(features[:-1]).mean
-            critic_nll = critic_nll + value.nll(slow_value)
-        critic_loss = (weights * critic_nll).mean()
+        critic_loss = self.critic_loss(features[:-1].detach(), returns.detach(), weights)
         metrics = {
             "actor": actor_loss, "critic": critic_loss, "actor_std": stds.mean(),
             "entropy": -log_pi.mean(),  # -log pi with the extreme-action term: an entropy estimate minus that penalty
@@ -1066,14 +1061,11 @@ class Agent:
         }  # fmt: skip
         if args.return_norm:
             metrics["return_scale"] = self.return_scale.clone()
-        # --entropy-target: the entropy alpha weighs, -log pi (-log N(a) when --action-penalty takes the extreme-action
-        # term apart), a plain mean over every imagined step (unweighted by the discount); logged, and the input of
-        # update()'s alpha step
+        alpha_loss = None
         if self.log_alpha is not None:
             metrics["alpha"] = self.log_alpha.detach().exp()
-            penalty_part = 0 if args.action_penalty is None else extreme_action_term(raw_actions.detach()).mean()
-            metrics["alpha_entropy"] = -log_pi.detach().mean() + penalty_part
-        return actor_loss, critic_loss, metrics
+            alpha_loss, metrics["alpha_entropy"] = self.alpha_loss(log_pi.detach(), raw_actions.detach())
+        return actor_loss, critic_loss, alpha_loss, metrics
 
     def returns_and_objective(self, rewards, continues, values, log_pi, raw_actions):
         """The lambda-returns the critic learns, and the actor's objective (paper 3.9): the lambda-return of the
@@ -1102,6 +1094,29 @@ class Agent:
             moved = self.return_scale.lerp(spread, RETURN_NORM_RATE)
             self.return_scale.copy_(torch.where(spread.isfinite(), moved, self.return_scale))
         return task + entropy, task / self.return_scale.clamp(min=1.0) + entropy
+
+    def critic_loss(self, features: torch.Tensor, returns: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+        """The critic's loss on the imagined states s_0..s_{H-1} (detached): the negative log-likelihood of their
+        lambda-returns under V, weighted by the discount weights. Two-hot heads (DreamerV3) also regress on the slow
+        critic's value, with weight 1."""
+        value = self.critic.dist(features)
+        nll = value.nll(returns)
+        if self.args.heads == "twohot":
+            with torch.no_grad():
+                slow_value = self.targets["critic"].dist(features).mean
+            nll = nll + value.nll(slow_value)
+        return (weights * nll).mean()
+
+    def alpha_loss(self, log_pi: torch.Tensor, raw_actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """--entropy-target (SAC's automatic tuning): the loss -log(alpha) (target - entropy), whose step raises alpha
+        while the policy's entropy is below the target (nats per action dimension, times the action size) and lowers
+        it above. The entropy is the one alpha weighs, -log pi (-log N(a) when --action-penalty takes the
+        extreme-action term apart), a plain mean over every imagined step (not discount-weighted). Returns the loss
+        and that entropy."""
+        penalty_part = 0 if self.args.action_penalty is None else extreme_action_term(raw_actions).mean()
+        entropy = -log_pi.mean() + penalty_part
+        shortfall = self.args.entropy_target * self.action_dim - entropy
+        return -self.log_alpha * shortfall, entropy
 
     def _batch_tensors(self, batch: dict) -> tuple[torch.Tensor, ...]:
         """Replay.sample's arrays as tensors on the device, shapes checked: obs (B, L, S, S, 3) uint8, actions
@@ -1153,13 +1168,10 @@ class Agent:
             self._update_model_targets()
 
         with self.autocast():
-            actor_loss, critic_loss, behaviour_metrics = self.behaviour_losses(post, terminated)
+            actor_loss, critic_loss, alpha_loss, behaviour_metrics = self.behaviour_losses(post, terminated)
         actor_ok = self._step(self.actor_optimizer, actor_loss, self.actor.parameters())
         critic_ok = self._step(self.critic_optimizer, critic_loss, self.critic.parameters())
-        alpha_ok = True
-        if self.log_alpha is not None:  # SAC: alpha rises while the entropy is below its target, falls above it
-            shortfall = self.args.entropy_target * self.action_dim - behaviour_metrics["alpha_entropy"]
-            alpha_ok = self._step(self.alpha_optimizer, -self.log_alpha * shortfall, [self.log_alpha])
+        alpha_ok = alpha_loss is None or self._step(self.alpha_optimizer, alpha_loss, [self.log_alpha])
         if critic_ok:  # the slow critic: the bootstrap (--target-critic) and two-hot's regression target
             soft_update(self.targets["critic"], self.critic, self.args.tau)
         for module, ok in ((self.world_model, model_ok), (self.actor, actor_ok)):

@@ -384,7 +384,7 @@ def test_return_norm_scales_the_task_part_of_the_actor_objective(script, monkeyp
     agent.world_model.cont = ConstantHead(100.0)  # sigmoid(100) = 1 in float32
     agent.targets["critic"] = ColumnHead(1)
     agent.return_scale.fill_(scale_before)
-    actor_loss, critic_loss, metrics = agent.behaviour_losses(post, terminated)
+    actor_loss, critic_loss, _, metrics = agent.behaviour_losses(post, terminated)
     # the critic learns the unscaled return R_i = r_i + gamma V(s_1) + alpha (-log pi_i), its Gaussian NLL at s_0
     # weighted by the start's continue flag (the terminal fifth start counts 0)
     returns = torch.tensor(rewards) + 0.5 * 1.0 + 0.2 * torch.arange(1.0, 6.0)
@@ -548,7 +548,7 @@ def test_the_critic_target_bootstraps_the_returns_unless_target_critic_is_off(sc
                 for p in agent.critic.parameters():
                     p.add_(shift)
             torch.manual_seed(1)
-            returns[target_critic].append(agent.behaviour_losses(post, terminated)[2]["imagined_return"].item())
+            returns[target_critic].append(agent.behaviour_losses(post, terminated)[3]["imagined_return"].item())
     assert returns[True][0] == returns[True][1]  # the target critic bootstraps: unmoved
     assert returns[False][0] != pytest.approx(returns[False][1], abs=1e-3)
 
@@ -563,7 +563,7 @@ def test_actor_loss_leaves_world_model_and_critic_alone(script):
     args = [torch.as_tensor(batch[k]) for k in ("action", "reward")]
     is_first, terminated = torch.as_tensor(batch["is_first"]), torch.as_tensor(batch["terminated"]).float()
     _, _, post = agent.world_model_loss(obs, *args, is_first, terminated)
-    actor_loss, _, _ = agent.behaviour_losses(post, terminated)
+    actor_loss, *_ = agent.behaviour_losses(post, terminated)
     actor_params = list(agent.actor.parameters())
     for p in list(agent.world_model.parameters()) + list(agent.critic.parameters()):
         p.grad = None
@@ -618,7 +618,7 @@ def test_update_returns_the_logged_losses(script):
     model_loss, expected, post = twin.world_model_loss(obs, actions, rewards, is_first, terminated)
     assert twin._step(twin.model_optimizer, model_loss, twin.world_model.parameters())
     twin._update_model_targets()
-    expected.update(twin.behaviour_losses(post, terminated)[2])
+    expected.update(twin.behaviour_losses(post, terminated)[3])
     for key in ("reconstruction", "reward", "continue", "kl_dyn", "kl_rep", "actor", "critic", "entropy"):
         assert isinstance(metrics[key], float) and math.isfinite(metrics[key])
         assert metrics[key] == pytest.approx(expected[key].item(), rel=1e-6), key

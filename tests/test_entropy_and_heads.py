@@ -42,12 +42,12 @@ def test_the_entropy_alpha_weighs_is_minus_log_pi_plus_the_extreme_action_term_i
     imagination fixed by hand) give 1 + 2 * -log(1 - tanh(0.5)^2) = 1.48046; without --action-penalty, 1."""
     agent = script.Agent(tiny_args(script, entropy_target=0.0, action_penalty=1.0, imagination_horizon=1))
     features = torch.zeros(2, 1, TINY["latent_size"] + TINY["deter_size"])
-    _, _, metrics = one_step_behaviour(script, agent, monkeypatch, features, samples=torch.full((1, 1, 2), 0.5))
+    *_, metrics = one_step_behaviour(script, agent, monkeypatch, features, samples=torch.full((1, 1, 2), 0.5))
     term = 2 * -math.log(1 - math.tanh(0.5) ** 2)
     assert metrics["alpha_entropy"].item() == pytest.approx(1 + term, rel=1e-5)
     # without --action-penalty (SAC alone) alpha weighs all of -log pi: its step reads -log pi, no term added
     agent = script.Agent(tiny_args(script, entropy_target=0.0, imagination_horizon=1))
-    _, _, metrics = one_step_behaviour(script, agent, monkeypatch, features, samples=torch.full((1, 1, 2), 0.5))
+    *_, metrics = one_step_behaviour(script, agent, monkeypatch, features, samples=torch.full((1, 1, 2), 0.5))
     assert metrics["alpha_entropy"].item() == pytest.approx(1.0, rel=1e-6)
 
 
@@ -56,14 +56,13 @@ def test_the_entropy_target_is_per_action_dimension(script, monkeypatch, per_dim
     """--entropy-target is in nats per action dimension: with 2 dimensions and an entropy of 1.5 nats, a target of
     0.6 (1.2 in all) is below it and alpha falls, 0.8 (1.6 in all) above it and alpha rises, by Adam's first step."""
     agent = script.Agent(tiny_args(script, entropy_target=per_dimension, entropy_coef=0.5, entropy_lr=0.01))
-    real = agent.behaviour_losses
+    real = agent.alpha_loss
 
-    def entropy_of_one_and_a_half_nats(post, terminated):
-        actor_loss, critic_loss, metrics = real(post, terminated)
-        return actor_loss, critic_loss, {**metrics, "alpha_entropy": torch.tensor(1.5)}
+    def entropy_of_one_and_a_half_nats(log_pi, raw_actions):
+        return real(torch.full_like(log_pi, -1.5), raw_actions)
 
-    monkeypatch.setattr(agent, "behaviour_losses", entropy_of_one_and_a_half_nats)
-    one_update(agent)
+    monkeypatch.setattr(agent, "alpha_loss", entropy_of_one_and_a_half_nats)
+    assert one_update(agent)["alpha_entropy"] == pytest.approx(1.5)
     assert agent.log_alpha.item() == pytest.approx(math.log(0.5) + direction * 0.01, abs=1e-6)
 
 
@@ -219,7 +218,7 @@ def test_twohot_agents_start_at_zero_learn_and_regress_the_critic_on_its_slow_co
     features = torch.zeros(2, 1, size)
     features[0, :, 1] = 7.0
     features[1, :, 0], features[1, :, 1] = 3.0, 4.0
-    _, critic_loss, metrics = one_step_behaviour(script, agent, monkeypatch, features)
+    _, critic_loss, _, metrics = one_step_behaviour(script, agent, monkeypatch, features)
     assert metrics["imagined_return"].item() == pytest.approx(5.25)
     bins = agent.critic.net.bins.double().numpy()
     soft = torch.tensor(np.stack([hand_twohot(5.25, bins), hand_twohot(7.0, bins)]), dtype=torch.float32)
@@ -287,7 +286,7 @@ def test_the_action_penalty_reweighs_the_extreme_action_term_of_the_bonus(script
     size = TINY["latent_size"] + TINY["deter_size"]
     features = torch.zeros(2, 1, size)
     features[1, :, 0], features[1, :, 1] = 3.0, 4.0
-    _, _, metrics = one_step_behaviour(script, agent, monkeypatch, features, samples=torch.full((1, 1, 2), 0.5))
+    *_, metrics = one_step_behaviour(script, agent, monkeypatch, features, samples=torch.full((1, 1, 2), 0.5))
     term = 2 * -math.log(1 - math.tanh(0.5) ** 2 + 1e-6)
     beta = 0.25 if penalty is None else penalty
     expected = 3.0 + 0.25 + (0.25 - beta) * term + 0.5 * 4.0

@@ -602,7 +602,8 @@ def checkpoint_extra(run: Run) -> dict:
 def save_run_checkpoint(run: Run, name: str, extra: dict | None = None) -> str:
     """checkpoints/<name>: the run's agents, arguments, counters and `extra` (default checkpoint_extra) (atomic)."""
     path = os.path.join(run.checkpoint_dir, name)
-    save_checkpoint(path, run.method.VARIANT, run.args, run.agents, run.counters, extra or checkpoint_extra(run))
+    extra = checkpoint_extra(run) if extra is None else extra
+    save_checkpoint(path, run.method.VARIANT, run.args, run.agents, run.counters, extra)
     return path
 
 
