@@ -328,6 +328,7 @@ TWOHOT_BINS, TWOHOT_SPAN = 255, 20.0  # --heads twohot: DreamerV3's bins, symexp
 ACTOR_STD_BOUNDS = (0.1, 1.0)  # the paper authors' (low, high) of soft_bounded for the actor's sigma: 0.1 .. 1.34
 
 
+# --- MLP, encoder, decoder, recurrent core, posterior ---------------------------------------------
 def norm_1d(kind: str, size: int) -> nn.Module:
     return nn.BatchNorm1d(size) if kind == "batch" else nn.LayerNorm(size)
 
@@ -482,6 +483,7 @@ class Representation(nn.Module):
         return self.rest(self.first_norm(x.reshape(-1, x.shape[-1]))).reshape(*lead, -1)
 
 
+# --- output distributions: Gaussian (latents, heads), DreamerV3's two-hot (--heads) ---------------
 def gaussian_params(out: torch.Tensor, min_std: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Split a head's output into the mean and sigma (softplus plus a minimum) of a diagonal Gaussian, in float32
     (under --amp the head computed in bfloat16; distributions and losses do not)."""
@@ -577,6 +579,7 @@ class ScalarHead(MLP):
         return self.distribution(self(features))
 
 
+# --- the world model: one step observed or imagined -----------------------------------------------
 class WorldModel(nn.Module):
     """Encoder, recurrent core, representation (posterior), transition (prior), decoder, reward, continue.
 
@@ -659,6 +662,7 @@ class WorldModel(nn.Module):
         return out
 
 
+# --- the actor (its log pi and sigma bound first) and the critic ----------------------------------
 def policy_log_prob(action: torch.Tensor, mean: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
     """log pi(a) = sum_d [log N(a_d; mean_d, sigma_d) - log(1 - tanh(a_d)^2 + 1e-6)] of the unclipped sample a
     (paper 3.9): the Gaussian's log density plus a penalty that grows with |a| (extreme_action_term)."""
