@@ -1100,9 +1100,9 @@ class Agent:
         return task + entropy, task / self.return_scale.clamp(min=1.0) + entropy
 
     def critic_loss(self, features: torch.Tensor, returns: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-        """The critic's loss on the imagined states s_0..s_{H-1} (detached): the negative log-likelihood of their
-        lambda-returns under V, weighted by the discount weights. Two-hot heads (DreamerV3) also regress on the slow
-        critic's value, with weight 1."""
+        """The critic's loss on the imagined states s_0..s_{H-1} (the caller detaches them and the returns): the
+        negative log-likelihood of their lambda-returns under V, weighted by the discount weights. Two-hot heads
+        (DreamerV3) also regress on the slow critic's value, with weight 1."""
         value = self.critic.dist(features)
         nll = value.nll(returns)
         if self.args.heads == "twohot":
