@@ -39,6 +39,7 @@ import time
 from typing import Annotated, Literal
 
 import numpy as np
+import scipy.stats
 import torch
 import tyro
 
@@ -47,8 +48,6 @@ from envs.pursuit import PursuitDriver, lane_of
 import utils.run as run_tools
 from utils import checkpoint as saved
 from utils.collector import Races
-
-WILSON_Z = 1.959963984540054  # two-sided 95%
 
 
 @dataclasses.dataclass
@@ -89,15 +88,12 @@ class Args:
     """--train: experiment name of the run"""
 
 
-def wilson_interval(wins: int, n: int, z: float = WILSON_Z) -> tuple[float, float]:
-    """Wilson score interval of a binomial proportion (wins out of n)."""
+def wilson_interval(wins: int, n: int, confidence: float = 0.95) -> tuple[float, float]:
+    """Wilson score interval of a binomial proportion (wins out of n), by scipy; (0, 1) before any race."""
     if n == 0:
         return 0.0, 1.0
-    p = wins / n
-    denom = 1 + z * z / n
-    centre = (p + z * z / (2 * n)) / denom
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
-    return max(0.0, centre - half), min(1.0, centre + half)
+    interval = scipy.stats.binomtest(wins, n).proportion_ci(confidence_level=confidence, method="wilson")
+    return float(interval.low), float(interval.high)
 
 
 # --- Racers ---------------------------------------------------------------------------------
