@@ -1,6 +1,7 @@
-"""The benchmarks and tools reach into the dreamer scripts by name (``script = importlib.import_module(...)``, then
-``script.Agent``, ``script.PRESETS``...): every such name exists in both scripts, so a helper moved out of the
-scripts (as ``keep_freed_memory`` moved to utils/run.py) cannot leave a benchmark that fails only when run."""
+"""The benchmarks, tools and utils reach into the dreamer scripts by name (``script = importlib.import_module(...)``,
+then ``script.Agent``, ``script.PRESETS``...; utils/ as ``method`` or ``run.method``): every such name exists in both
+scripts, so a helper moved out of the scripts (as ``keep_freed_memory`` moved to utils/run.py) cannot leave a
+benchmark that fails only when run."""
 
 from __future__ import annotations
 
@@ -14,20 +15,27 @@ import dreamer_gru
 import dreamer_lstm
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-FILES = sorted(glob.glob(os.path.join(ROOT, "benchmarks", "*.py")) + [os.path.join(ROOT, name) for name in
-               ("race.py", "evaluate.py", "plot.py")])  # fmt: skip
+FILES = sorted(glob.glob(os.path.join(ROOT, "benchmarks", "*.py")) + glob.glob(os.path.join(ROOT, "utils", "*.py"))
+               + [os.path.join(ROOT, name) for name in ("race.py", "evaluate.py", "plot.py")])  # fmt: skip
+MODULE_NAMES = ("script", "method")  # how the tools (script) and utils/ (method, run.method) hold a dreamer script
 
 
 def script_names(path: str) -> set[str]:
-    """Attributes read from a variable named ``script`` (how the tools hold a dreamer script module)."""
+    """Attributes read from a variable, or an attribute, named as in MODULE_NAMES."""
+
+    def holds_a_script(node: ast.AST) -> bool:
+        return (isinstance(node, ast.Name) and node.id in MODULE_NAMES) or (
+            isinstance(node, ast.Attribute) and node.attr in MODULE_NAMES)  # fmt: skip
+
     tree = ast.parse(open(path).read(), path)
-    return {node.attr for node in ast.walk(tree)
-            if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == "script"}
+    return {node.attr for node in ast.walk(tree) if isinstance(node, ast.Attribute) and holds_a_script(node.value)}
 
 
 def test_the_reader_finds_the_names_a_tool_uses():
     names = script_names(os.path.join(ROOT, "benchmarks", "train_throughput.py"))
     assert {"Agent", "Args", "PRESETS", "Replay"} <= names  # (the reader itself can fail)
+    assert {"VARIANT", "dead_zone_at", "LOG_SIGMA_RANGE"} <= script_names(os.path.join(ROOT, "utils", "run.py"))
+    assert "load_checkpoint" in script_names(os.path.join(ROOT, "utils", "checkpoint.py"))
 
 
 @pytest.mark.parametrize("path", FILES, ids=lambda p: os.path.relpath(p, ROOT))

@@ -1047,9 +1047,10 @@ class _ScriptedSteer:
     action_dim = 2
 
     def __init__(self, steer: float):
-        self.steer, self.blank_calls = steer, 0
+        self.steer, self.calls, self.blank_calls = steer, 0, 0
 
     def act(self, frames, state, is_first, policy):
+        self.calls += 1
         sees_track = float(frames.std()) > 0
         self.blank_calls += not sees_track
         return np.array([[self.steer if sees_track else 0.0, 1.0]], dtype=np.float32), state
@@ -1086,6 +1087,7 @@ def test_evaluation_averages_steer_over_the_decisions_of_cars_still_racing(scrip
     returns, progress, abs_steer = readings["return"], readings["progress"], readings["abs_steer"]
     assert returns.shape == progress.shape == abs_steer.shape == (1, 2)
     assert readings["eliminated"][0, 0] == 1.0  # car_0 went out ...
+    assert drivers[1].calls > drivers[0].calls  # ... while car_1 raced on ...
     assert drivers[0].blank_calls == 0  # ... and was not asked to act after it
     assert abs_steer[0].tolist() == pytest.approx([1.0, 0.25])
 

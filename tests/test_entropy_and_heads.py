@@ -90,9 +90,9 @@ def test_without_a_target_the_agent_has_no_alpha_state(script):
     assert "alpha" not in one_update(agent)
 
 
-def test_a_fixed_head_sigma_makes_the_reward_and_critic_losses_squared_errors(script):
+def test_a_fixed_head_sigma_makes_the_reward_and_critic_losses_squared_errors(script, monkeypatch):
     """--head-sigma 1: the reward NLL is (r - mu)^2 / 2 + log(2 pi) / 2 of the head's mean, whatever its second
-    output says; the critic's sigma is 1 too."""
+    output says; the critic's sigma is 1 too, and its loss the squared error against a lambda-return worked by hand."""
     agent = script.Agent(tiny_args(script, head_sigma=1.0))
     batch = random_batch()
     agent._set_training(False)
@@ -110,6 +110,17 @@ def test_a_fixed_head_sigma_makes_the_reward_and_critic_losses_squared_errors(sc
         assert torch.equal(std, torch.ones_like(std))
         learned = script.Agent(tiny_args(script))
         assert not torch.equal(learned.critic.dist(features).std, torch.ones_like(std))
+    # the critic's loss: the squared error of its mean against the lambda-return, here r_1 + gamma V(s_1) + alpha
+    # (-log pi) = 3 + 0.5 * 4 + 0.25 * 1 = 5.25 on a one-step imagination fixed by hand (one start, weight 1)
+    agent = script.Agent(tiny_args(script, head_sigma=1.0, entropy_coef=0.25, gamma=0.5, imagination_horizon=1))
+    features = torch.zeros(2, 1, TINY["latent_size"] + TINY["deter_size"])
+    features[0, :, 1] = 7.0
+    features[1, :, 0], features[1, :, 1] = 3.0, 4.0
+    _, critic_loss, _, metrics = one_step_behaviour(script, agent, monkeypatch, features)
+    assert metrics["imagined_return"].item() == pytest.approx(5.25)
+    value = agent.critic(features[0]).detach()[0, 0]  # the mean output; the second (a sigma) unused
+    expected = 0.5 * (5.25 - value) ** 2 + 0.5 * math.log(2 * math.pi)
+    torch.testing.assert_close(critic_loss.detach(), expected, rtol=1e-5, atol=1e-6)
 
 
 def one_step_behaviour(script, agent, monkeypatch, features, samples=None):

@@ -15,6 +15,7 @@ import sys
 
 import numpy as np
 import pytest
+import scipy.stats
 from conftest import TINY_TRIAL
 
 import experiment
@@ -94,11 +95,13 @@ def test_status_names_every_trial_with_how_far_it_got(finished, tmp_path, capsys
     spec = finished
     experiment.main(experiment.Spec(storage=spec.storage, status=True))  # the experiment's own spec, not the flags'
     lines = capsys.readouterr().out.splitlines()
-    start = latest(spec, "ghost", "lstm")[1]["args"]["checkpoint"]  # the single trial's best.pt
-    ghost_lstm = runs.updates_of(start, __import__("dreamer_lstm")) + spec.ghost_updates
+    ghost = {}  # per variant: its single trial's best.pt's updates and the ghost stage's (the control's as many)
+    for variant in ("lstm", "gru"):
+        start = latest(spec, "ghost", variant)[1]["args"]["checkpoint"]
+        ghost[variant] = runs.updates_of(start, __import__(f"dreamer_{variant}")) + spec.ghost_updates
     assert lines[:3] == ["single:", "  single_lstm_seed3 (2 of 2 updates)", "  single_gru_seed3 (2 of 2 updates)"]
-    assert lines[3:5] == ["ghost:", f"  ghost_lstm_seed3 ({ghost_lstm} of {ghost_lstm} updates)"]
-    assert len(lines) == 10 and all(" of " in line for line in lines[4:8])  # ghost and control of both variants
+    assert lines[3:8] == ["ghost:"] + [f"  {kind}_{v}_seed3 ({ghost[v]} of {ghost[v]} updates)"
+                                       for kind in ("ghost", "control") for v in ("lstm", "gru")]  # fmt: skip
     assert lines[8:] == ["race:", "  race_lstm_gru_seed3 (2 of 2 races; tournaments after 0, 1, 2 races)"]
     with pytest.raises(SystemExit, match="--status: no experiment in .*nothing"):
         experiment.main(experiment.Spec(storage=str(tmp_path / "nothing"), status=True))
@@ -389,8 +392,9 @@ def test_the_claims_table_answers_each_claim_from_hand_made_results():
     # se^2 = (50000 / 3) / 4 + (20000 / 2) / 3 = 7500, df = 7500^2 / (4166.7^2 / 3 + 3333.3^2 / 2) = 4.96, so t is
     # between t_5 = 2.571 and t_4 = 2.776: the interval 550 +- (222.6 .. 240.4)
     assert solo[2] == "550.0" and solo[3].startswith("permutation p=0.029, Welch t 95% [+3")
-    low, high = (float(v) for v in solo[3].split("[")[1].split("]")[0].split(","))
-    assert 309.6 < low < 327.4 and low + high == pytest.approx(1100.0, abs=0.11) and solo[3].endswith("n=4+3")
+    welch = scipy.stats.ttest_ind(single["lstm"], single["gru"], equal_var=False).confidence_interval(0.95)
+    assert f"[{welch.low:+.1f}, {welch.high:+.1f}]" in solo[3] and 309.6 < welch.low < 327.4  # scipy's, as above
+    assert solo[3].endswith("n=4+3")
     assert solo[4] == "supported |"
     # last tournaments: -0.30, -0.50, -0.40, -0.20, -0.30, mean -0.34, sd sqrt(0.052 / 4) = 0.1140, t_4 = 2.7764:
     # -0.34 +- 0.1416; all five negative: the opposite's p = 1/32

@@ -89,12 +89,26 @@ def test_ghost_rule():
 
 
 def test_final_info_carries_the_run_as_a_ghost():
+    """The ghost in the last info is the race as driven, read by hand: the car's pose after the reset and after each
+    step (the last step's is gone with the car), and each tile's first touch at the step the tiles count grew (the
+    tiles under the car at the start at step 0)."""
     env = MultiCarRacing(num_agents=1, max_steps=LONG)
-    _, infos, steps = drive_race(env, {"car_0": 70.0}, seed=SEED)
+    _, infos = env.reset(seed=SEED)
+    tiles = infos["car_0"]["tiles"]  # the tiles under the car at the start count as touched at step 0
+    driver, steps, poses, touches = PursuitDriver(env, "car_0", 70.0), 0, [], [0] * tiles
+    while env.agents:
+        hull = env.cars[0].hull
+        poses.append((hull.position[0], hull.position[1], hull.angle))
+        *_, infos = env.step({"car_0": driver.act()})
+        steps += 1
+        touches += [steps] * (infos["car_0"]["tiles"] - tiles)
+        tiles = infos["car_0"]["tiles"]
     ghost = infos["car_0"]["trajectory"]
     assert ghost.track_seed == SEED and ghost.finish_step == steps and ghost.tiles == env.num_tiles
     assert len(ghost.poses) == steps + 1
-    np.testing.assert_array_equal(ghost.poses, env.trajectory("car_0").poses)
+    np.testing.assert_array_equal(ghost.poses[:-1], np.array(poses))
+    np.testing.assert_array_equal(ghost.tile_steps, touches)
+    assert sorted(ghost.tile_ids) == list(range(env.num_tiles))  # every tile, each once
 
 
 def test_ghost_round_trips_through_plain_types(slow_ghost):

@@ -118,6 +118,8 @@ def test_the_references_are_measured_once_for_their_tracks_and_refuse_others(tmp
     base = references.baselines(10_000, 1, results_dir=str(tmp_path))
     assert base["pursuit@70"]["eval_progress"] > 0.95 and base["pursuit@70"]["eval_return"] > 800
     assert base["random"]["eval_progress"] < 0.2 and base["random"]["eval_return"] < 0
+    with open(tmp_path / "references.json") as f:  # what was measured is kept, with its tracks
+        assert json.load(f) == {**base, "tracks": "10000..10000"}
     with open(tmp_path / "references.json", "w") as f:  # read back, not recomputed
         json.dump({"random": {"eval_return": -1.0, "eval_progress": 0.01},
                    "pursuit@70": {"eval_return": 2.0, "eval_progress": 1.0}, "tracks": "10000..10000"}, f)  # fmt: skip

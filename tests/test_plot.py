@@ -68,6 +68,7 @@ def test_mean_curve_is_mean_of_scipy_smoothed_seeds(logdir):
     curves = [c for run in groups[("gru", "race")] for c in run.scalars["charts/episodic_return"]]
     grid, mean, std, n = plot.aggregate(curves, sigma=3.0)
     assert n == 6
+    np.testing.assert_array_equal(grid, np.linspace(0, 490, plot.GRID_POINTS))  # all six share steps 0..490
     expected = np.stack(
         [
             np.interp(
@@ -83,6 +84,16 @@ def test_mean_curve_is_mean_of_scipy_smoothed_seeds(logdir):
     )
     np.testing.assert_allclose(mean, expected.mean(0), rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(std, expected.std(0), rtol=1e-6, atol=1e-6)
+
+
+def test_the_common_grid_is_the_x_range_all_curves_share():
+    """Curves over steps 0..90, 30..120 and 20..60 share 30..60: the grid spans it, each curve read there."""
+    curves = [(np.arange(0.0, 100, 10), np.arange(10.0)), (np.arange(30.0, 130, 10), np.full(10, 5.0)),
+              (np.arange(20.0, 70, 10), np.zeros(5))]  # fmt: skip
+    grid, mean, _, n = plot.aggregate(curves, sigma=0.0)
+    np.testing.assert_array_equal(grid, np.linspace(30, 60, plot.GRID_POINTS))
+    np.testing.assert_allclose(mean, (grid / 10 + 5.0 + 0.0) / 3)  # the first curve is step / 10, unsmoothed
+    assert n == 3
 
 
 def test_figures_have_the_expected_series(logdir, tmp_path):

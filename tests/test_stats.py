@@ -80,6 +80,17 @@ def test_the_permutation_test_counts_every_split():
     assert stats.permutation_test(x, y) == pytest.approx(sum(d >= observed - 1e-12 for d in diffs) / 35)
 
 
+def scipy_split_p(x, y, alternative):
+    """scipy.stats.permutation_test's p of mean(x) - mean(y) over every split of two independent groups."""
+    import scipy.stats
+
+    def difference(a, b, axis):
+        return np.mean(a, axis=axis) - np.mean(b, axis=axis)
+
+    return scipy.stats.permutation_test((x, y), difference, permutation_type="independent", alternative=alternative,
+                                        n_resamples=np.inf, vectorized=True).pvalue  # fmt: skip
+
+
 def test_the_exact_tests_count_ties_of_returns_in_cents_as_rational_arithmetic_does():
     """Returns kept to cents tie often (600.9 + 601.1 and 601.0 + 601.0 are one sum in decimal, not in binary):
     every split and sign assignment is compared as exact fractions of the decimal values, the reference here.
@@ -105,6 +116,10 @@ def test_the_exact_tests_count_ties_of_returns_in_cents_as_rational_arithmetic_d
              (["601.1", "600.8", "600.7", "600.9"], ["601.1", "601.0", "600.7", "601.0", "600.8", "600.8"]),
              (["0.3", "0.1", "0.2"], ["0.2", "0.3", "0.1", "0.6"])]  # fmt: skip
     assert exact_split_p(*pairs[0], "greater") == Fraction(4, 7) and exact_split_p(*pairs[0], "less") == Fraction(5, 8)
+    # scipy's exhaustive p misses these ties (1/2 and 17/28 = 0.607): the reason stats.py enumerates its own
+    first = [[float(v) for v in side] for side in pairs[0]]
+    assert [scipy_split_p(*first, alternative) for alternative in ("greater", "less")] == [
+        pytest.approx(1 / 2, abs=1e-12), pytest.approx(17 / 28, abs=1e-12)]
     for x, y in pairs:
         for alternative in ("greater", "less"):
             p = stats.permutation_test([float(v) for v in x], [float(v) for v in y], alternative)
@@ -171,7 +186,10 @@ def test_the_pairs_a_paired_t_test_needs():
     # effect 0.5: 7.849 * 0.929 + 1.92 = 9.2 -> 10; effect 0.3: 7.849 * 2.580 + 1.92 = 22.2 -> 23
     assert stats.pairs_needed(sd, 0.5) == 10 and stats.pairs_needed(sd, 0.3) == 23
     assert stats.pairs_needed(sd, -0.5) == 10  # a difference either way
+    # one-sided, n = (z_.95 + z_.8)^2 (sd / effect)^2 + z_.95^2 / 2: effect 0.5: 6.183 * 0.929 + 1.353 = 7.1 -> 8;
+    # effect 0.3: 6.183 * 2.580 + 1.353 = 17.3 -> 18
     assert stats.pairs_needed(sd, 0.5, alternative="greater") == 8  # one-sided asks fewer
+    assert stats.pairs_needed(sd, 0.3, alternative="greater") == 18
     # the power at 10 pairs, by simulation of the paired t test (two-sided, 5%): about 0.83; at 9 about 0.78
     rng = np.random.default_rng(0)
     for n, lowest, highest in ((10, 0.81, 0.85), (9, 0.76, 0.80)):

@@ -135,7 +135,15 @@ def test_the_report_measures_each_finished_trial_once_with_both_policies(finishe
     assert [(r["tag"], r["policy"]) for r in rows] == [
         (sweeps.tag_of(flags), policy) for flags in GRID for policy in readings.POLICIES
     ]
-    assert all(0 <= float(r["gas"]) <= 1 and float(r["speed"]) >= 0 and r["actor_sigma"] for r in rows)
+    assert all(0 <= float(r["gas"]) <= 1 and float(r["speed"]) >= 0 for r in rows)
+    for flags in GRID:  # the training readings: the trial's own logged actor sigma, averaged over its 2 updates
+        spec = sweeps.trial_spec(finished, flags, "lstm", 3)
+        run = runs.run_of(sweeps.experiment.trial_dir(spec, "single", "lstm", 3))
+        with open(os.path.join(run, "progress.csv")) as f:
+            logged = [float(r["car_0/losses/actor_std"]) for r in csv.DictReader(f) if r.get("car_0/losses/actor_std")]
+        assert len(logged) >= 1
+        for r in (r for r in rows if r["tag"] == sweeps.tag_of(flags)):
+            assert float(r["actor_sigma"]) == pytest.approx(sum(logged) / len(logged), abs=1e-4)
     assert "| tag | variant | seed | policy | return |" in text
     # the tiny car leaves the road before the 40 decisions a pedal reading needs: NaN, not a made-up number
     assert all(math.isnan(float(r["pedal_range_real"])) for r in rows)

@@ -12,6 +12,7 @@ import cv2
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch
 from gymnasium import spaces
 from scripted_env import ScriptedParallelEnv
 from stable_baselines3 import PPO
@@ -362,8 +363,11 @@ def test_sb3_ppo_trains_on_one_agent_scripted_env():
     model = PPO(
         "MlpPolicy", venv, n_steps=32, batch_size=32, n_epochs=1, policy_kwargs={"net_arch": [16]}, seed=0, device="cpu"
     )
+    before = [p.detach().clone() for p in model.policy.parameters()]
     model.learn(total_timesteps=128)
     assert model.num_timesteps == 128
+    assert model._n_updates == 2  # two rollouts of 32 steps in 2 races, one epoch each
+    assert any(not torch.equal(p, q) for p, q in zip(model.policy.parameters(), before))  # the updates moved it
     lengths = [ep["l"] for ep in model.ep_info_buffer]
     assert len(lengths) == 128 // 8 and set(lengths) == {8}  # every episode is truncated at max_steps
     returns = [ep["r"] for ep in model.ep_info_buffer]
