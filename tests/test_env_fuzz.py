@@ -133,7 +133,9 @@ def test_bad_calls_never_change_the_race(seed):
         if not fuzzed.agents:
             assert not twin.agents
             with pytest.raises(RuntimeError, match="race is over"):  # a finished race refuses steps, and
-                fuzzed.step({})  # that refusal changes nothing either
+                fuzzed.step({})  # that refusal changes nothing either: the race as recorded is the twin's
+            assert fuzzed.step_count == twin.step_count
+            assert all(fuzzed.trajectory(a) == twin.trajectory(a) for a in fuzzed.possible_agents)
             races += 1
             track += 1
             assert_same(fuzzed.reset(seed=track), twin.reset(seed=track), "reset")

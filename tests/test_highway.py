@@ -82,7 +82,7 @@ def test_matches_highway_env_stepped_directly():
     observations, infos = env.reset(seed=3)
     raw_obs, raw_info = raw.reset(seed=3)
     rng = np.random.default_rng(0)
-    for step in range(40):  # (a crash ends this episode at its 19th step)
+    for step in range(40):  # (a crash ends this episode at its 20th step)
         for i, agent in enumerate(AGENTS):
             np.testing.assert_array_equal(observations[agent][..., 0], raw_obs[i][0].T)  # (W, H) -> (H, W)
         actions = {agent: rng.uniform(-1, 1, 2).astype(np.float32) for agent in AGENTS}
@@ -98,7 +98,8 @@ def test_matches_highway_env_stepped_directly():
             break
     for i, agent in enumerate(AGENTS):  # the last step's images too
         np.testing.assert_array_equal(observations[agent][..., 0], raw_obs[i][0].T)
-    assert all(terminations.values())  # the episode ended by highway-env's rule, for every agent
+    assert all(terminations.values())  # the episode ended by highway-env's rule, for every agent:
+    assert step == 19 and any(v.crashed for v in raw.unwrapped.controlled_vehicles)  # a crash at the 20th step
     env.close()
     raw.close()
 

@@ -37,9 +37,9 @@ def test_faster_pursuit_driver_wins_every_race(tmp_path):
     )  # fmt: skip
     fast, slow = rows
     assert fast["wins"] == 4 and slow["wins"] == 0
-    assert (fast["win_rate_ci_low"], fast["win_rate_ci_high"]) == pytest.approx(race.wilson_interval(4, 4))
-    z = 1.959963984540054  # the two-sided 95% normal quantile
-    assert fast["win_rate_ci_low"] == pytest.approx(1 / (1 + z * z / 4))  # p = 1: lower bound n / (n + z^2)
+    z = 1.959963984540054  # the two-sided 95% normal quantile; Wilson at p = 1: [n / (n + z^2), 1], at p = 0 the mirror
+    assert (fast["win_rate_ci_low"], fast["win_rate_ci_high"]) == pytest.approx((4 / (4 + z * z), 1.0))
+    assert (slow["win_rate_ci_low"], slow["win_rate_ci_high"]) == pytest.approx((0.0, z * z / (4 + z * z)))
     assert fast["mean_finish_step"] < slow["mean_finish_step"]
     assert fast["mean_progress"] == slow["mean_progress"] == 1.0
     assert json.loads((tmp_path / "results.json").read_text())[0]["wins"] == 4
@@ -196,6 +196,7 @@ def test_dreamer_racer_decides_every_action_repeat_steps_and_records_summed_rewa
 
 
 def test_train_continues_with_the_replay_saved_beside_the_checkpoint(tiny_checkpoints, tmp_path, capsys):
+    import glob
     import os
 
     import numpy as np
@@ -210,6 +211,12 @@ def test_train_continues_with_the_replay_saved_beside_the_checkpoint(tiny_checkp
     assert f"continues with the replay in {replay_dir} ({saved_steps:,} steps)" in capsys.readouterr().out
     race.main([*args, "--runs-dir", str(tmp_path / "fresh"), "--fresh-replay"])
     assert "continues with the replay" not in capsys.readouterr().out
+    sizes = {}  # the replay each run saved after its race: the kept one holds the saved steps and the race's
+    for kind in ("kept", "fresh"):
+        (meta_path,) = glob.glob(str(tmp_path / kind / "*" / "checkpoints" / "racer_0_replay_car_0" / "meta.npz"))
+        with np.load(meta_path) as meta:
+            sizes[kind] = int(meta["size"])
+    assert sizes["fresh"] > 0 and sizes["kept"] == saved_steps + sizes["fresh"]
 
 
 def test_the_same_train_command_trains_the_same_agents(tiny_checkpoints, tmp_path):
