@@ -14,11 +14,13 @@ with random actions, for reference).
     python benchmarks/train_throughput.py                      # CPU size only (quick)
     python benchmarks/train_throughput.py --configs paper-100 paper-all cpu
     python benchmarks/train_throughput.py --amp-ratio --threads 1  # --amp on against off: CPU time per update
+    python benchmarks/train_throughput.py --compile-ratio --threads 1 --warmup 4  # --compile against without
 
 ``--amp-ratio`` times what a run's CPU budget buys: the process CPU time of one update with ``--amp on`` and with
 ``--amp off``, two agents of the same configuration from the same weights updating in turn on the same batches in
 one process (so that load on the machine weighs on both alike), their ratio, and their losses at the last update
-(the same random draws for both: they differ by bfloat16's rounding alone).
+(the same random draws for both: they differ by bfloat16's rounding alone). ``--compile-ratio`` does the same for
+``--compile`` against without, at ``--amp`` (its compiling falls in the warm-up updates, untimed).
 """
 
 from __future__ import annotations
@@ -76,6 +78,8 @@ class Args:
     """env steps for the acting throughput (0: skip)"""
     amp_ratio: bool = False
     """instead: process CPU seconds per update with --amp on and off, interleaved in this process, per configuration"""
+    compile_ratio: bool = False
+    """instead: the same with --compile and without (at --amp), the compiling in the warm-up updates"""
 
 
 def median_time(fn, repeats: int, warmup: int = 1) -> float:
@@ -149,24 +153,26 @@ def time_update(script, overrides: dict, repeats: int, warmup: int) -> dict:
     }
 
 
-def amp_cpu_seconds(script, overrides: dict, updates: int, warmup: int) -> tuple[dict, dict]:
-    """Median process CPU seconds of one update with --amp on and with --amp off, and each one's losses at its last
-    update: two agents of the same configuration, from the same weights, on the same batches and random draws,
-    updating in turn (`warmup` untimed updates each first)."""
-    agents = {amp: script.Agent(script.Args(**{**overrides, "amp": amp})) for amp in ("on", "off")}
-    agents["off"].load_state_dict(agents["on"].state_dict())
-    args = agents["on"].args
+def paired_cpu_seconds(script, overrides: dict, flag: str, values: tuple, updates: int, warmup: int
+                       ) -> tuple[dict, dict]:  # fmt: skip
+    """Median process CPU seconds of one update with the scripts' `flag` at each of its two `values` (--amp on and
+    off, --compile and not), and each one's losses at its last update: two agents of the same configuration, from
+    the same weights, on the same batches and random draws, updating in turn (`warmup` untimed updates each first:
+    with --compile, its compiling)."""
+    agents = {value: script.Agent(script.Args(**{**overrides, flag: value})) for value in values}
+    agents[values[1]].load_state_dict(agents[values[0]].state_dict())
+    args = agents[values[0]].args
     replay = filled_replay(script, args)
-    times, losses = {amp: [] for amp in agents}, {}
+    times, losses = {value: [] for value in agents}, {}
     for step, timed in enumerate([False] * warmup + [True] * updates):
         batch = replay.sample(args.batch_size, args.seq_len)
-        for amp, agent in agents.items():
+        for value, agent in agents.items():
             torch.manual_seed(step)  # the same latent and action noise for both
             started = time.process_time()
-            losses[amp] = agent.update(batch)
+            losses[value] = agent.update(batch)
             if timed:
-                times[amp].append(time.process_time() - started)
-    return {amp: float(np.median(t)) for amp, t in times.items()}, losses
+                times[value].append(time.process_time() - started)
+    return {value: float(np.median(t)) for value, t in times.items()}, losses
 
 
 def env_throughput(script, overrides: dict, steps: int) -> tuple[float, float]:
@@ -204,16 +210,22 @@ def main(args: Args) -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, script {args.script}")
-    if args.amp_ratio:
+    if args.amp_ratio and args.compile_ratio:
+        raise SystemExit("train_throughput.py: error: --amp-ratio and --compile-ratio each time a pair: give one")
+    if args.amp_ratio or args.compile_ratio:
+        flag, values = ("amp", ("on", "off")) if args.amp_ratio else ("compile", (True, False))
+        names = {"on": "--amp on", "off": "--amp off", True: "--compile", False: "--no-compile"}
         print(f"bfloat16 in this CPU's instructions (AVX512-BF16, --amp auto's rule): {cpu_has_bf16()}")
         for name in args.configs:
-            config = {**config_of(script, name), "compile": args.compile}
-            seconds, losses = amp_cpu_seconds(script, config, args.updates, args.warmup)
-            print(f"{name:10s} CPU seconds per update: --amp on {seconds['on']:.3f}, off {seconds['off']:.3f}; "
-                  f"off / on = {seconds['off'] / seconds['on']:.2f}", flush=True)  # fmt: skip
+            fixed = {"compile": args.compile} if args.amp_ratio else {"amp": args.amp}
+            seconds, losses = paired_cpu_seconds(script, {**config_of(script, name), **fixed}, flag, values,
+                                                 args.updates, args.warmup)  # fmt: skip
+            first, second = (seconds[v] for v in values)
+            print(f"{name:10s} CPU seconds per update: {names[values[0]]} {first:.3f}, {names[values[1]]} "
+                  f"{second:.3f}; {names[values[1]]} / {names[values[0]]} = {second / first:.2f}", flush=True)
             for key in ("model_loss", "kl_dyn", "actor", "critic"):  # from the same weights and batches
-                print(f"  {key} at update {args.warmup + args.updates}: on {losses['on'][key]:.4f}, "
-                      f"off {losses['off'][key]:.4f}")  # fmt: skip
+                print(f"  {key} at update {args.warmup + args.updates}: "
+                      + ", ".join(f"{names[v]} {losses[v][key]:.4f}" for v in values))  # fmt: skip
         return
     reference, reference_flops = bare_encoder_reference(args.reference_repeats)
     print(f"bare encoder reference (750 frames 96x96, fwd+bwd): {reference:.2f} s")

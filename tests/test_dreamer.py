@@ -1303,7 +1303,8 @@ def test_the_amp_ratio_benchmark_starts_both_settings_alike(script, monkeypatch)
     import train_throughput
 
     monkeypatch.setattr(script, "bf16_autocast", lambda amp, device: False)  # both settings in float32
-    seconds, losses = train_throughput.amp_cpu_seconds(script, {**TINY, "seq_len": 4}, updates=2, warmup=1)
+    seconds, losses = train_throughput.paired_cpu_seconds(script, {**TINY, "seq_len": 4}, "amp", ("on", "off"),
+                                                          updates=2, warmup=1)  # fmt: skip
     assert set(seconds) == {"on", "off"} and losses["on"] == losses["off"]
     assert losses["on"]["actor"] != 0.0 and math.isfinite(losses["on"]["model_loss"])
 
