@@ -20,7 +20,8 @@ with random actions, for reference).
 ``--amp off``, two agents of the same configuration from the same weights updating in turn on the same batches in
 one process (so that load on the machine weighs on both alike), their ratio, and their losses at the last update
 (the same random draws for both: they differ by bfloat16's rounding alone). ``--compile-ratio`` does the same for
-``--compile`` against without, at ``--amp`` (its compiling falls in the warm-up updates, untimed).
+``--compile`` against without, at ``--amp`` (its compiling falls in the warm-up updates, untimed; the losses differ
+by the compiled kernels' rounding alone).
 """
 
 from __future__ import annotations
@@ -216,8 +217,10 @@ def main(args: Args) -> None:
         flag, values = ("amp", ("on", "off")) if args.amp_ratio else ("compile", (True, False))
         names = {"on": "--amp on", "off": "--amp off", True: "--compile", False: "--no-compile"}
         print(f"bfloat16 in this CPU's instructions (AVX512-BF16, --amp auto's rule): {cpu_has_bf16()}")
+        fixed = {"compile": args.compile} if args.amp_ratio else {"amp": args.amp}
+        print(f"both with {', '.join(f'--{k} {v}' for k, v in fixed.items())}"
+              + ("" if args.amp_ratio else f" ({resolve_amp(args.amp, torch.device('cpu'))})"))  # fmt: skip
         for name in args.configs:
-            fixed = {"compile": args.compile} if args.amp_ratio else {"amp": args.amp}
             seconds, losses = paired_cpu_seconds(script, {**config_of(script, name), **fixed}, flag, values,
                                                  args.updates, args.warmup)  # fmt: skip
             first, second = (seconds[v] for v in values)

@@ -1309,6 +1309,19 @@ def test_the_amp_ratio_benchmark_starts_both_settings_alike(script, monkeypatch)
     assert losses["on"]["actor"] != 0.0 and math.isfinite(losses["on"]["model_loss"])
 
 
+def test_the_compile_ratio_benchmark_times_both_settings_from_the_same_start(script, monkeypatch):
+    """train_throughput --compile-ratio builds one agent with --compile and one without, from the same weights,
+    batches and random draws: with compiling made a no-op, their losses are equal, and only one was compiled."""
+    import train_throughput
+
+    compiled = []
+    monkeypatch.setattr(nn.Module, "compile", lambda module, *a, **k: compiled.append(type(module).__name__))
+    seconds, losses = train_throughput.paired_cpu_seconds(script, {**TINY, "seq_len": 4}, "compile", (True, False),
+                                                          updates=1, warmup=1)  # fmt: skip
+    assert set(seconds) == {True, False} and losses[True] == losses[False]
+    assert "Actor" in compiled and compiled.count("Actor") == 1  # the compiled agent's networks only
+
+
 def test_dead_zone_of_the_next_race_is_set_before_its_reset(script):
     """The env applies a dead zone at its next reset; a race races at the schedule's value for the races ended when
     it starts. One race at a time resets after the race's turn: the races ended so far. K > 1 races have already

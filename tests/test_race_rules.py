@@ -174,11 +174,13 @@ def test_car_eliminated_while_touching_another_leaves_the_contact_cleanly():
     assert tag() is not None
     steps = infos[rear]["collision_steps"]
     for _ in range(5):  # the pusher drives on into the empty place: never in a collision again
+        paid = infos[rear]["tile_reward"]
         _, rewards, terms, _, infos = env.step({a: np.array([0.0, 1.0]) if a == rear else np.zeros(2)
                                                 for a in env.agents})  # fmt: skip
         assert infos[rear]["collision_steps"] == steps
         elimination = -100.0 if terms[rear] else 0.0  # (the pusher may stall out too)
-        assert rewards[rear] - elimination >= -0.1 - 1e-9  # the time cost plus tile shares (>= 0): no collision penalty
+        tiles = infos[rear]["tile_reward"] - paid  # the step's reward: time cost, new tiles, no collision penalty
+        assert rewards[rear] - elimination == pytest.approx(-0.1 + tiles, abs=1e-9)
         if terms[rear]:
             break
 
