@@ -8,9 +8,9 @@ Read top to bottom:
 
 1. Args ............ every hyperparameter (the paper's defaults) and the CPU preset
 2. Environment ..... the dead-zone warm-up (the env's options, track seeds: utils/run.py)
-3. Networks ........ encoder, recurrent core (LSTM with learned initial h and c), posterior/prior,
-                     decoder, reward, continue, actor, critic (paper appendix), and the heads' and the
-                     actor's distributions (Gaussian likelihoods, DreamerV3's two-hot, the policy's log pi)
+3. Networks ........ (paper appendix) the encoder, decoder, recurrent core (LSTM with learned initial h and c) and
+                     posterior; the output distributions (Gaussian, DreamerV3's two-hot); the world model
+                     (prior, reward and continue heads); the actor (its log pi) and the critic
 4. Losses .......... their terms: image likelihood and KL, free bits, lambda-returns, discount weights,
                      the returns' range (paper 3.8-3.9; the Agent of section 6 adds them up)
 5. Replay .......... per-agent ring buffer of uint8 frames, uniform sequence sampling
@@ -91,7 +91,7 @@ class Args:
     blocks are not unmapped and page-faulted in again by the next"""
     compile: bool = False
     """torch.compile the networks' forward passes (same losses up to float rounding; minutes of compiling at the
-    start; the recurrent core's steps are called directly and stay eager)"""
+    start; the recurrent cell's step stays eager, the per-step input layer, posterior and prior are compiled)"""
     amp: Literal["auto", "on", "off", "cuda"] = "auto"
     """bfloat16 autocast of the update's forward passes (losses stay float32); auto: on where bfloat16 is in
     hardware, a CUDA device of Ampere or newer or a CPU with bfloat16 instructions (AVX512-BF16), off elsewhere;
@@ -168,7 +168,7 @@ class Args:
     replay_capacity: int = 100_000
     """replay buffer capacity per agent, in decisions (each --action-repeat env steps)"""
     eval_every: int = 20
-    """evaluate every this many races (--eval-policy on held-out tracks); best.pt keeps the best"""
+    """evaluate every this many races (--eval-policy on held-out tracks; 0: never); best.pt keeps the best"""
     eval_episodes: int = 10
     """races per evaluation (ours)"""
     eval_policy: Literal["deterministic", "mean-action", "stochastic"] = "mean-action"
@@ -188,7 +188,7 @@ class Args:
     video_length: int = 100
     """steps per video"""
     checkpoint_every: int = 1
-    """write checkpoints/latest.pt every this many races"""
+    """write checkpoints/latest.pt every this many races (0: only when the run stops)"""
     replay_save_every: int = 1
     """save the replay buffers beside the checkpoints every this many races (0: never); a resume restores the
     replay as of its last save, so 1 makes a resume exact with --num-races 1 (only the chunks a race changed are
@@ -236,14 +236,14 @@ class Args:
     grad_clip: float = 100.0
     """global gradient-norm clip of every optimiser"""
     target_critic: bool = True
-    """bootstrap the lambda-returns with the slow critic (a copy soft-updated with tau after every critic step; also
-    --heads twohot's regression target) instead of the critic itself"""
+    """bootstrap the lambda-returns with the slow critic (a copy soft-updated with tau after every critic step)
+    instead of the critic itself (--heads twohot regresses the critic on the slow critic whatever this flag)"""
 
     # --- options beyond the paper: off by default (the paper's form); docs/deviations.md lists each, measured
     entropy_target: float | None = None
-    """adapt alpha so that the policy's entropy (-log pi, as in the lambda-return) per action dimension tends to this
-    many nats: SAC's automatic temperature (Haarnoja et al., 2018), alpha starting at --entropy-coef. None: alpha
-    stays --entropy-coef"""
+    """adapt alpha so that the entropy it weighs (-log pi; with --action-penalty, -log N(a) alone) per action
+    dimension tends to this many nats: SAC's automatic temperature (Haarnoja et al., 2018), alpha starting at
+    --entropy-coef. None: alpha stays --entropy-coef"""
     entropy_lr: float = 1e-3
     """Adam learning rate of log alpha (--entropy-target)"""
     action_penalty: float | None = None
@@ -257,8 +257,8 @@ class Args:
     """sigma of the reward and critic Gaussians: 0 learns it (softplus + 0.1, the paper); a positive value fixes it
     (1: the paper authors' code, a squared error, so that a rare -100 moves the mean instead of widening sigma)"""
     heads: Literal["gaussian", "twohot"] = "gaussian"
-    """the reward and critic heads' distribution: gaussian (the paper; --head-sigma) or twohot (DreamerV3's symlog
-    two-hot: TwoHot below; the critic also regresses on the slow critic's value)"""
+    """the reward and critic heads' distribution: gaussian (the paper; --head-sigma) or twohot (DreamerV3's two-hot
+    over bins evenly spaced in symlog space: TwoHot below; the critic also regresses on the slow critic's value)"""
     straight_through_clip: bool = False
     """imagination clips an action outside [-1, 1] with the identity's gradient (Bengio et al., 2013's
     straight-through estimator: imagine_rollout). False: the clip passes no gradient (the paper authors' form)"""
@@ -344,8 +344,8 @@ def frames_to_input(frames: torch.Tensor) -> torch.Tensor:
 
 
 def input_to_frames(images: torch.Tensor) -> torch.Tensor:
-    """Inverse of frames_to_input: float (..., 3, H, W) -> uint8 (..., H, W, 3)."""
-    return ((images + 0.5) * 255.0).clamp(0, 255).to(torch.uint8).movedim(-3, -1)
+    """Inverse of frames_to_input: float (..., 3, H, W) -> uint8 (..., H, W, 3), rounded to the nearest level."""
+    return ((images + 0.5) * 255.0).round().clamp(0, 255).to(torch.uint8).movedim(-3, -1)
 
 
 class MLP(nn.Module):
@@ -390,7 +390,7 @@ def conv_transpose_as_subpixel(x: torch.Tensor, layer: nn.ConvTranspose2d) -> to
     Output pixel s*q + r only sees inputs q-m+1 .. q, through kernel taps r, r+s, ..., so each of the s*s
     output phases r is an ordinary m x m conv of the input: one conv with s*s times the output channels,
     then pixel_shuffle interleaves the phases. Same function and parameters (float rounding aside); for the
-    decoder's last layer (k12 s4, 750 frames) oneDNN runs this about 2x faster on a CPU than the transposed conv.
+    decoder's last layer (k12 s4, B * L frames) oneDNN runs this about 2x faster on a CPU than the transposed conv.
     """
     weight, s = layer.weight, layer.stride[0]  # weight (c_in, c_out, k, k)
     c_in, c_out, k, _ = weight.shape
@@ -1035,7 +1035,7 @@ class Agent:
 
         BatchNorm sees imagined states only through its running statistics: the world model's come from the
         real posterior states of its own loss, the actor's from a no-grad train-mode pass over the same real
-        states here. Imagined states are never what the car sees (a 50-step imagination drifts away from the
+        states here. Imagined states are never what the car sees (a long imagination drifts away from the
         real state distribution), and acting uses the same running statistics as the policy optimised here.
         """
         args, wm = self.args, self.world_model

@@ -337,7 +337,7 @@ def evaluate(args, racers) -> list[dict]:
         all_out += all(info.get("eliminated") is not None for info in result.final_infos)
         no_winner += not any(result.winners)
         dead_heats += sum(result.winners) > 1
-    # (race-wide counts, the same on every row: wins + no_winner - dead_heats (for two cars) = races)
+    # (race-wide counts, the same on every row; for two cars: both rows' wins + no_winner - dead_heats = races)
     rows = [{**t.row(), "all_eliminated": all_out, "no_winner": no_winner, "dead_heats": dead_heats} for t in tallies]
     print(format_table(rows))
     out = args.out or os.path.join("races", time.strftime("%Y%m%d-%H%M%S"))

@@ -16,7 +16,8 @@ tournament interval of races), reports its latest evaluation to Tune after each,
 earlier command both resume where they stopped. Running the same command again skips finished trials (Tune
 restores each stage's experiment). The stages follow the paper and run one after the other:
 
-* ``single``: one car from scratch, ``--single-updates`` updates; ``best.pt`` keeps the best evaluation.
+* ``single``: one car from scratch, ``--single-updates`` updates (with ``--single-cpu-hours``: until that CPU
+  budget is spent); ``best.pt`` keeps the best evaluation.
 * ``ghost``: from the single trial's ``best.pt`` of the same variant and seed, ``--ghost-updates`` more updates
   racing the agent's own best runs; ``control`` continues ``single`` from the same ``best.pt`` for as many
   updates without a ghost, so the ghost's effect is measured rather than assumed.
@@ -50,7 +51,6 @@ import types
 import typing
 from typing import Literal, NamedTuple
 
-import tyro
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
@@ -730,4 +730,6 @@ def main(spec: Spec) -> None:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Spec))
+    from utils.run import tyro_cli
+
+    main(tyro_cli(Spec))

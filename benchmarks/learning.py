@@ -67,8 +67,9 @@ def policy_summary(
     saved agent (any variant, any stage; agent 0 of a multi-agent checkpoint) driving alone with `policy` on
     tracks ``first_track .. first_track + tracks - 1``, with the env settings it was trained with (final dead
     zone): mean return, progress and |steer| (near 1: bang-bang steering), and the per-track values. The training
-    runs' own evaluation is this on 10000..10009; another block of tracks measures a best.pt without the bias of
-    having been picked there."""
+    runs' own evaluation is this on 10000..10009 with their --eval-policy (the same numbers exactly only for
+    deterministic: acting samples from torch's stream, seeded here, not as in the run); another block of tracks
+    measures a best.pt without the bias of having been picked there."""
     if tracks < 1:
         raise ValueError(f"tracks must be >= 1, got {tracks}")
     from evaluate import evaluate_checkpoint as drive, track_means
@@ -169,7 +170,8 @@ class Args:
     drive of the tracks and the model's imagination from every frame of it)"""
     protocol_report: bool = False
     """mode: rewrite learning_final.md from the final protocol's learning_final.csv and its peers' rows of the
-    report tracks in <peer>_peer.csv and <peer>_peer_curve.csv (no evaluation)"""
+    report tracks in <peer>_peer.csv and <peer>_peer_curve.csv (no agent is driven; the random-action and pursuit
+    references are, once, if benchmarks/results/references_report.json is missing)"""
     protocol_ship: bool = False
     """mode: choose the shipped agent of --variant: the final policies of the protocol's seeds (under
     --runs-dir: the seeds of --ship-seeds, every one by default; --seed is not read) and pretrained/<variant>_cpu.pt
@@ -272,7 +274,9 @@ def run_mode(args: Args) -> None:
 
 def cli(argv: list[str] | None = None) -> None:
     """The command line: one mode. Bad input ends with one line naming it, no traceback."""
-    args = tyro.cli(Args, args=argv, description=__doc__)
+    from utils.run import tyro_cli
+
+    args = tyro_cli(Args, argv, __doc__)
     try:
         check(args)
         common.set_torch_threads(args.torch_threads)

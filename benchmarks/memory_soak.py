@@ -23,10 +23,9 @@ import time
 
 import numpy as np
 import torch
-import tyro
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from utils.run import env_kwargs, keep_freed_memory  # noqa: E402  (glibc keeps freed memory: --malloc-fix)
+from utils.run import env_kwargs, keep_freed_memory, tyro_cli  # noqa: E402  (glibc keeps freed memory: --malloc-fix)
 
 
 @dataclasses.dataclass
@@ -135,4 +134,4 @@ def main(args: Args) -> dict:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    main(tyro_cli(Args))

@@ -148,7 +148,9 @@ def norm_gap(path: str, first_track: int = TRACKS["screening"][0], tracks: int =
 
 
 def main(argv: list[str] | None = None) -> dict:
-    args = tyro.cli(Args, args=argv, description=__doc__)
+    from utils.run import tyro_cli
+
+    args = tyro_cli(Args, argv, __doc__)
     try:
         if args.tracks < 1:
             raise ValueError(f"--tracks must be >= 1, got {args.tracks}")

@@ -444,7 +444,9 @@ def table(rows: list[dict], path: str) -> str:
 def main(argv=None) -> list[dict]:
     """The command line. A bad file or value ends with one line naming it, no traceback; so does a car out before
     --after on some track (an early policy often is: --after 0 starts at the grid)."""
-    args = tyro.cli(Args, args=argv)
+    from utils.run import tyro_cli
+
+    args = tyro_cli(Args, argv)
     try:
         set_torch_threads(args.torch_threads)
         rows = pedal_response(args.checkpoint, args.first_track, args.tracks, args.pedals, args.after, args.samples,

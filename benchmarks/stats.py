@@ -219,8 +219,8 @@ MIN_RUNS = 2  # fewer runs than this on a side of a claim: no spread to measure,
 SMALL_SAMPLE_NOTE = (
     "An exact test over few units has a floor: over n seed pairs the sign-flip test's smallest one-sided p is "
     "1/2^n (1/8 for 3 pairs, 1/16 for 4), and over two groups of 3 runs the permutation test's is 1/C(6, 3) = 0.05, "
-    "so with fewer than 5 pairs, or 3 runs a side or fewer, a claim is at best \"weak\" however clearly every run "
-    "agrees."
+    "so with fewer than 5 pairs, or two groups whose 1/C(n+m, n) is not below 0.05 (3 and 3 runs, 2 and 4), a claim "
+    "is at best \"weak\" however clearly every run agrees."
 )
 
 
@@ -281,7 +281,8 @@ def pairs_needed(diffs_sd: float, effect: float, alpha: float = ALPHA, power: fl
     """The fewest seed pairs n for which a paired t test at level `alpha` detects a true mean difference `effect`
     with probability `power`, the paired differences' SD being `diffs_sd`: under the effect the statistic is
     noncentral t with n - 1 degrees of freedom and noncentrality effect / diffs_sd * sqrt(n); "two-sided" (the
-    default: a t 95% interval clear of 0, what ``verdict`` asks) or "greater". For SD 0.48 (the LSTM-minus-GRU win
+    default: a t 95% interval clear of 0 on either side; ``verdict`` asks it to lie above 0 and, besides, the
+    sign-flip p below 0.05, which needs 5 pairs or more) or "greater". For SD 0.48 (the LSTM-minus-GRU win
     rates after 150 races) and an effect of 0.5: 10 pairs; of 0.3: 23 (one-sided: 8 and 18)."""
     from scipy import stats as sps
 

@@ -14,7 +14,7 @@ trial code: ``--preset cpu`` with the flag set on top, one car, ``--updates`` up
 updates), in its own run directory ``<storage>/<name>/<tag>/trials/single_<variant>_seed<S>/``.
 A flag set is ``name=value`` pairs of the scripts' ``Args`` separated by spaces, or ``default`` (the preset alone);
 its tag names its directory (``head-sigma-1.0``). The grid of a sweep is fixed when it starts (``sweep.json``):
-the same command continues it, another grid needs another ``--name``.
+the same command continues it; another grid, or other trial settings (``SWEEP_FIELDS``), needs another ``--name``.
 
 ``--report`` measures every finished trial's final policy (``latest.pt`` at ``--updates``, or when the CPU budget
 ran out) on the screening tracks
@@ -37,7 +37,6 @@ import os
 import re
 import sys
 
-import tyro
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
@@ -61,7 +60,8 @@ class Sweep:
     seeds: tuple[int, ...] = (11, 12)
     """seeds of every flag set"""
     updates: int = 3100
-    """updates of every trial (the screened policy is the trial's latest.pt there); with --cpu-hours, ignored"""
+    """updates of every trial (the screened policy is the trial's latest.pt there); with --cpu-hours, ignored (but
+    fixed with the sweep, as every setting is)"""
     cpu_hours: float = 0.0
     """if > 0: a CPU-time budget per trial (process CPU-hours on --torch-threads threads) that ends it instead of
     --updates, to compare flag sets that change the cost of an update at equal CPU time"""
@@ -141,7 +141,8 @@ def trial_name(trial) -> str:
 
 
 def check(sweep: Sweep) -> None:
-    """Refuse, before Ray starts: an unknown flag or bad value, a duplicate tag, or another grid under this name."""
+    """Refuse, before Ray starts: an unknown flag or bad value, a duplicate tag, or another grid or other
+    SWEEP_FIELDS under this name."""
     import importlib
 
     tags = [tag_of(flags) for flags in sweep.grid]
@@ -344,4 +345,6 @@ def main(sweep: Sweep) -> None:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Sweep))
+    from utils.run import tyro_cli
+
+    main(tyro_cli(Sweep))

@@ -36,12 +36,11 @@ from typing import Literal
 
 import numpy as np
 import torch
-import tyro
 from torch import nn
 from torch.utils.flop_counter import FlopCounterMode
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from utils.run import cpu_has_bf16, keep_freed_memory, resolve_amp  # noqa: E402  (keep_freed_memory: --malloc-fix)
+from utils.run import cpu_has_bf16, keep_freed_memory, resolve_amp, tyro_cli  # noqa: E402  (keep_freed_memory: malloc)
 
 CONFIGS = {
     "paper-100": {"imagination_starts": 100},  # the paper authors' setting
@@ -255,4 +254,4 @@ def main(args: Args) -> None:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    main(tyro_cli(Args))

@@ -135,6 +135,16 @@ def test_shapes_through_every_network(script, image_size, norm):
     assert log_pis.shape == (4, B * L) and actions.shape == stds.shape == (4, B * L, 2)
 
 
+def test_input_to_frames_undoes_frames_to_input_exactly(script):
+    """Every uint8 level, in the layout the env gives (H, W, 3), survives the round trip the videos take: the
+    network's input (3, H, W) in [-0.5, 0.5] and back; reconstructions outside that range clip to 0 and 255."""
+    frames = torch.arange(256, dtype=torch.uint8).repeat(3).reshape(16, 16, 3)
+    images = script.frames_to_input(frames)
+    assert images.shape == (3, 16, 16) and images.min() == -0.5 and images.max() == 0.5
+    assert torch.equal(script.input_to_frames(images), frames)
+    assert script.input_to_frames(torch.tensor([-0.7, 0.6]).reshape(2, 1, 1)).flatten().tolist() == [0, 255]
+
+
 @pytest.mark.parametrize("c_in, c_out, kernel, stride, size", [(4, 3, 12, 4, 14), (8, 4, 4, 2, 6), (8, 8, 3, 1, 4)])
 def test_subpixel_conv_transpose_equals_conv_transpose(script, c_in, c_out, kernel, stride, size):
     torch.manual_seed(0)

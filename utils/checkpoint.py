@@ -11,7 +11,7 @@ too (else an export drives without it: test_acting_only_export_acts_exactly_like
 
 * a checkpoint is a dict ``{"variant", "args" (dict), "counters", "agents" (one state dict per agent), "rng",
   "extra"}`` saved with ``torch.save`` and read back with ``weights_only=True`` (tensors, numbers, strings, lists
-  and dicts only); an acting-only export has ``"kind": "policy"`` and no ``"rng"``;
+  and dicts only); an acting-only export has ``"kind": "policy"`` and no ``"rng"`` or ``"extra"``;
 * a replay save is a directory of compressed ``chunk_<c>_<total steps>.npz`` files and ``meta.npz``, its manifest
   (counters and chunk files). A save writes only the chunks changed since the last save, each to a new file, so
   a checkpoint naming an earlier manifest still loads until ``prune_replay``.

@@ -5,9 +5,9 @@ collector records of a car is what its agent's replay stores (``CarEpisode``: fr
 action that led to each, the summed reward of the held steps, terminal or not) and what a race reads of it
 (``READINGS``). Training, evaluation (``drive_races``), race.py and the benchmarks all drive cars through ``Races``.
 
-What it uses of a script's ``Args``: ``action_repeat``, ``image_size``, ``dead_zone_end`` (the edge below which a
-pedal value brakes) and, in ``drive_races``, ``eval_policy``, ``eval_seed`` and ``eval_episodes``. What it uses of
-an agent: ``action_dim``, ``initial_state(n)`` and ``act(obs, state, is_first, policy) -> (actions, state)``.
+What it uses of a script's ``Args``: ``action_repeat``, ``image_size``, ``dead_zone_end`` (the edge at or below
+which a pedal value brakes) and, in ``drive_races``, ``eval_policy``, ``eval_seed`` and ``eval_episodes``. What it
+uses of an agent: ``action_dim``, ``initial_state(n)`` and ``act(obs, state, is_first, policy) -> (actions, state)``.
 """
 
 from __future__ import annotations

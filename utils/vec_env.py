@@ -26,11 +26,11 @@ Every info dict has the keys:
 plus the env's own per-agent info, passed through. ``reset()`` returns only observations, as in SB3;
 its infos (the env's reset infos with ``"alive"`` and ``"is_first": True``) are kept in
 ``reset_infos``, which auto-resets update too. A slot's returned observation is real exactly when
-``(alive and not done) or is_first``.
+``(alive and not done) or is_first`` (after ``reset()``: for the agents the env has, ``alive``).
 
 With ``num_agents=1`` each slot is exactly an SB3 sub-environment (every done ends the race), so SB3's
-own algorithms train on it. With more agents, ``VecMonitor`` episode lengths of a slot include the
-steps spent out of the race, because the slot is only done once.
+own algorithms train on it. With more agents, a slot is done only once per race (when its car goes out), so
+``VecMonitor`` counts the steps its car then spends out in that slot's next episode.
 """
 
 from __future__ import annotations
