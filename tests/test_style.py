@@ -17,3 +17,15 @@ def test_no_python_line_exceeds_the_configured_length():
     long = [f"{os.path.relpath(p, ROOT)}:{i}" for p in files for i, line in enumerate(open(p), 1)
             if len(line.rstrip("\n")) > limit]  # fmt: skip
     assert not long, f"lines over {limit} columns: {long}"
+
+
+def test_every_command_line_parses_through_tyro_cli():
+    """utils.run.tyro_cli is tyro.cli with each flag's wrapped docstring as one --help paragraph (tested in
+    test_reliability.py); a command line that called tyro.cli itself would break every wrapped help line."""
+    folders = ["", "envs", "utils", "benchmarks"]
+    files = [p for folder in folders for p in glob.glob(os.path.join(ROOT, folder, "*.py"))]
+    direct = [os.path.relpath(p, ROOT) for p in files
+              if "tyro.cli(" in open(p).read() and not p.endswith(os.path.join("utils", "run.py"))]  # fmt: skip
+    assert not direct, f"these call tyro.cli instead of utils.run.tyro_cli: {direct}"
+    users = [p for p in files if "tyro_cli(" in open(p).read()]
+    assert len(users) >= 9  # race, evaluate, the run plumbing and the benchmarks' command lines
