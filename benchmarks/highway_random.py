@@ -61,23 +61,29 @@ def agent_evaluations(run_dir: str) -> list[dict]:
     return rows
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--episodes", type=int, default=5, help="scenarios eval_seed .. eval_seed + episodes - 1")
     parser.add_argument("--repeats", type=int, default=2, help="independent draws of random actions per scenario")
     parser.add_argument("--eval-seed", type=int, default=10_000)
     parser.add_argument("--run", help="a dreamer run on highway-intersection: print its evaluations too")
     parser.add_argument("--csv", help="with --run: write its evaluations and the random reference to this CSV")
-    args = parser.parse_args()
-    if args.episodes < 1 or args.repeats < 1:
-        parser.error(f"--episodes and --repeats must be >= 1, got {args.episodes} and {args.repeats}")
+    parser.add_argument("--num-agents", type=int, help="cars in the scenarios (default: the --run's, else 2)")
+    args = parser.parse_args(argv)
+    if args.episodes < 1 or args.repeats < 1 or (args.num_agents is not None and args.num_agents < 1):
+        parser.error(f"--episodes, --repeats and --num-agents must be >= 1, got {args.episodes}, {args.repeats} and "
+                     f"{args.num_agents}")
     if args.csv and not args.run:
         parser.error("--csv needs --run (it saves that run's evaluations)")
     try:
         evaluations = agent_evaluations(args.run) if args.run else []
     except (FileNotFoundError, ValueError) as error:
         parser.error(str(error))
-    returns = random_returns(args.episodes, args.repeats, args.eval_seed)
+    cars = len([key for key in evaluations[0] if key.startswith("car_")]) if evaluations else None
+    if cars is not None and args.num_agents not in (None, cars):
+        parser.error(f"--num-agents {args.num_agents}: the run {args.run!r} has {cars} cars")
+    num_agents = cars or args.num_agents or 2
+    returns = random_returns(args.episodes, args.repeats, args.eval_seed, num_agents)
     per_agent = returns.mean(axis=(0, 1))
     spread = returns.mean(axis=2).std()
     print(

@@ -10,7 +10,8 @@ final protocol's: its report tracks 10300..10329):
   of races ended by an elimination (``drive_races``, utils/collector.py);
 * the model on those real episodes (sampled policy; ``calibration.calibrate_checkpoint``): the imagined H-step task
   return against the real one from the same states, and on the frames where a car was eliminated the reward head's
-  mean (the real reward there is the -100 penalty) and the continue head's probability (the real value there is 0);
+  mean (the real reward there is about -100: the penalty plus that decision's other terms) and the continue head's
+  probability (the real value there is 0);
 * the model's view of the pedal (``pedal_response.py``): after 40 decisions of the mean action on the block's first
   3 tracks, the pedal held at -1, 0, 0.3 and 1 for H decisions; the range over the pedals of the mean imagined
   return and of the mean real one (a model that sees the pedal imagines a range near the real one);

@@ -239,8 +239,8 @@ def _rotation(angle: float) -> np.ndarray:
 
 
 class TrackRenderer:
-    """Draws 96x96 egocentric views (CarRacing's colours, zoom and dashboard) and the
-    ``rgb_array`` race frame.
+    """Draws 96x96 egocentric views (CarRacing's colours, zoom and dashboard; its final zoom from the first
+    frame, where CarRacing zooms in over its first second) and the ``rgb_array`` race frame.
 
     The static scene (background, grass squares, road tiles, curbs) is rasterised once into
     a world-aligned image; a view is an affine warp of it (rotate with the car, CarRacing's
@@ -391,8 +391,8 @@ class MultiCarRacing(ParallelEnv):
     is gas ``u``; ``u <= dead_zone`` brakes with strength ``|u|`` (no effect below ``brake_speed_threshold``);
     in between the car coasts. ``"classic"``: CarRacing's ``[steer, gas, brake]`` with its bounds. Finite
     out-of-range actions are clipped; NaN or infinite values, non-numeric values, wrong shapes, unknown or finished
-    agents and a racing car without an action raise ``ValueError`` naming the agent, before anything in the race
-    changes.
+    agents and a racing car without an action raise ``ValueError`` naming the agent (where there is one), before
+    anything in the race changes.
 
     ## Observation Space
     Per agent ``Box(0, 255, (96, 96, 3), uint8)``: its own camera, following and rotating with its car, the own car
@@ -406,7 +406,7 @@ class MultiCarRacing(ParallelEnv):
 
     ## Starting State
     Under race rules two or more cars start on a staggered two-column grid behind the start line, in a random order;
-    a single car, and every car under ``rules="carracing"``, starts at CarRacing's pose on tile 0. All randomness
+    a single car (under either rules) starts at CarRacing's pose on tile 0. All randomness
     (track, grid order) comes from the seed of ``reset``.
 
     ## Episode End
@@ -427,9 +427,9 @@ class MultiCarRacing(ParallelEnv):
         num_agents: number of cars, agents ``car_0 .. car_{N-1}``.
         action_mode: ``"throttle_brake"``: ``[steer, u]`` in [-1, 1]^2 with the paper's
             dead zone on ``u``; ``"classic"``: CarRacing's ``[steer, gas, brake]``.
-        rules: ``"race"`` (the paper's rules) or ``"carracing"`` (gymnasium CarRacing-v3: no
-            brake threshold, no off-road/stall elimination, no collision or speed terms, cars
-            start where CarRacing puts its car; the dead zone is the action mode's, so only
+        rules: ``"race"`` (the paper's rules) or ``"carracing"`` (gymnasium CarRacing-v3, one car
+            only: no brake threshold, no off-road/stall elimination, no speed term, the car
+            starts where CarRacing puts it; the dead zone is the action mode's, so only
             ``action_mode="classic"`` has none).
         dead_zone: lower edge of the throttle-brake dead zone: ``u <= dead_zone`` brakes,
             ``dead_zone < u <= 0`` coasts. Change it between episodes with ``set_dead_zone``.
@@ -478,6 +478,9 @@ class MultiCarRacing(ParallelEnv):
             raise ValueError(f"action_mode must be one of {ACTION_MODES}, got {action_mode!r}")
         if rules not in RULES:
             raise ValueError(f"rules must be one of {RULES}, got {rules!r}")
+        if rules == "carracing" and num_agents != 1:  # (its cars would start on one pose, their hulls colliding)
+            raise ValueError(f"rules='carracing' is CarRacing-v3's one-car game: num_agents must be 1, "
+                             f"got {num_agents}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
         if not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
@@ -683,9 +686,11 @@ class MultiCarRacing(ParallelEnv):
         if self._window is None:
             pygame.display.init()
             self._window = pygame.display.set_mode(frame.shape[1::-1])
+            self._clock = pygame.time.Clock()
         pygame.event.pump()
         self._window.blit(pygame.surfarray.make_surface(frame.swapaxes(0, 1)), (0, 0))
         pygame.display.flip()
+        self._clock.tick(self.metadata["render_fps"])  # real time, as CarRacing's human mode
         return None
 
     def close(self):
@@ -1108,6 +1113,7 @@ class SingleCarRacing(gymnasium.Env):
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         obs, infos = self.race.reset(seed=seed, options=options)
+        self._np_random = self.race.np_random  # env.np_random: the generator the track came from
         return obs[self.agent], infos[self.agent]
 
     def step(self, action):

@@ -45,6 +45,31 @@ def test_single_car_env_is_the_one_car_race():
         o2, r2, *_ = race.step({"car_0": a})
         np.testing.assert_array_equal(o1, o2["car_0"])
         assert r1 == r2["car_0"]
+    assert single.np_random is single.race.np_random  # env.np_random is the generator the track came from
+
+
+def test_human_mode_shows_the_race_frame_in_real_time(monkeypatch):
+    """As CarRacing's human mode: reset and every step show the frame in a window (so does render()), and the clock
+    holds the loop at render_fps."""
+    import pygame
+
+    monkeypatch.setenv("SDL_VIDEODRIVER", "offscreen")
+    ticks = []
+
+    class Clock:
+        def tick(self, fps):
+            ticks.append(fps)
+
+    monkeypatch.setattr(pygame.time, "Clock", Clock)
+    env = MultiCarRacing(num_agents=1, render_mode="human")
+    env.reset(seed=0)
+    for _ in range(2):
+        env.step({"car_0": np.zeros(2)})
+        assert env.render() is None
+    shown = pygame.surfarray.array3d(pygame.display.get_surface()).swapaxes(0, 1)
+    env.close()
+    assert ticks == [env.metadata["render_fps"]] * 5 == [50] * 5  # reset, 2 steps, 2 calls of render()
+    assert shown.shape[:2] == env._race_frame().shape[:2] and shown.std() > 0  # a picture, not a blank window
 
 
 @pytest.fixture
@@ -112,6 +137,7 @@ def test_stepping_a_finished_race_is_an_error():
         ({"num_agents": 0}, "num_agents must be a positive integer"),
         ({"action_mode": "joystick"}, "action_mode must be one of"),
         ({"rules": "f1"}, "rules must be one of"),
+        ({"rules": "carracing", "num_agents": 2}, "one-car game: num_agents must be 1, got 2"),
         ({"dead_zone": 0.5}, r"dead_zone must lie in \[-1, 0\]"),
         ({"max_steps": 0}, "max_steps must be a positive integer"),
         ({"render_mode": "video"}, "render_mode must be None or one of"),

@@ -164,7 +164,7 @@ def test_runs_through_make_vec_env_in_worker_processes():
     venv.close()
 
 
-def test_highway_random_reads_a_runs_evaluations_per_car_over_sittings(tmp_path):
+def test_highway_random_reads_a_runs_evaluations_per_car_over_sittings(tmp_path, monkeypatch, capsys):
     from highway_random import agent_evaluations
     from torch.utils.tensorboard import SummaryWriter
 
@@ -192,6 +192,25 @@ def test_highway_random_reads_a_runs_evaluations_per_car_over_sittings(tmp_path)
     writer.close()
     with pytest.raises(ValueError, match="logged no evaluation .*--eval-every"):
         agent_evaluations(no_eval)
+
+    # the random reference drives as many cars as the run has (a 2-car reference for it: a mismatch is refused)
+    import highway_random
+
+    drawn = []
+    monkeypatch.setattr(highway_random, "random_returns", lambda e, r, s, n: drawn.append(n) or np.zeros((r, e, n)))
+    highway_random.main(["--run", run_dir, "--episodes", "1", "--repeats", "1", "--csv", str(tmp_path / "h.csv")])
+    highway_random.main(["--episodes", "1", "--repeats", "1", "--num-agents", "3"])
+    three = str(tmp_path / "three_cars")
+    writer = SummaryWriter(three)
+    for i in range(3):
+        writer.add_scalar(f"car_{i}/eval/episodic_return", 1.0, 10)
+    writer.close()
+    highway_random.main(["--run", three, "--episodes", "1", "--repeats", "1"])
+    assert drawn == [2, 3, 3]
+    assert open(tmp_path / "h.csv").readline().strip() == "env_steps,updates,car_0,car_1"
+    with pytest.raises(SystemExit):
+        highway_random.main(["--run", run_dir, "--num-agents", "3"])
+    assert "--num-agents 3: the run " in capsys.readouterr().err
 
 
 def test_dreamer_on_highway_logs_evaluations_but_no_steer_statistic(tmp_path):
