@@ -51,7 +51,6 @@ import types
 import typing
 from typing import Literal, NamedTuple
 
-
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))

@@ -79,7 +79,7 @@ def main(argv: list[str] | None = None) -> None:
         evaluations = agent_evaluations(args.run) if args.run else []
     except (FileNotFoundError, ValueError) as error:
         parser.error(str(error))
-    cars = len([key for key in evaluations[0] if key.startswith("car_")]) if evaluations else None
+    cars = len({key for row in evaluations for key in row if key.startswith("car_")}) or None  # (none without --run)
     if cars is not None and args.num_agents not in (None, cars):
         parser.error(f"--num-agents {args.num_agents}: the run {args.run!r} has {cars} cars")
     num_agents = cars or args.num_agents or 2

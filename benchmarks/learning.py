@@ -171,7 +171,7 @@ class Args:
     protocol_report: bool = False
     """mode: rewrite learning_final.md from the final protocol's learning_final.csv and its peers' rows of the
     report tracks in <peer>_peer.csv and <peer>_peer_curve.csv (no agent is driven; the random-action and pursuit
-    references are, once, if benchmarks/results/references_report.json is missing)"""
+    references are, once, if <--results-dir>/references_report.json is missing)"""
     protocol_ship: bool = False
     """mode: choose the shipped agent of --variant: the final policies of the protocol's seeds (under
     --runs-dir: the seeds of --ship-seeds, every one by default; --seed is not read) and pretrained/<variant>_cpu.pt

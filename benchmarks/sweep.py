@@ -37,7 +37,6 @@ import os
 import re
 import sys
 
-
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -61,7 +60,7 @@ class Sweep:
     """seeds of every flag set"""
     updates: int = 3100
     """updates of every trial (the screened policy is the trial's latest.pt there); with --cpu-hours, ignored (but
-    fixed with the sweep, as every setting is)"""
+    fixed with the sweep, as every SWEEP_FIELDS setting is)"""
     cpu_hours: float = 0.0
     """if > 0: a CPU-time budget per trial (process CPU-hours on --torch-threads threads) that ends it instead of
     --updates, to compare flag sets that change the cost of an update at equal CPU time"""

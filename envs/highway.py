@@ -13,10 +13,9 @@ Id ``"highway-intersection"`` in :func:`utils.vec_env.make_vec_env`. Two control
   values are clipped;
 - reward per agent: ``info["agents_rewards"][i]``, highway-env's per-vehicle reward;
 - termination: highway-env's own rule for the whole episode (``IntersectionEnv._is_terminated``:
-  any controlled vehicle crashed, or all arrived; with ``offroad_terminal`` in the config, also car_0 off the
-  road) ends it for every agent at once; truncation at
-  ``duration`` seconds likewise. A vehicle that arrives while the other still drives stays in the
-  episode, as in highway-env.
+  any controlled vehicle crashed, or all arrived; with ``offroad_terminal`` set, also car_0 off the road) ends it
+  for every agent at once; truncation at ``duration`` seconds likewise. A vehicle that arrives while the other
+  still drives stays in the episode, as in highway-env.
 - infos per agent: ``speed``, ``crashed``, ``arrived``, ``on_road`` of the agent's own vehicle, plus
   highway-env's ``agents_rewards``, ``agents_terminated`` and ``rewards`` (its averaged reward terms).
 

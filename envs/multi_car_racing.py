@@ -1114,6 +1114,8 @@ class SingleCarRacing(gymnasium.Env):
         super().reset(seed=seed)
         obs, infos = self.race.reset(seed=seed, options=options)
         self._np_random = self.race.np_random  # env.np_random: the generator the track came from
+        if self._np_random_seed is None:  # never seeded: gymnasium's "unknown seed" (reading it keeps this generator)
+            self._np_random_seed = -1
         return obs[self.agent], infos[self.agent]
 
     def step(self, action):

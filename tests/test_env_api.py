@@ -46,6 +46,9 @@ def test_single_car_env_is_the_one_car_race():
         np.testing.assert_array_equal(o1, o2["car_0"])
         assert r1 == r2["car_0"]
     assert single.np_random is single.race.np_random  # env.np_random is the generator the track came from
+    unseeded = gymnasium.make(SINGLE_CAR_ID).unwrapped
+    unseeded.reset()
+    assert unseeded.np_random_seed == -1 and unseeded.np_random is unseeded.race.np_random  # (gymnasium: unknown)
 
 
 def test_human_mode_shows_the_race_frame_in_real_time(monkeypatch):
