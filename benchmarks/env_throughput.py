@@ -8,7 +8,7 @@ the ratio (target: the two-car race at least 10x CarRacing-v3, i.e. 20x per car)
 
 from __future__ import annotations
 
-import argparse
+import dataclasses
 import os
 import sys
 import time
@@ -18,6 +18,15 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 from envs import MultiCarRacing  # noqa: E402
+from utils.run import tyro_cli, usage_error  # noqa: E402
+
+
+@dataclasses.dataclass
+class Args:
+    seconds: float = 10.0
+    """measuring time per env (wall seconds)"""
+    seed: int = 0
+    """track seed of the first race in each env, and seed of its random actions"""
 
 
 def carracing_sps(seconds: float, seed: int) -> float:
@@ -46,11 +55,10 @@ def race_sps(seconds: float, seed: int, num_agents: int) -> float:
     return steps / (time.perf_counter() - start)
 
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--seconds", type=float, default=10.0, help="measuring time per env")
-    parser.add_argument("--seed", type=int, default=0)
-    args = parser.parse_args()
+def main(argv: list[str] | None = None) -> None:
+    args = tyro_cli(Args, argv, __doc__)
+    if not args.seconds > 0:
+        usage_error("env_throughput.py", f"--seconds must be > 0, got {args.seconds}")
     reference = carracing_sps(args.seconds, args.seed)
     race = race_sps(args.seconds, args.seed, num_agents=2)
     single = race_sps(args.seconds, args.seed, num_agents=1)

@@ -13,7 +13,7 @@ prints (and with ``--csv`` saves) that run's evaluations next to the random refe
 
 from __future__ import annotations
 
-import argparse
+import dataclasses
 import glob
 import os
 import sys
@@ -22,6 +22,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from utils import make_vec_env  # noqa: E402
+from utils.run import tyro_cli, usage_error  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from common import write_table  # noqa: E402
@@ -61,27 +62,40 @@ def agent_evaluations(run_dir: str) -> list[dict]:
     return rows
 
 
+@dataclasses.dataclass
+class Args:
+    episodes: int = 5
+    """scenarios eval_seed .. eval_seed + episodes - 1"""
+    repeats: int = 2
+    """independent draws of random actions per scenario"""
+    eval_seed: int = 10_000
+    """the first scenario's seed (the dreamer scripts' --eval-seed)"""
+    run: str | None = None
+    """a dreamer run on highway-intersection: print its evaluations too"""
+    csv: str | None = None
+    """with --run: write its evaluations and the random reference to this CSV"""
+    num_agents: int | None = None
+    """cars in the scenarios (default: the --run's, else 2)"""
+
+
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--episodes", type=int, default=5, help="scenarios eval_seed .. eval_seed + episodes - 1")
-    parser.add_argument("--repeats", type=int, default=2, help="independent draws of random actions per scenario")
-    parser.add_argument("--eval-seed", type=int, default=10_000)
-    parser.add_argument("--run", help="a dreamer run on highway-intersection: print its evaluations too")
-    parser.add_argument("--csv", help="with --run: write its evaluations and the random reference to this CSV")
-    parser.add_argument("--num-agents", type=int, help="cars in the scenarios (default: the --run's, else 2)")
-    args = parser.parse_args(argv)
+    args = tyro_cli(Args, argv, __doc__)
+
+    def error(message: str) -> None:
+        usage_error("highway_random.py", message)
+
     if args.episodes < 1 or args.repeats < 1 or (args.num_agents is not None and args.num_agents < 1):
-        parser.error(f"--episodes, --repeats and --num-agents must be >= 1, got {args.episodes}, {args.repeats} and "
-                     f"{args.num_agents}")
+        error(f"--episodes, --repeats and --num-agents must be >= 1, got {args.episodes}, {args.repeats} and "
+              f"{args.num_agents}")
     if args.csv and not args.run:
-        parser.error("--csv needs --run (it saves that run's evaluations)")
+        error("--csv needs --run (it saves that run's evaluations)")
     try:
         evaluations = agent_evaluations(args.run) if args.run else []
-    except (FileNotFoundError, ValueError) as error:
-        parser.error(str(error))
+    except (FileNotFoundError, ValueError) as exception:
+        error(str(exception))
     cars = len({key for row in evaluations for key in row if key.startswith("car_")}) or None  # (none without --run)
     if cars is not None and args.num_agents not in (None, cars):
-        parser.error(f"--num-agents {args.num_agents}: the run {args.run!r} has {cars} cars")
+        error(f"--num-agents {args.num_agents}: the run {args.run!r} has {cars} cars")
     num_agents = cars or args.num_agents or 2
     returns = random_returns(args.episodes, args.repeats, args.eval_seed, num_agents)
     per_agent = returns.mean(axis=(0, 1))

@@ -37,13 +37,14 @@ A row of a file written before that column was measured on the old default track
 
 from __future__ import annotations
 
-import argparse
 import contextlib
+import dataclasses
 import glob
 import json
 import os
 import sys
 import time
+from typing import Literal
 
 import gymnasium
 import numpy as np
@@ -84,7 +85,7 @@ ZOO_LSTM = dict(
     policy_kwargs=dict(log_std_init=-2, ortho_init=False, enable_critic_lstm=False, activation_fn="GELU",
                        lstm_hidden_size=128),
 )  # fmt: skip
-ALGOS = {  # --algo: (variant: the rows' name, the run directory's prefix, the csv's; hyperparameters)
+ALGOS = {  # --algo (Args.algo): (variant: the rows' name, the run directory's prefix, the csv's; hyperparameters)
     "ppo": ("ppo", ZOO),
     "recurrent-ppo": ("recurrent_ppo", ZOO_LSTM),
 }
@@ -371,42 +372,53 @@ def curve(algo: str, seed: int, run_dir: str, first_track: int, tracks: int, pat
     return rows
 
 
+@dataclasses.dataclass
+class Args:
+    algo: Literal["ppo", "recurrent-ppo"] = "ppo"
+    """SB3's PPO or sb3-contrib's RecurrentPPO, each with rl-baselines3-zoo's CarRacing hyperparameters"""
+    seed: int = 11
+    """the run's seed (its directory: <runs-dir>/<variant>__<seed>)"""
+    cpu_hours: float = common.PROTOCOL_CPU_HOURS
+    """CPU-time budget of the whole run (all sittings): the final protocol's per Dreamer run"""
+    budget_steps: int | None = None
+    """PPO steps the run takes at most and PPO's learning rate decays over (default: the zoo's n_timesteps)"""
+    torch_threads: int = 1
+    """torch threads of the run (and of its evaluation)"""
+    first_track: int = FINAL_TRACKS[0]
+    """first evaluation track"""
+    tracks: int = FINAL_TRACKS[1]
+    """evaluation tracks from --first-track"""
+    snapshot_steps: tuple[int, ...] = SNAPSHOT_STEPS
+    """env steps at which the model is kept as model_<steps>.zip"""
+    evaluate_only: bool = False
+    """only evaluate the saved model"""
+    curve: bool = False
+    """only evaluate every snapshot: <variant>_peer_curve.csv"""
+    runs_dir: str = RUNS
+    """where the runs' directories are"""
+    results: str | None = None
+    """the row's csv (default benchmarks/results/<variant>_peer.csv); the curve's csv is <variant>_peer_curve.csv
+    beside it"""
+
+
 def main(argv=None) -> dict | list[dict]:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--algo", choices=tuple(ALGOS), default="ppo")
-    parser.add_argument("--seed", type=int, default=11)
-    parser.add_argument(
-        "--cpu-hours", type=float, default=common.PROTOCOL_CPU_HOURS,
-        help="CPU-time budget of the whole run (all sittings): the final protocol's per Dreamer run",
-    )  # fmt: skip
-    parser.add_argument(
-        "--budget-steps", type=int, default=None,
-        help="PPO steps the run takes at most and PPO's learning rate decays over (default: the zoo's n_timesteps)",
-    )  # fmt: skip
-    parser.add_argument("--torch-threads", type=int, default=1)
-    parser.add_argument("--first-track", type=int, default=FINAL_TRACKS[0], help="first evaluation track")
-    parser.add_argument("--tracks", type=int, default=FINAL_TRACKS[1], help="evaluation tracks from --first-track")
-    parser.add_argument(
-        "--snapshot-steps", type=int, nargs="+", default=list(SNAPSHOT_STEPS),
-        help="env steps at which the model is kept as model_<steps>.zip",
-    )  # fmt: skip
-    mode = parser.add_mutually_exclusive_group()
-    mode.add_argument("--evaluate-only", action="store_true", help="only evaluate the saved model")
-    mode.add_argument("--curve", action="store_true", help="only evaluate every snapshot: <variant>_peer_curve.csv")
-    parser.add_argument("--runs-dir", default=RUNS)
-    parser.add_argument(
-        "--results", default=None, help="the row's csv (default benchmarks/results/<variant>_peer.csv); the curve's "
-        "csv is <variant>_peer_curve.csv beside it",
-    )  # fmt: skip
-    args = parser.parse_args(argv)
+    from utils.run import tyro_cli, usage_error
+
+    args = tyro_cli(Args, argv, __doc__)
+
+    def error(message: str) -> None:
+        usage_error("ppo_peer.py", message)
+
+    if args.evaluate_only and args.curve:
+        error("--evaluate-only and --curve are two modes: give one")
     variant, config = ALGOS[args.algo]
     budget_steps = config["n_timesteps"] if args.budget_steps is None else args.budget_steps
     if not args.cpu_hours > 0:
-        parser.error(f"--cpu-hours must be > 0, got {args.cpu_hours}")
-    for flag, value in (("--budget-steps", budget_steps), ("--tracks", args.tracks),
-                        ("--torch-threads", args.torch_threads), ("--snapshot-steps", min(args.snapshot_steps))):
+        error(f"--cpu-hours must be > 0, got {args.cpu_hours}")
+    for flag, value in (("--budget-steps", budget_steps), ("--tracks", args.tracks), ("--torch-threads",
+                        args.torch_threads), ("--snapshot-steps", min(args.snapshot_steps, default=1))):  # fmt: skip
         if value < 1:
-            parser.error(f"{flag} must be >= 1, got {value}")
+            error(f"{flag} must be >= 1, got {value}")
     import torch
 
     torch.set_num_threads(args.torch_threads)
